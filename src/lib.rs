@@ -1,0 +1,22 @@
+//! rigd: a rig-control and acquisition daemon for offset-image averaging metrology.
+//!
+//! The map of the code is `docs/architecture.md`. In short:
+//! - `pipeline`: frames + positions -> measured target offsets (the science).
+//! - `folder`: the `rigctl process` folder contract (frames/*.png + steps.csv).
+//! - `report`: the paper's tables and figures from repeated runs.
+//! - `hw`: hardware traits and drivers (GRBL axis, PI GCS piezo, V4L2 camera, sim adapters).
+//! - `xl80`: Renishaw XL-80 interferometer logs (CSV export, CARTO .rtx), following and alignment.
+//! - `config`: the rig's TOML configuration.
+//! - `daemon`: protocol, server, job runner, sessions, replay.
+//! - `cli`: the `rigctl` subcommands; the binaries in `src/bin` are thin.
+
+pub mod cli;
+pub mod config;
+pub mod daemon;
+pub mod folder;
+pub mod hw;
+pub mod pipeline;
+pub mod report;
+pub mod xl80;
+
+pub use rigd_sim as sim;

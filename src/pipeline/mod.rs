@@ -1,0 +1,154 @@
+//! The averaging pipeline: frames + positions -> measured target offsets.
+//!
+//! detect targets -> register frames -> (reconstruct on a k-times finer grid) -> measure.
+//! Push-based so the daemon can process frame i while the axis moves to i+1:
+//! `let mut p = Pipeline::new(opts)?; p.push(frame, position_um)?; ... p.finish()`.
+//! `process_frames` is the same for a folder of frames already on disk.
+//!
+//! Conventions: image coordinates in pixels with pixel centres at integers (OpenCV's);
+//! x to the right, y down; lengths on the board in micrometres.
+
+pub mod detect;
+pub mod estimate;
+pub mod plane;
+pub mod reconstruct;
+pub mod register;
+pub mod run;
+pub mod stats;
+
+pub use run::{process_frames, Pipeline};
+
+use serde::{Deserialize, Serialize};
+
+/// How a circle centre is estimated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Estimator {
+    /// What the paper did: centroids of the thresholded red regions.
+    Paper,
+    /// Least-squares fit of a blurred ring-and-disk model to the pixels (default).
+    #[default]
+    Fit,
+}
+
+/// How frames are combined before (or instead of) measuring.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Combine {
+    /// The paper's: interpolate each frame by k (cubic), shift on the fine grid, average.
+    Interp,
+    /// Direct shift-and-add: each low-resolution pixel accumulated onto the fine grid.
+    Splat,
+    /// No reconstruction: measure every frame, average the per-frame estimates.
+    #[default]
+    Mean,
+}
+
+/// Where each frame's displacement comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Registration {
+    /// Measured in the image from the targets' outer circles (the paper's).
+    #[default]
+    Image,
+    /// From the recorded positions (commanded or interferometer) and the scale.
+    Positions,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ProcessOptions {
+    pub scale_um_per_px: f64,
+    /// Upsampling factor of the reconstruction (1 = none).
+    pub k: u32,
+    pub estimator: Estimator,
+    pub combine: Combine,
+    pub registration: Registration,
+    /// Image displacement (px per px of axis travel) of the scene when the axis moves +1:
+    /// the camera rides the axis, so the scene moves the other way.
+    pub axis_dir: [f64; 2],
+    /// Also reconstruct the whole frame (not only per-target ROIs) and keep it.
+    pub whole_frame: bool,
+}
+
+impl Default for ProcessOptions {
+    fn default() -> Self {
+        ProcessOptions {
+            scale_um_per_px: 774.0,
+            k: 1,
+            estimator: Estimator::default(),
+            combine: Combine::default(),
+            registration: Registration::default(),
+            axis_dir: [-1.0, 0.0],
+            whole_frame: false,
+        }
+    }
+}
+
+/// One measured target.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ObjectResult {
+    /// Board name of the target when a board was given and the target matched.
+    pub name: Option<String>,
+    /// Outer circle centre in the first frame.
+    pub centre_px: [f64; 2],
+    /// Inner centre minus outer centre, camera pixels.
+    pub offset_px: [f64; 2],
+    /// The same in micrometres on the board.
+    pub offset_um: [f64; 2],
+    /// One-sigma uncertainty of `offset_um` (from the fit, or the frame-to-frame scatter).
+    pub sigma_um: Option<[f64; 2]>,
+    /// Nominal offset from the board file.
+    pub nominal_um: Option<[f64; 2]>,
+    pub outer_radius_px: f64,
+    pub inner_radius_px: f64,
+    /// Frames that contributed.
+    pub frames: usize,
+}
+
+/// A target candidate that was found but not measured, and why.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Skipped {
+    pub centre_px: [f64; 2],
+    pub reason: String,
+}
+
+/// Per step: the displacement measured in the image against the one the positions predict.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StepResidual {
+    pub index: usize,
+    pub position_um: f64,
+    pub image_shift_px: [f64; 2],
+    pub position_shift_px: [f64; 2],
+    /// image minus position, micrometres on the board.
+    pub residual_um: [f64; 2],
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProcessResult {
+    pub options: ProcessOptions,
+    pub frames: usize,
+    pub width: u32,
+    pub height: u32,
+    pub objects: Vec<ObjectResult>,
+    pub skipped: Vec<Skipped>,
+    pub steps: Vec<StepResidual>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error("frame {index}: size {got:?} differs from the first frame's {want:?}")]
+    FrameSize {
+        index: usize,
+        got: (u32, u32),
+        want: (u32, u32),
+    },
+    #[error("no target found in frame {index}")]
+    NoTarget { index: usize },
+    #[error("no frames")]
+    NoFrames,
+    #[error("bad option {name}: {message}")]
+    Option { name: &'static str, message: String },
+    #[error("{0}")]
+    Other(String),
+}
