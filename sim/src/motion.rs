@@ -1,0 +1,271 @@
+//! Axis kinematics in real time: where the carriage truly is at any instant.
+//!
+//! One `Axis` is shared (behind an `Arc`) by whoever commands it (the GRBL or GCS emulator,
+//! or an in-process stage) and whoever observes it (the camera's frame clock, the XL-80
+//! synthesizer). Moves follow a trapezoidal velocity profile with finite speed and
+//! acceleration, and end at the commanded position plus a random positioning error, as a
+//! real axis does (the paper's axis was good to about 2 µm).
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use serde::{Deserialize, Serialize};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// Anything that knows where the camera's line of sight truly is at an instant, in µm of
+/// board travel along x and y.
+pub trait TruePosition: Send + Sync {
+    fn true_position_um(&self, t: Instant) -> [f64; 2];
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AxisParams {
+    pub max_speed_um_s: f64,
+    pub accel_um_s2: f64,
+    /// RMS of the random error between commanded and reached position.
+    pub position_error_rms_um: f64,
+    /// Hard travel limits: a move past them trips the limit switch.
+    pub hard_min_um: f64,
+    pub hard_max_um: f64,
+    pub seed: u64,
+}
+
+impl Default for AxisParams {
+    fn default() -> Self {
+        AxisParams {
+            max_speed_um_s: 20_000.0,
+            accel_um_s2: 500_000.0,
+            position_error_rms_um: 2.0,
+            hard_min_um: -5_000.0,
+            hard_max_um: 300_000.0,
+            seed: 1,
+        }
+    }
+}
+
+/// One planned move: from `from_um` at `start` to `to_um`.
+#[derive(Debug, Clone, Copy)]
+struct Segment {
+    start: Instant,
+    from_um: f64,
+    to_um: f64,
+    /// Time to accelerate to `v_peak`, and time at `v_peak`.
+    t_acc: f64,
+    t_flat: f64,
+    v_peak: f64,
+    accel: f64,
+}
+
+impl Segment {
+    fn plan(start: Instant, from_um: f64, to_um: f64, p: &AxisParams) -> Segment {
+        let dist = (to_um - from_um).abs();
+        let a = p.accel_um_s2;
+        // Triangle profile if the move is too short to reach full speed.
+        let v_peak = p.max_speed_um_s.min((dist * a).sqrt());
+        let t_acc = if a > 0.0 { v_peak / a } else { 0.0 };
+        let d_acc = 0.5 * a * t_acc * t_acc;
+        let t_flat = if v_peak > 0.0 {
+            (dist - 2.0 * d_acc).max(0.0) / v_peak
+        } else {
+            0.0
+        };
+        Segment {
+            start,
+            from_um,
+            to_um,
+            t_acc,
+            t_flat,
+            v_peak,
+            accel: a,
+        }
+    }
+
+    fn duration(&self) -> Duration {
+        Duration::from_secs_f64(2.0 * self.t_acc + self.t_flat)
+    }
+
+    fn position_at(&self, t: Instant) -> f64 {
+        let s = t.saturating_duration_since(self.start).as_secs_f64();
+        let dir = (self.to_um - self.from_um).signum();
+        let (ta, tf, v, a) = (self.t_acc, self.t_flat, self.v_peak, self.accel);
+        let d = if s <= ta {
+            0.5 * a * s * s
+        } else if s <= ta + tf {
+            0.5 * a * ta * ta + v * (s - ta)
+        } else if s <= 2.0 * ta + tf {
+            let r = s - ta - tf;
+            0.5 * a * ta * ta + v * tf + v * r - 0.5 * a * r * r
+        } else {
+            return self.to_um;
+        };
+        self.from_um + dir * d
+    }
+}
+
+struct State {
+    segment: Option<Segment>,
+    /// Where the axis rests when no segment is active (true position).
+    rest_um: f64,
+    /// The last commanded target (what the controller believes).
+    commanded_um: f64,
+    rng: ChaCha8Rng,
+}
+
+/// A simulated linear axis.
+pub struct Axis {
+    params: AxisParams,
+    state: Mutex<State>,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MotionError {
+    #[error("target {target_um} µm is past the hard limit [{min_um}, {max_um}] µm")]
+    HardLimit {
+        target_um: f64,
+        min_um: f64,
+        max_um: f64,
+    },
+}
+
+impl Axis {
+    pub fn new(params: AxisParams) -> Axis {
+        let rng = ChaCha8Rng::seed_from_u64(params.seed);
+        Axis {
+            params,
+            state: Mutex::new(State {
+                segment: None,
+                rest_um: 0.0,
+                commanded_um: 0.0,
+                rng,
+            }),
+        }
+    }
+
+    pub fn params(&self) -> &AxisParams {
+        &self.params
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, State> {
+        // A panicking observer must not wedge the axis: the state is plain data.
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Start a move to `target_um` now; returns how long it will take. A move past the hard
+    /// limits is refused (the emulators turn that into their controller's alarm).
+    pub fn command_move(&self, target_um: f64) -> Result<Duration, MotionError> {
+        let p = &self.params;
+        if !(p.hard_min_um..=p.hard_max_um).contains(&target_um) {
+            return Err(MotionError::HardLimit {
+                target_um,
+                min_um: p.hard_min_um,
+                max_um: p.hard_max_um,
+            });
+        }
+        let now = Instant::now();
+        let mut st = self.lock();
+        let from = Self::position_locked(&st, now);
+        let err = if p.position_error_rms_um > 0.0 {
+            Normal::new(0.0, p.position_error_rms_um)
+                .expect("finite rms")
+                .sample(&mut st.rng)
+        } else {
+            0.0
+        };
+        let seg = Segment::plan(now, from, target_um + err, p);
+        st.rest_um = seg.to_um;
+        st.commanded_um = target_um;
+        st.segment = Some(seg);
+        Ok(seg.duration())
+    }
+
+    /// Stop where the axis is now (an idealised instant halt). The controller's idea of the
+    /// position becomes the true one, as after a feed hold and reset.
+    pub fn stop(&self) {
+        let now = Instant::now();
+        let mut st = self.lock();
+        let here = Self::position_locked(&st, now);
+        st.segment = None;
+        st.rest_um = here;
+        st.commanded_um = here;
+    }
+
+    /// Set the position without moving (homing sets the origin).
+    pub fn set_position(&self, position_um: f64) {
+        let mut st = self.lock();
+        st.segment = None;
+        st.rest_um = position_um;
+        st.commanded_um = position_um;
+    }
+
+    fn position_locked(st: &State, t: Instant) -> f64 {
+        match &st.segment {
+            Some(seg) if t < seg.start + seg.duration() => seg.position_at(t),
+            _ => st.rest_um,
+        }
+    }
+
+    /// True position at instant `t` (what an interferometer sees).
+    pub fn position_at(&self, t: Instant) -> f64 {
+        Self::position_locked(&self.lock(), t)
+    }
+
+    /// The controller's position: the last commanded target once motion is done, the
+    /// profile position while moving (it counts steps, it does not see the error).
+    pub fn reported_um(&self, t: Instant) -> f64 {
+        let st = self.lock();
+        match &st.segment {
+            Some(seg) if t < seg.start + seg.duration() => seg.position_at(t),
+            _ => st.commanded_um,
+        }
+    }
+
+    pub fn is_moving(&self, t: Instant) -> bool {
+        let st = self.lock();
+        matches!(&st.segment, Some(seg) if t < seg.start + seg.duration())
+    }
+
+    /// When the current move ends (now, if idle).
+    pub fn move_ends_at(&self) -> Instant {
+        let st = self.lock();
+        match &st.segment {
+            Some(seg) => (seg.start + seg.duration()).max(Instant::now()),
+            None => Instant::now(),
+        }
+    }
+}
+
+impl TruePosition for Axis {
+    fn true_position_um(&self, t: Instant) -> [f64; 2] {
+        [self.position_at(t), 0.0]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_50um_move_takes_time_and_ends_near_the_target() {
+        let axis = Axis::new(AxisParams::default());
+        let d = axis.command_move(50.0).unwrap();
+        // Triangle profile: 2*sqrt(d/a) = 2*sqrt(50/5e5) = 20 ms.
+        assert!((d.as_secs_f64() - 0.020).abs() < 1e-3, "{d:?}");
+        let t0 = Instant::now();
+        let mid = axis.position_at(t0 + d / 2);
+        assert!(mid > 10.0 && mid < 40.0, "mid-move position {mid}");
+        let end = axis.position_at(t0 + d * 2);
+        assert!((end - 50.0).abs() < 10.0, "end {end}");
+        assert_eq!(axis.reported_um(t0 + d * 2), 50.0);
+    }
+
+    #[test]
+    fn past_the_hard_limit_is_refused() {
+        let axis = Axis::new(AxisParams::default());
+        assert!(matches!(
+            axis.command_move(-1e6),
+            Err(MotionError::HardLimit { .. })
+        ));
+    }
+}
