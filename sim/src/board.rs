@@ -209,7 +209,8 @@ impl Board {
 
     /// The paper's board, shipped in `config/boards/paper.toml`.
     pub fn paper() -> Board {
-        Board::parse(PAPER_BOARD, "config/boards/paper.toml").expect("the shipped paper board parses")
+        Board::parse(PAPER_BOARD, "config/boards/paper.toml")
+            .expect("the shipped paper board parses")
     }
 
     pub fn target(&self, name: &str) -> Option<&Target> {

@@ -69,6 +69,8 @@ impl CameraModel {
 
     /// Noise variance in DN² for an expected signal in DN (shot + read + quantisation).
     pub fn noise_var_dn2(&self, signal_dn: f64) -> f64 {
-        signal_dn.max(0.0) / self.gain_e_per_dn + self.read_noise_dn * self.read_noise_dn + 1.0 / 12.0
+        signal_dn.max(0.0) / self.gain_e_per_dn
+            + self.read_noise_dn * self.read_noise_dn
+            + 1.0 / 12.0
     }
 }

@@ -97,7 +97,12 @@ impl Ink {
         let mut disks = Vec::new();
         let mut rects = Vec::new();
         for t in &board.targets {
-            shape_disks(&mut disks, view.board_to_image(cam, t.centre_um), &t.outer, s);
+            shape_disks(
+                &mut disks,
+                view.board_to_image(cam, t.centre_um),
+                &t.outer,
+                s,
+            );
             shape_disks(
                 &mut disks,
                 view.board_to_image(cam, t.inner_centre_um()),
@@ -133,7 +138,14 @@ fn edge(d: f64, inv_sqrt2_sigma: f64) -> f64 {
 }
 
 /// Ink coverage (0..1) of pixel (u, v), area-integrated.
-fn pixel_coverage(ink: &Ink, near: &[usize], near_rects: &[usize], u: f64, v: f64, cam: &CameraModel) -> f64 {
+fn pixel_coverage(
+    ink: &Ink,
+    near: &[usize],
+    near_rects: &[usize],
+    u: f64,
+    v: f64,
+    cam: &CameraModel,
+) -> f64 {
     let sigma = cam.psf_sigma_px.max(1e-3);
     let k = 1.0 / (std::f64::consts::SQRT_2 * sigma);
     // Beyond this distance from an edge the blurred, pixel-integrated profile is flat.
@@ -265,7 +277,13 @@ pub fn add_noise(expected: &[f32], width: u32, cam: &CameraModel, seed: u64) -> 
 }
 
 /// Render one full noisy 8-bit frame (no flicker, vibration or compression: see `frames`).
-pub fn render_frame(board: &Board, cam: &CameraModel, view: &View, light: f64, seed: u64) -> RgbImage {
+pub fn render_frame(
+    board: &Board,
+    cam: &CameraModel,
+    view: &View,
+    light: f64,
+    seed: u64,
+) -> RgbImage {
     let exp = expected_rgb(board, cam, view, [0, 0, cam.width, cam.height], light);
     let px = add_noise(&exp, cam.width, cam, seed);
     RgbImage::from_raw(cam.width, cam.height, px).expect("buffer matches the frame size")
@@ -307,7 +325,11 @@ mod tests {
             .map(|p| (pg - p[1] as f64 / cam.white_dn) / (pg - ig))
             .sum();
         let s = cam.scale_um_per_px;
-        let area = std::f64::consts::PI * ((17000.0f64 / s).powi(2) - (13000.0f64 / s).powi(2) + (6000.0f64 / s).powi(2));
-        assert!((cov - area).abs() / area < 2e-3, "coverage {cov} vs area {area}");
+        let area = std::f64::consts::PI
+            * ((17000.0f64 / s).powi(2) - (13000.0f64 / s).powi(2) + (6000.0f64 / s).powi(2));
+        assert!(
+            (cov - area).abs() / area < 2e-3,
+            "coverage {cov} vs area {area}"
+        );
     }
 }
