@@ -6,9 +6,11 @@
 
 pub mod board;
 pub mod camera;
+pub mod frames;
 pub mod motion;
 pub mod render;
 
 pub use board::Board;
 pub use camera::CameraModel;
-pub use render::View;
+pub use frames::FrameRenderer;
+pub use render::{SceneRenderer, View};
