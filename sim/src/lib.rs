@@ -7,6 +7,7 @@
 pub mod board;
 pub mod camera;
 pub mod camera_clock;
+pub mod crb;
 pub mod frames;
 pub mod motion;
 pub mod render;
