@@ -6,9 +6,16 @@
 
 pub mod board;
 pub mod camera;
+pub mod camera_clock;
+pub mod frames;
 pub mod motion;
 pub mod render;
+pub mod rig;
+pub mod xl80;
 
 pub use board::Board;
 pub use camera::CameraModel;
-pub use render::View;
+pub use frames::FrameRenderer;
+pub use camera_clock::{FrameClockCamera, SimFrame};
+pub use render::{SceneRenderer, View};
+pub use rig::{SimRig, SimRigConfig};
