@@ -1,1 +1,449 @@
-//! (being written)
+//! The rig's TOML configuration (`config/rigd.toml` documents every key).
+//!
+//! Every section is optional so a half-built rig can be brought up piece by piece with
+//! `rigctl hw`; whoever needs a section asks for it with [`Config::axis`] & co., which name
+//! the file and the missing section. Unknown keys are errors (a typo must not silently fall
+//! back to a default on a metrology rig), and every error names the file and the key.
+
+use crate::hw::pixfmt::PixelFormat;
+use crate::pipeline::ProcessOptions;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{path}: cannot read: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// Syntax errors, unknown keys and wrong types: toml's message names the key and line.
+    #[error("{path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("{path}: key `{key}`: {message}")]
+    Invalid {
+        path: PathBuf,
+        key: String,
+        message: String,
+    },
+    #[error("{path}: no [{section}] section (needed to {purpose})")]
+    Missing {
+        path: PathBuf,
+        section: &'static str,
+        purpose: String,
+    },
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// Where the config was read from (not a key; set by [`Config::load`]).
+    #[serde(skip)]
+    pub source: PathBuf,
+    /// The numerically controlled axis that carries the camera.
+    pub axis: Option<StageConfig>,
+    /// The piezo flexure (fine axis), if the rig has one.
+    pub piezo: Option<StageConfig>,
+    pub camera: Option<CameraConfig>,
+    pub xl80: Option<Xl80Config>,
+    #[serde(default)]
+    pub daemon: DaemonConfig,
+    pub board: Option<BoardConfig>,
+    /// Default processing options for jobs that do not set their own.
+    #[serde(default)]
+    pub pipeline: ProcessOptions,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StageDriver {
+    /// GRBL 1.1 over serial (G-code).
+    Grbl,
+    /// Physik Instrumente GCS over serial.
+    Gcs,
+    /// The simulated axis (no hardware).
+    Sim,
+}
+
+/// What the controller does about an alarm found at open (GRBL starts in alarm after a reset
+/// when homing is enabled).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum AlarmPolicy {
+    /// Refuse to move and report the alarm (the safe default).
+    #[default]
+    Fail,
+    /// Clear it with `$X` (position is then unknown to the controller: only for bring-up).
+    Unlock,
+    /// Run the homing cycle.
+    Home,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StageConfig {
+    pub driver: StageDriver,
+    /// Serial port, e.g. `/dev/ttyUSB0` or `/dev/serial/by-id/...` (grbl and gcs).
+    #[serde(default)]
+    pub port: Option<String>,
+    #[serde(default = "default_baud")]
+    pub baud: u32,
+    /// Soft travel limits, checked before anything moves.
+    pub soft_min_um: f64,
+    pub soft_max_um: f64,
+    /// Largest single move accepted (relative or absolute distance from the current position).
+    pub max_step_um: f64,
+    /// Deadline for one reply line.
+    #[serde(default = "default_reply_timeout_ms")]
+    pub reply_timeout_ms: u64,
+    /// Deadline for a move to finish and settle.
+    #[serde(default = "default_move_timeout_ms")]
+    pub move_timeout_ms: u64,
+    /// Deadline for the controller to come up after the port is opened (GRBL resets on open).
+    #[serde(default = "default_open_timeout_ms")]
+    pub open_timeout_ms: u64,
+    /// Extra wait after the controller reports the move done, before a frame counts as fresh.
+    #[serde(default)]
+    pub settle_ms: u64,
+    /// GRBL: what to do about an alarm at open.
+    #[serde(default)]
+    pub on_alarm: AlarmPolicy,
+    /// GRBL: feed rate for moves, mm/min.
+    #[serde(default = "default_feed_mm_min")]
+    pub feed_mm_min: f64,
+    /// GCS: the axis identifier on the controller.
+    #[serde(default = "default_gcs_axis")]
+    pub gcs_axis: String,
+    /// sim: kinematics of the simulated axis (defaults when absent).
+    #[serde(default)]
+    pub sim: Option<rigd_sim::motion::AxisParams>,
+}
+
+fn default_baud() -> u32 {
+    115_200
+}
+fn default_reply_timeout_ms() -> u64 {
+    1_000
+}
+fn default_move_timeout_ms() -> u64 {
+    30_000
+}
+fn default_open_timeout_ms() -> u64 {
+    3_000
+}
+fn default_feed_mm_min() -> f64 {
+    600.0
+}
+fn default_gcs_axis() -> String {
+    "1".to_string()
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CameraDriver {
+    V4l2,
+    Sim,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraConfig {
+    pub driver: CameraDriver,
+    /// v4l2: a device path (`/dev/video0`, `/dev/v4l/by-id/...`) or the device's name as
+    /// `rigctl hw cameras` lists it (matched case-insensitively, first match).
+    #[serde(default)]
+    pub device: Option<String>,
+    #[serde(default = "default_width")]
+    pub width: u32,
+    #[serde(default = "default_height")]
+    pub height: u32,
+    /// Requested pixel format: "YUYV", "MJPG" or "RGB3". The driver may pick another size;
+    /// rigd uses what it returns and says so.
+    #[serde(default = "default_format")]
+    pub format: PixelFormat,
+    /// Manual exposure time in µs (V4L2 exposure_time_absolute is in 100 µs units).
+    /// Absent: leave the camera's setting alone.
+    #[serde(default)]
+    pub exposure_us: Option<u32>,
+    /// Manual analogue gain, in the camera's own units.
+    #[serde(default)]
+    pub gain: Option<i64>,
+    /// Manual white balance colour temperature, kelvin.
+    #[serde(default)]
+    pub white_balance_k: Option<u32>,
+    /// Capture buffers to queue.
+    #[serde(default = "default_buffers")]
+    pub buffers: u32,
+    /// Deadline for each dequeue.
+    #[serde(default = "default_frame_timeout_ms")]
+    pub frame_timeout_ms: u64,
+    /// sim: the simulated camera's model (defaults when absent).
+    #[serde(default)]
+    pub sim: Option<rigd_sim::CameraModel>,
+}
+
+fn default_width() -> u32 {
+    1280
+}
+fn default_height() -> u32 {
+    720
+}
+fn default_format() -> PixelFormat {
+    PixelFormat::Yuyv
+}
+fn default_buffers() -> u32 {
+    4
+}
+fn default_frame_timeout_ms() -> u64 {
+    2_000
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Xl80Format {
+    /// LaserXL/CARTO CSV export.
+    Csv,
+    /// CARTO dynamic capture (.rtx).
+    Rtx,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Xl80Config {
+    /// The log file the interferometer software writes (relative to the config file).
+    pub path: PathBuf,
+    pub format: Xl80Format,
+    /// How often a growing log is polled during a job.
+    #[serde(default = "default_poll_ms")]
+    pub poll_ms: u64,
+    /// Step alignment: a plateau is where the trace stays within this band (µm).
+    #[serde(default = "default_plateau_tol_um")]
+    pub plateau_tol_um: f64,
+}
+
+fn default_poll_ms() -> u64 {
+    200
+}
+fn default_plateau_tol_um() -> f64 {
+    5.0
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DaemonConfig {
+    /// The Unix socket clients connect to.
+    pub socket: PathBuf,
+    /// Group given access to the socket (mode 0660); absent: owner only (0600).
+    pub group: Option<String>,
+    /// Where sessions are recorded.
+    pub data_root: PathBuf,
+}
+
+impl Default for DaemonConfig {
+    fn default() -> Self {
+        DaemonConfig {
+            socket: PathBuf::from("/run/rigd/rigd.sock"),
+            group: None,
+            data_root: PathBuf::from("/var/lib/rigd"),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoardConfig {
+    /// The target board's TOML (relative to the config file).
+    pub path: PathBuf,
+}
+
+impl Config {
+    /// Read and check a config file. Relative paths inside it are taken relative to its
+    /// directory.
+    pub fn load(path: impl AsRef<Path>) -> Result<Config, ConfigError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Config::from_toml_str(&text, path)
+    }
+
+    /// Parse config text; `origin` names it in errors and anchors relative paths.
+    pub fn from_toml_str(text: &str, origin: &Path) -> Result<Config, ConfigError> {
+        let mut cfg: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: origin.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        cfg.source = origin.to_path_buf();
+        cfg.validate()?;
+        let base = origin.parent().unwrap_or(Path::new(""));
+        let anchor = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        };
+        if let Some(x) = cfg.xl80.as_mut() {
+            anchor(&mut x.path);
+        }
+        if let Some(b) = cfg.board.as_mut() {
+            anchor(&mut b.path);
+        }
+        Ok(cfg)
+    }
+
+    fn invalid(&self, key: &str, message: impl Into<String>) -> ConfigError {
+        ConfigError::Invalid {
+            path: self.source.clone(),
+            key: key.to_string(),
+            message: message.into(),
+        }
+    }
+
+    fn validate(&self) -> Result<(), ConfigError> {
+        for (name, stage) in [("axis", &self.axis), ("piezo", &self.piezo)] {
+            if let Some(s) = stage {
+                self.validate_stage(name, s)?;
+            }
+        }
+        if let Some(c) = &self.camera {
+            if c.driver == CameraDriver::V4l2 && c.device.as_deref().unwrap_or("").is_empty() {
+                return Err(self.invalid("camera.device", "required with driver = \"v4l2\""));
+            }
+            if c.width == 0 || c.height == 0 {
+                return Err(self.invalid(
+                    "camera.width",
+                    format!("frame size {}x{} is empty", c.width, c.height),
+                ));
+            }
+            if c.buffers == 0 {
+                return Err(self.invalid("camera.buffers", "must be at least 1"));
+            }
+            if c.frame_timeout_ms == 0 {
+                return Err(self.invalid("camera.frame_timeout_ms", "must be positive"));
+            }
+        }
+        if let Some(x) = &self.xl80 {
+            if !(x.plateau_tol_um.is_finite() && x.plateau_tol_um > 0.0) {
+                return Err(self.invalid("xl80.plateau_tol_um", "must be a positive number"));
+            }
+        }
+        let p = &self.pipeline;
+        if !(p.scale_um_per_px.is_finite() && p.scale_um_per_px > 0.0) {
+            return Err(self.invalid("pipeline.scale_um_per_px", "must be a positive number"));
+        }
+        if p.k == 0 {
+            return Err(self.invalid("pipeline.k", "must be at least 1"));
+        }
+        Ok(())
+    }
+
+    fn validate_stage(&self, name: &str, s: &StageConfig) -> Result<(), ConfigError> {
+        let key = |k: &str| format!("{name}.{k}");
+        let needs_port = matches!(s.driver, StageDriver::Grbl | StageDriver::Gcs);
+        if needs_port && s.port.as_deref().unwrap_or("").is_empty() {
+            return Err(self.invalid(&key("port"), "required with a serial driver"));
+        }
+        if s.baud == 0 {
+            return Err(self.invalid(&key("baud"), "must be positive"));
+        }
+        for (k, v) in [
+            ("soft_min_um", s.soft_min_um),
+            ("soft_max_um", s.soft_max_um),
+            ("max_step_um", s.max_step_um),
+            ("feed_mm_min", s.feed_mm_min),
+        ] {
+            if !v.is_finite() {
+                return Err(self.invalid(&key(k), format!("{v} is not a finite number")));
+            }
+        }
+        if s.soft_min_um >= s.soft_max_um {
+            return Err(self.invalid(
+                &key("soft_max_um"),
+                format!(
+                    "soft_max_um ({}) must be above soft_min_um ({})",
+                    s.soft_max_um, s.soft_min_um
+                ),
+            ));
+        }
+        if s.max_step_um <= 0.0 {
+            return Err(self.invalid(&key("max_step_um"), "must be positive"));
+        }
+        if s.feed_mm_min <= 0.0 {
+            return Err(self.invalid(&key("feed_mm_min"), "must be positive"));
+        }
+        for (k, v) in [
+            ("reply_timeout_ms", s.reply_timeout_ms),
+            ("move_timeout_ms", s.move_timeout_ms),
+            ("open_timeout_ms", s.open_timeout_ms),
+        ] {
+            if v == 0 {
+                return Err(self.invalid(&key(k), "must be positive"));
+            }
+        }
+        Ok(())
+    }
+
+    fn missing(&self, section: &'static str, purpose: &str) -> ConfigError {
+        ConfigError::Missing {
+            path: self.source.clone(),
+            section,
+            purpose: purpose.to_string(),
+        }
+    }
+
+    /// The `[axis]` section, or an error naming the file and what needed it.
+    pub fn axis(&self, purpose: &str) -> Result<&StageConfig, ConfigError> {
+        self.axis
+            .as_ref()
+            .ok_or_else(|| self.missing("axis", purpose))
+    }
+    pub fn piezo(&self, purpose: &str) -> Result<&StageConfig, ConfigError> {
+        self.piezo
+            .as_ref()
+            .ok_or_else(|| self.missing("piezo", purpose))
+    }
+    pub fn camera(&self, purpose: &str) -> Result<&CameraConfig, ConfigError> {
+        self.camera
+            .as_ref()
+            .ok_or_else(|| self.missing("camera", purpose))
+    }
+    pub fn xl80(&self, purpose: &str) -> Result<&Xl80Config, ConfigError> {
+        self.xl80
+            .as_ref()
+            .ok_or_else(|| self.missing("xl80", purpose))
+    }
+}
+
+impl StageConfig {
+    /// The soft-limit and maximum-step check every driver runs before it moves:
+    /// `from_um` is the current position, `target_um` the requested one.
+    pub fn check_move(
+        &self,
+        device: &str,
+        from_um: f64,
+        target_um: f64,
+    ) -> Result<(), crate::hw::HwError> {
+        let refuse = |reason: String| crate::hw::HwError::Limit {
+            device: device.to_string(),
+            target_um,
+            reason,
+        };
+        if !target_um.is_finite() {
+            return Err(refuse("target is not a finite number".into()));
+        }
+        if target_um < self.soft_min_um || target_um > self.soft_max_um {
+            return Err(refuse(format!(
+                "outside the soft limits [{}, {}] µm",
+                self.soft_min_um, self.soft_max_um
+            )));
+        }
+        let step = (target_um - from_um).abs();
+        if step > self.max_step_um {
+            return Err(refuse(format!(
+                "a {step} µm step is more than max_step_um = {} µm",
+                self.max_step_um
+            )));
+        }
+        Ok(())
+    }
+}

@@ -105,3 +105,7 @@ pub trait Camera: Send {
     /// This is the fresh-frame rule after a move has settled.
     fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError>;
 }
+
+pub mod pixfmt;
+#[cfg(feature = "v4l2")]
+pub mod v4l2;

@@ -1,1 +1,353 @@
-//! (being written)
+//! Renishaw XL-80 interferometer logs: what the laser measured while the axis stepped.
+//!
+//! - [`csv`]: a LaserXL/CARTO CSV export (metadata lines, then a header row, then readings).
+//! - [`rtx`]: a CARTO dynamic capture `.rtx` (text header, then little-endian f64 samples).
+//! - [`follow`]: read a log that is still being written during a job.
+//! - [`align`]: give each commanded step its measured position, by time or by the step
+//!   pattern (plateaus) in the trace.
+//!
+//! Both readers are incremental (`feed` bytes, get readings), so reading a whole file and
+//! following a growing one share one code path. Garbled input is counted and reported in
+//! [`Garbled`], never fatal; only an unreadable file or a log with no recognisable table is.
+
+pub mod align;
+pub mod csv;
+pub mod follow;
+pub mod rtx;
+
+pub use crate::config::Xl80Format;
+pub use align::{
+    align_by_pattern, align_by_time, AlignError, PatternOptions, StepAlignment, StepWindow,
+};
+pub use follow::Follower;
+
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+#[derive(Debug, thiserror::Error)]
+pub enum Xl80Error {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// The file is not the format it was said to be (no header row, no `HEADER::`...).
+    #[error("{path}: {message}")]
+    Format { path: PathBuf, message: String },
+}
+
+/// One interferometer reading.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Reading {
+    /// Seconds since the log's start ([`Xl80Log::start`]), when the log has times.
+    pub t_s: Option<f64>,
+    /// The laser's reading along the beam, micrometres (its own datum and sign).
+    pub position_um: f64,
+    /// 1-based line number (CSV) or 0-based sample number (RTX), for messages.
+    pub line: usize,
+}
+
+/// The conditions and identity recorded above the readings.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Metadata {
+    pub air_temp_c: Option<f64>,
+    pub material_temp_c: Option<f64>,
+    pub pressure_mbar: Option<f64>,
+    pub humidity_pct: Option<f64>,
+    /// The date as written in the file.
+    pub date: Option<String>,
+    pub axis: Option<String>,
+    /// Every `key: value` pair as written, in file order (RTX header keys included).
+    pub fields: Vec<(String, String)>,
+}
+
+/// A line (or a stretch of binary data) that could not be read, kept for the report.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GarbledLine {
+    pub line: usize,
+    pub text: String,
+    pub reason: String,
+}
+
+/// Garbled input: how much, and the first few examples.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Garbled {
+    pub count: usize,
+    pub examples: Vec<GarbledLine>,
+}
+
+impl Garbled {
+    const KEEP: usize = 10;
+
+    pub fn record(&mut self, line: usize, text: &str, reason: impl Into<String>) {
+        self.count += 1;
+        if self.examples.len() < Self::KEEP {
+            let mut text = text.to_string();
+            if text.len() > 120 {
+                let mut cut = 120;
+                while !text.is_char_boundary(cut) {
+                    cut -= 1;
+                }
+                text.truncate(cut);
+                text.push('…');
+            }
+            self.examples.push(GarbledLine {
+                line,
+                text,
+                reason: reason.into(),
+            });
+        }
+    }
+}
+
+/// A whole (or so-far) log.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Xl80Log {
+    pub format: Xl80Format,
+    pub meta: Metadata,
+    /// When reading 0 was taken, if the log says (dates are read as UTC).
+    pub start: Option<SystemTime>,
+    /// Samples per second (RTX: the actual sample rate).
+    pub sample_rate_hz: Option<f64>,
+    pub readings: Vec<Reading>,
+    pub garbled: Garbled,
+}
+
+impl Xl80Log {
+    fn new(format: Xl80Format) -> Self {
+        Xl80Log {
+            format,
+            meta: Metadata::default(),
+            start: None,
+            sample_rate_hz: None,
+            readings: Vec::new(),
+            garbled: Garbled::default(),
+        }
+    }
+
+    /// The wall-clock time of a reading, when the log has a start and times.
+    pub fn time_of(&self, r: &Reading) -> Option<SystemTime> {
+        let t = r.t_s?;
+        let start = self.start?;
+        if t >= 0.0 {
+            start.checked_add(Duration::from_secs_f64(t))
+        } else {
+            start.checked_sub(Duration::from_secs_f64(-t))
+        }
+    }
+
+    /// One line for logs and `rigctl`: what was read and what was not.
+    pub fn summary(&self) -> String {
+        let first = self.readings.first().map(|r| r.position_um);
+        let last = self.readings.last().map(|r| r.position_um);
+        let mut s = format!("{} readings", self.readings.len());
+        if let (Some(a), Some(b)) = (first, last) {
+            s += &format!(" ({a:.3} .. {b:.3} µm)");
+        }
+        if let Some(hz) = self.sample_rate_hz {
+            s += &format!(" at {hz} Hz");
+        }
+        if self.garbled.count > 0 {
+            s += &format!(", {} garbled", self.garbled.count);
+            if let Some(g) = self.garbled.examples.first() {
+                s += &format!(" (first: line {}: {})", g.line, g.reason);
+            }
+        }
+        s
+    }
+}
+
+/// Read a whole log file in the given format.
+pub fn read(path: impl AsRef<Path>, format: Xl80Format) -> Result<Xl80Log, Xl80Error> {
+    let path = path.as_ref();
+    let bytes = std::fs::read(path).map_err(|source| Xl80Error::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let log = match format {
+        Xl80Format::Csv => {
+            let mut p = csv::CsvParser::new();
+            p.feed(&bytes);
+            p.finish()
+        }
+        Xl80Format::Rtx => {
+            let mut p = rtx::RtxParser::new();
+            p.feed(&bytes);
+            p.finish()
+        }
+    };
+    log.map_err(|message| Xl80Error::Format {
+        path: path.to_path_buf(),
+        message,
+    })
+}
+
+/// A length unit as written in a column header or an RTX header, to micrometres.
+pub fn length_unit_um(unit: &str) -> Option<f64> {
+    match unit.trim().to_ascii_lowercase().as_str() {
+        "m" => Some(1e6),
+        "mm" => Some(1e3),
+        "µm" | "μm" | "um" | "micron" | "microns" => Some(1.0),
+        "nm" => Some(1e-3),
+        "in" | "inch" => Some(25_400.0),
+        _ => None,
+    }
+}
+
+/// A number as the XL-80 software writes it in any locale: `12.5`, `12,5`, `+1.2E-3`,
+/// optionally followed by a unit (`20.1 °C`, `1013 mbar`).
+pub fn parse_number(s: &str) -> Option<f64> {
+    let s = s.trim().trim_matches('"').trim();
+    let end = s
+        .char_indices()
+        .find(|(_, c)| !(c.is_ascii_digit() || matches!(c, '+' | '-' | '.' | ',' | 'e' | 'E')))
+        .map(|(i, _)| i)
+        .unwrap_or(s.len());
+    let num = s[..end].trim();
+    if num.is_empty() {
+        return None;
+    }
+    // A decimal comma: only when there is no point (no thousands separators in these files).
+    let num = if num.contains(',') && !num.contains('.') {
+        num.replacen(',', ".", 1)
+    } else {
+        num.to_string()
+    };
+    let v: f64 = num.parse().ok()?;
+    v.is_finite().then_some(v)
+}
+
+/// A date and time as these files write it: `2026-11-21 10:15:30.25`, `2026-11-21T10:15:30Z`,
+/// `21/11/2026 10:15:30`, `21.11.2026 10:15`. Read as UTC. Date alone gives midnight.
+pub fn parse_datetime(s: &str) -> Option<SystemTime> {
+    let s = s.trim().trim_matches('"').trim().trim_end_matches('Z');
+    let (date, time) = match s.find(['T', ' ']) {
+        Some(i) => (&s[..i], s[i + 1..].trim()),
+        None => (s, ""),
+    };
+    let parts: Vec<&str> = date.split(['-', '/', '.']).collect();
+    if parts.len() != 3 {
+        return None;
+    }
+    let nums: Vec<i64> = parts
+        .iter()
+        .map(|p| p.parse().ok())
+        .collect::<Option<_>>()?;
+    let (y, m, d) = if parts[0].len() == 4 {
+        (nums[0], nums[1], nums[2])
+    } else {
+        (nums[2], nums[1], nums[0])
+    };
+    if !(1..=12).contains(&m) || !(1..=31).contains(&d) {
+        return None;
+    }
+    let secs_of_day = if time.is_empty() {
+        0.0
+    } else {
+        parse_time_of_day(time)?
+    };
+    let days = days_from_civil(y, m, d);
+    let t = days as f64 * 86_400.0 + secs_of_day;
+    (t >= 0.0).then(|| UNIX_EPOCH + Duration::from_secs_f64(t))
+}
+
+/// `hh:mm[:ss[.fff]]` to seconds of the day.
+pub fn parse_time_of_day(s: &str) -> Option<f64> {
+    let parts: Vec<&str> = s.trim().split(':').collect();
+    if !(2..=3).contains(&parts.len()) {
+        return None;
+    }
+    let h: u32 = parts[0].parse().ok()?;
+    let m: u32 = parts[1].parse().ok()?;
+    let sec = match parts.get(2) {
+        Some(p) => p.replace(',', ".").parse::<f64>().ok()?,
+        None => 0.0,
+    };
+    (h < 24 && m < 60 && (0.0..61.0).contains(&sec)).then(|| f64::from(h * 3600 + m * 60) + sec)
+}
+
+/// Days since 1970-01-01 of a proleptic Gregorian date (H. Hinnant's algorithm).
+fn days_from_civil(y: i64, m: i64, d: i64) -> i64 {
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = if y >= 0 { y } else { y - 399 } / 400;
+    let yoe = y - era * 400;
+    let mp = (m + 9) % 12;
+    let doy = (153 * mp + 2) / 5 + d - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    era * 146_097 + doe - 719_468
+}
+
+/// Fill the known metadata fields from a `key: value` pair (case-insensitive key match).
+pub(crate) fn note_metadata(meta: &mut Metadata, key: &str, value: &str) {
+    let k = key.trim().to_ascii_lowercase();
+    let v = value.trim();
+    meta.fields.push((key.trim().to_string(), v.to_string()));
+    if k.contains("temp") && k.contains("air") {
+        meta.air_temp_c = parse_number(v);
+    } else if k.contains("temp") && (k.contains("material") || k.contains("mat")) {
+        meta.material_temp_c = parse_number(v);
+    } else if k.contains("pressure") {
+        meta.pressure_mbar = parse_number(v).map(|p| {
+            let lv = v.to_ascii_lowercase();
+            if lv.contains("kpa") {
+                p * 10.0
+            } else if lv.contains("mmhg") {
+                p * 1.333_224
+            } else if lv.contains("pa") && !lv.contains("hpa") {
+                p / 100.0
+            } else {
+                p // mbar and hPa
+            }
+        });
+    } else if k.contains("humidity") || k == "rh" {
+        meta.humidity_pct = parse_number(v);
+    } else if k == "date" || k.starts_with("date") {
+        meta.date = Some(v.to_string());
+    } else if k == "axis" {
+        meta.axis = Some(v.to_string());
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn numbers_in_any_locale() {
+        assert_eq!(parse_number("12.5"), Some(12.5));
+        assert_eq!(parse_number(" 12,5 "), Some(12.5));
+        assert_eq!(parse_number("-1,25E-3"), Some(-0.00125));
+        assert_eq!(parse_number("20.1 °C"), Some(20.1));
+        assert_eq!(parse_number("\"1013,2\" mbar"), Some(1013.2));
+        assert_eq!(parse_number("abc"), None);
+        assert_eq!(parse_number(""), None);
+        assert_eq!(parse_number("1.2.3"), None);
+    }
+
+    #[test]
+    fn dates() {
+        let t = |s| {
+            parse_datetime(s)
+                .unwrap()
+                .duration_since(UNIX_EPOCH)
+                .unwrap()
+                .as_secs_f64()
+        };
+        assert_eq!(t("1970-01-02"), 86_400.0);
+        assert_eq!(t("2026-11-21 10:15:30.25"), 1_795_256_130.25);
+        assert_eq!(t("21/11/2026 10:15:30.25"), 1_795_256_130.25);
+        assert_eq!(t("2026-11-21T10:15:30.25Z"), 1_795_256_130.25);
+        assert_eq!(t("21.11.2026 10:15"), 1_795_256_100.0);
+        assert!(parse_datetime("2026-13-01").is_none());
+        assert!(parse_datetime("yesterday").is_none());
+    }
+
+    #[test]
+    fn units() {
+        assert_eq!(length_unit_um("mm"), Some(1000.0));
+        assert_eq!(length_unit_um("µm"), Some(1.0));
+        assert_eq!(length_unit_um("UM"), Some(1.0));
+        assert_eq!(length_unit_um("furlong"), None);
+    }
+}

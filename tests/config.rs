@@ -1,0 +1,199 @@
+//! The rig config: the documented example loads and holds what it documents, and bad files
+//! fail with errors that name the file and the key.
+
+use rigd::config::{AlarmPolicy, CameraDriver, Config, ConfigError, StageDriver, Xl80Format};
+use rigd::hw::pixfmt::PixelFormat;
+use rigd::pipeline::Estimator;
+use std::path::{Path, PathBuf};
+
+fn example() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rigd.toml")
+}
+
+fn parse(text: &str) -> Result<Config, ConfigError> {
+    Config::from_toml_str(text, Path::new("/etc/rigd/test.toml"))
+}
+
+fn err(text: &str) -> String {
+    parse(text).unwrap_err().to_string()
+}
+
+const AXIS: &str = "[axis]\ndriver = \"grbl\"\nport = \"/dev/ttyUSB0\"\nsoft_min_um = 0.0\nsoft_max_um = 1000.0\nmax_step_um = 100.0\n";
+
+#[test]
+fn documented_example_loads() {
+    let cfg = Config::load(example()).unwrap();
+    let axis = cfg.axis("test").unwrap();
+    assert_eq!(axis.driver, StageDriver::Grbl);
+    assert_eq!(axis.port.as_deref(), Some("/dev/ttyUSB0"));
+    assert_eq!(axis.baud, 115_200);
+    assert_eq!(axis.soft_max_um, 250_000.0);
+    assert_eq!(axis.on_alarm, AlarmPolicy::Fail);
+    let piezo = cfg.piezo("test").unwrap();
+    assert_eq!(piezo.driver, StageDriver::Gcs);
+    assert_eq!(piezo.gcs_axis, "1");
+    let cam = cfg.camera("test").unwrap();
+    assert_eq!(cam.driver, CameraDriver::V4l2);
+    assert_eq!(cam.format, PixelFormat::Yuyv);
+    assert_eq!((cam.width, cam.height), (1280, 720));
+    assert_eq!(cam.exposure_us, Some(10_000));
+    let x = cfg.xl80("test").unwrap();
+    assert_eq!(x.format, Xl80Format::Rtx);
+    assert_eq!(cfg.daemon.group.as_deref(), Some("rigd"));
+    assert_eq!(cfg.pipeline.k, 10);
+    assert_eq!(cfg.pipeline.estimator, Estimator::Fit);
+    // The board path is relative to the config file, and the board is there.
+    let board = cfg.board.as_ref().unwrap();
+    assert_eq!(
+        board.path,
+        example().parent().unwrap().join("boards/paper.toml")
+    );
+    rigd::sim::Board::load(&board.path).unwrap();
+}
+
+#[test]
+fn every_documented_key_is_a_real_key() {
+    // Uncomment every commented-out `key = value` line of the example: it must still load,
+    // so the documentation cannot drift from the struct.
+    let text = std::fs::read_to_string(example()).unwrap();
+    let uncommented: String = text
+        .lines()
+        .map(|l| match l.strip_prefix("# ") {
+            Some(rest)
+                if is_key_line(rest) || (rest.starts_with('[') && rest.ends_with(".sim]")) =>
+            {
+                rest.to_string()
+            }
+            _ => l.to_string(),
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    let cfg = Config::from_toml_str(&uncommented, &example()).unwrap();
+    assert_eq!(
+        cfg.axis
+            .as_ref()
+            .unwrap()
+            .sim
+            .as_ref()
+            .unwrap()
+            .max_speed_um_s,
+        20_000.0
+    );
+    assert_eq!(
+        cfg.camera
+            .as_ref()
+            .unwrap()
+            .sim
+            .as_ref()
+            .unwrap()
+            .mjpeg_quality,
+        Some(90)
+    );
+}
+
+/// `key = value` with a bare snake_case key.
+fn is_key_line(s: &str) -> bool {
+    match s.split_once(" = ") {
+        Some((k, _)) => {
+            !k.is_empty()
+                && k.chars()
+                    .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_')
+        }
+        None => false,
+    }
+}
+
+#[test]
+fn minimal_sections_take_defaults() {
+    let cfg = parse(AXIS).unwrap();
+    let a = cfg.axis.as_ref().unwrap();
+    assert_eq!(a.baud, 115_200);
+    assert_eq!(a.reply_timeout_ms, 1_000);
+    assert!(cfg.camera.is_none());
+    assert_eq!(cfg.daemon.socket, PathBuf::from("/run/rigd/rigd.sock"));
+    let e = cfg.camera("grab a frame").unwrap_err().to_string();
+    assert_eq!(
+        e,
+        "/etc/rigd/test.toml: no [camera] section (needed to grab a frame)"
+    );
+}
+
+#[test]
+fn unknown_key_names_file_and_key() {
+    let e = err(&format!("{AXIS}soft_max = 3\n"));
+    assert!(e.starts_with("/etc/rigd/test.toml: "), "{e}");
+    assert!(e.contains("soft_max"), "{e}");
+    assert!(e.contains("line 7"), "{e}");
+    let e = err("[camera]\ndriver = \"v4l2\"\ndevice = \"/dev/video0\"\nexposure = 5\n");
+    assert!(e.contains("unknown field `exposure`"), "{e}");
+    let e = err("[cameras]\ndriver = \"sim\"\n");
+    assert!(e.contains("unknown field `cameras`"), "{e}");
+}
+
+#[test]
+fn wrong_values_name_the_key() {
+    let e = err(
+        "[axis]\ndriver = \"marlin\"\nsoft_min_um = 0.0\nsoft_max_um = 1.0\nmax_step_um = 1.0\n",
+    );
+    assert!(e.contains("marlin") && e.contains("grbl"), "{e}");
+    let e =
+        err("[axis]\ndriver = \"grbl\"\nsoft_min_um = 0.0\nsoft_max_um = 1.0\nmax_step_um = 1.0\n");
+    assert_eq!(
+        e,
+        "/etc/rigd/test.toml: key `axis.port`: required with a serial driver"
+    );
+    let e = err(&AXIS.replace("soft_max_um = 1000.0", "soft_max_um = -5.0"));
+    assert!(e.contains("key `axis.soft_max_um`"), "{e}");
+    let e = err(&AXIS.replace("max_step_um = 100.0", "max_step_um = 0.0"));
+    assert!(e.contains("key `axis.max_step_um`"), "{e}");
+    let e = err(&format!("{AXIS}reply_timeout_ms = 0\n"));
+    assert!(e.contains("key `axis.reply_timeout_ms`"), "{e}");
+    let e = err("[camera]\ndriver = \"v4l2\"\n");
+    assert!(e.contains("key `camera.device`"), "{e}");
+    let e = err("[camera]\ndriver = \"sim\"\nformat = \"H264\"\n");
+    assert!(e.contains("H264"), "{e}");
+    let e = err("[camera]\ndriver = \"sim\"\nwidth = 0\n");
+    assert!(e.contains("key `camera.width`"), "{e}");
+    let e = err("[xl80]\npath = \"x.csv\"\nformat = \"xls\"\n");
+    assert!(e.contains("xls") && e.contains("rtx"), "{e}");
+    let e = err("[pipeline]\nk = 0\n");
+    assert!(e.contains("key `pipeline.k`"), "{e}");
+    let e = err("[pipeline]\nestimator = \"magic\"\n");
+    assert!(e.contains("magic"), "{e}");
+    let e = err(&format!("{AXIS}baud = \"fast\"\n"));
+    assert!(e.contains("baud"), "{e}");
+}
+
+#[test]
+fn missing_file_is_named() {
+    let e = Config::load("/nonexistent/rigd.toml")
+        .unwrap_err()
+        .to_string();
+    assert!(e.starts_with("/nonexistent/rigd.toml: cannot read"), "{e}");
+}
+
+#[test]
+fn relative_paths_follow_the_file() {
+    let cfg = parse(
+        "[xl80]\npath = \"logs/run.csv\"\nformat = \"csv\"\n[board]\npath = \"/abs/b.toml\"\n",
+    )
+    .unwrap();
+    assert_eq!(
+        cfg.xl80.unwrap().path,
+        PathBuf::from("/etc/rigd/logs/run.csv")
+    );
+    assert_eq!(cfg.board.unwrap().path, PathBuf::from("/abs/b.toml"));
+}
+
+#[test]
+fn soft_limits_and_max_step_are_checked() {
+    let cfg = parse(AXIS).unwrap();
+    let a = cfg.axis.unwrap();
+    a.check_move("axis", 0.0, 100.0).unwrap();
+    let e = a.check_move("axis", 0.0, 1000.5).unwrap_err().to_string();
+    assert!(e.contains("soft limits"), "{e}");
+    let e = a.check_move("axis", 500.0, 650.0).unwrap_err().to_string();
+    assert!(e.contains("max_step_um"), "{e}");
+    assert!(a.check_move("axis", 0.0, f64::NAN).is_err());
+    assert!(a.check_move("axis", 0.0, -0.1).is_err());
+}

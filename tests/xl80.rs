@@ -1,0 +1,269 @@
+//! XL-80 logs: the readers on hand-written fixture files (tests/fixtures/xl80, made by
+//! make_fixtures.py there), following a file while it grows, and step alignment.
+
+use rigd::xl80::{
+    self, align_by_pattern, align_by_time, Follower, PatternOptions, StepWindow, Xl80Format,
+};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// What make_fixtures.py put in every fixture.
+const CMD_UM: [f64; 6] = [0.0, 100.0, 200.0, 300.0, 400.0, 500.0];
+const ERR_UM: [f64; 6] = [0.0, 1.8, -1.2, 2.5, -0.7, 1.1];
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures/xl80")
+        .join(name)
+}
+
+fn assert_errors(steps: &[xl80::StepAlignment], tol_um: f64) {
+    assert_eq!(steps.len(), CMD_UM.len());
+    for (s, want) in steps.iter().zip(ERR_UM) {
+        let e = s.error_um.expect("every step measured");
+        assert!(
+            (e - want).abs() < tol_um,
+            "step {}: error {e:.3} µm, fixture has {want} µm",
+            s.index
+        );
+        assert!((s.measured_um.unwrap() - (s.commanded_um + want)).abs() < tol_um);
+    }
+}
+
+#[test]
+fn german_csv_export() {
+    let log = xl80::read(fixture("steps_de.csv"), Xl80Format::Csv).unwrap();
+    assert_eq!(log.meta.axis.as_deref(), Some("X"));
+    assert_eq!(log.meta.air_temp_c, Some(20.4));
+    assert_eq!(log.meta.material_temp_c, Some(20.1));
+    assert_eq!(log.meta.pressure_mbar, Some(1012.8));
+    assert_eq!(log.meta.humidity_pct, Some(41.5));
+    assert_eq!(log.meta.date.as_deref(), Some("21.11.2026 10:00:00"));
+    assert_eq!(log.readings.len(), 100);
+    // 12.5 mm datum, laser sign reversed: reading = 12.5 mm - x.
+    assert!((log.readings[0].position_um - 12_499.875).abs() < 1e-6);
+    assert_eq!(log.readings[99].t_s, Some(9.9));
+    assert_eq!(log.garbled.count, 1);
+    assert_eq!(log.garbled.examples[0].line, 52);
+    assert!(log.garbled.examples[0].reason.contains("###"));
+    assert!(log.summary().contains("1 garbled"), "{}", log.summary());
+}
+
+#[test]
+fn english_csv_export_with_clock_times() {
+    let log = xl80::read(fixture("steps_en.csv"), Xl80Format::Csv).unwrap();
+    assert_eq!(log.readings.len(), 100);
+    assert_eq!(log.garbled.count, 0);
+    assert_eq!(log.meta.air_temp_c, Some(20.4));
+    assert_eq!(log.meta.pressure_mbar, Some(1012.8));
+    assert!((log.readings[0].position_um - 0.125).abs() < 1e-9);
+    let t99 = log.time_of(&log.readings[99]).unwrap();
+    let want = xl80::parse_datetime("2026-11-21 10:00:09.9").unwrap();
+    let d = t99.duration_since(want).unwrap_or_else(|e| e.duration());
+    assert!(d < Duration::from_millis(1), "{d:?}");
+}
+
+#[test]
+fn rtx_capture() {
+    let log = xl80::read(fixture("steps.rtx"), Xl80Format::Rtx).unwrap();
+    let field = |k: &str| {
+        log.meta
+            .fields
+            .iter()
+            .find(|(key, _)| key == k)
+            .map(|(_, v)| v.as_str())
+    };
+    assert_eq!(field("Owner"), Some("Renishaw plc"));
+    assert_eq!(field("Serial No"), Some("X80-1234"));
+    assert_eq!(field("Location"), Some("Lab 2"));
+    assert_eq!(log.meta.axis.as_deref(), Some("X"));
+    assert_eq!(log.sample_rate_hz, Some(50.0));
+    assert_eq!(log.readings.len(), 320);
+    assert_eq!(log.garbled.count, 0, "{:?}", log.garbled);
+    // Samples in mm with a -3 mm datum.
+    assert!((log.readings[0].position_um - (-3000.0 + 0.125)).abs() < 1e-6);
+    assert_eq!(log.readings[50].t_s, Some(1.0));
+    assert!(log.start.is_some());
+}
+
+#[test]
+fn pattern_alignment_on_every_fixture() {
+    for (name, format) in [
+        ("steps_de.csv", Xl80Format::Csv),
+        ("steps_en.csv", Xl80Format::Csv),
+        ("steps.rtx", Xl80Format::Rtx),
+    ] {
+        let log = xl80::read(fixture(name), format).unwrap();
+        let steps = align_by_pattern(&log.readings, &CMD_UM, &PatternOptions::default())
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        // The fixtures' noise is at most 0.15 µm; plateaus average it down further.
+        assert_errors(&steps, 0.2);
+    }
+}
+
+#[test]
+fn time_alignment_on_the_csv() {
+    let log = xl80::read(fixture("steps_de.csv"), Xl80Format::Csv).unwrap();
+    let t0 = log.start.unwrap();
+    let at = |s: f64| t0 + Duration::from_secs_f64(s);
+    // Settled windows: step 0 during the lead (0..0.9 s), then each hold: 15 samples from
+    // sample 13 + 18 (i - 1), 0.1 s apart; leave out the first sample (still arriving).
+    let windows: Vec<StepWindow> = CMD_UM
+        .iter()
+        .enumerate()
+        .map(|(i, &c)| {
+            let (a, b) = if i == 0 {
+                (0.0, 0.9)
+            } else {
+                let first = (13 + 18 * (i - 1)) as f64 * 0.1;
+                (first + 0.05, first + 1.45)
+            };
+            StepWindow {
+                commanded_um: c,
+                from: at(a),
+                to: at(b),
+            }
+        })
+        .collect();
+    let steps = align_by_time(&log, &windows, 0.0).unwrap();
+    assert_errors(&steps, 0.2);
+    assert_eq!(steps[0].samples, 10);
+    assert_eq!(steps[1].samples, 14);
+    assert!(steps[1].spread_um.unwrap() < 0.2);
+}
+
+/// Copy `bytes` into `path` in the given chunk sizes, polling after each.
+fn drip(path: &Path, bytes: &[u8], chunk: usize, format: Xl80Format) -> (Follower, Vec<usize>) {
+    let mut f = std::fs::File::create(path).unwrap();
+    let mut follower = Follower::new(path, format);
+    let mut counts = Vec::new();
+    let mut total = 0;
+    for c in bytes.chunks(chunk) {
+        f.write_all(c).unwrap();
+        f.flush().unwrap();
+        total += follower.poll().unwrap().len();
+        counts.push(total);
+    }
+    (follower, counts)
+}
+
+#[test]
+fn follow_a_growing_csv_in_odd_chunks() {
+    let bytes = std::fs::read(fixture("steps_de.csv")).unwrap();
+    let whole = xl80::read(fixture("steps_de.csv"), Xl80Format::Csv).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    // 37-byte chunks cut lines (and CRLFs, and the multi-byte °) in the middle.
+    let (follower, counts) = drip(&dir.path().join("live.csv"), &bytes, 37, Xl80Format::Csv);
+    assert!(counts.windows(2).all(|w| w[0] <= w[1]));
+    assert!(counts.iter().filter(|&&c| c > 0 && c < 100).count() > 10);
+    assert_eq!(follower.log(), &whole);
+    assert_eq!(follower.offset(), bytes.len() as u64);
+}
+
+#[test]
+fn follow_a_growing_rtx_sample_by_half_sample() {
+    let bytes = std::fs::read(fixture("steps.rtx")).unwrap();
+    let whole = xl80::read(fixture("steps.rtx"), Xl80Format::Rtx).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let (follower, counts) = drip(&dir.path().join("live.rtx"), &bytes, 4, Xl80Format::Rtx);
+    assert!(follower.is_complete());
+    assert_eq!(*counts.last().unwrap(), 320);
+    // Only whole samples are read: a 4-byte drip adds a reading every other poll.
+    assert!(counts.windows(2).all(|w| w[1] - w[0] <= 1));
+    assert_eq!(follower.log().readings, whole.readings);
+}
+
+#[test]
+fn follow_while_another_thread_writes() {
+    let bytes = std::fs::read(fixture("steps_en.csv")).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("live.csv");
+    let mut follower = Follower::new(&path, Xl80Format::Csv);
+    assert!(follower.poll().unwrap().is_empty(), "no file yet: nothing");
+    let writer = {
+        let path = path.clone();
+        std::thread::spawn(move || {
+            let mut f = std::fs::File::create(&path).unwrap();
+            for c in bytes.chunks(101) {
+                f.write_all(c).unwrap();
+                f.flush().unwrap();
+                std::thread::sleep(Duration::from_millis(2));
+            }
+        })
+    };
+    let mut got = Vec::new();
+    while !writer.is_finished() {
+        got.extend(follower.poll().unwrap());
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    writer.join().unwrap();
+    got.extend(follower.poll().unwrap());
+    assert_eq!(got.len(), 100);
+    assert!(got.windows(2).all(|w| w[0].line < w[1].line));
+    assert_eq!(follower.log().garbled.count, 0);
+}
+
+#[test]
+fn follow_restarts_when_the_file_is_replaced() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("live.csv");
+    std::fs::write(&path, "Time (s),Position (mm)\n0,1\n1,2\n2,3\n").unwrap();
+    let mut f = Follower::new(&path, Xl80Format::Csv);
+    assert_eq!(f.poll().unwrap().len(), 3);
+    std::fs::write(&path, "Time (s),Position (mm)\n0,5\n").unwrap();
+    let new = f.poll().unwrap();
+    assert_eq!(new.len(), 1);
+    assert_eq!(new[0].position_um, 5000.0);
+    assert_eq!(f.restarts(), 1);
+}
+
+#[test]
+fn wrong_format_and_missing_file_are_clear_errors() {
+    let e = xl80::read(fixture("steps_de.csv"), Xl80Format::Rtx)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("steps_de.csv") && e.contains("HEADER::"), "{e}");
+    let e = xl80::read(fixture("steps.rtx"), Xl80Format::Csv)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("steps.rtx") && e.contains("no header row"),
+        "{e}"
+    );
+    let e = xl80::read(fixture("nope.csv"), Xl80Format::Csv)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("nope.csv"), "{e}");
+    // The follower reports a non-RTX file as soon as it sees it.
+    let mut f = Follower::new(fixture("steps_en.csv"), Xl80Format::Rtx);
+    assert!(f.poll().is_err());
+}
+
+#[test]
+fn garbage_never_panics() {
+    // Random bytes, truncated files, and every prefix of a real file: errors or garbled
+    // counts, never a panic.
+    let rtx = std::fs::read(fixture("steps.rtx")).unwrap();
+    for cut in (0..rtx.len()).step_by(7) {
+        let mut p = xl80::rtx::RtxParser::new();
+        p.feed(&rtx[..cut]);
+        let _ = p.finish();
+    }
+    let mut state: u64 = 0x2545_F491_4F6C_DD1D;
+    let mut junk = vec![0u8; 4096];
+    for b in junk.iter_mut() {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        *b = state as u8;
+    }
+    let mut p = xl80::csv::CsvParser::new();
+    p.feed(b"Time (s);Position (mm)\n");
+    p.feed(&junk);
+    let log = p.finish().unwrap();
+    assert!(log.garbled.count > 0);
+    let mut p = xl80::rtx::RtxParser::new();
+    p.feed(&junk);
+    assert!(p.finish().is_err());
+}
