@@ -6,8 +6,12 @@
 
 pub mod board;
 pub mod camera;
+pub mod gcs;
+pub mod grbl;
 pub mod motion;
+pub mod pty;
 pub mod render;
+pub mod serve;
 
 pub use board::Board;
 pub use camera::CameraModel;

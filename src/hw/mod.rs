@@ -105,3 +105,10 @@ pub trait Camera: Send {
     /// This is the fresh-frame rule after a move has settled.
     fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError>;
 }
+
+pub mod gcs;
+pub mod grbl;
+pub mod grbl_codes;
+pub mod limits;
+pub mod serial;
+pub mod sim_stage;
