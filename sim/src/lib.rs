@@ -9,10 +9,14 @@ pub mod camera;
 pub mod camera_clock;
 pub mod crb;
 pub mod frames;
+pub mod gcs;
+pub mod grbl;
 pub mod motion;
+pub mod pty;
 pub mod render;
 pub mod rig;
 pub mod xl80;
+pub mod serve;
 
 pub use board::Board;
 pub use camera::CameraModel;
