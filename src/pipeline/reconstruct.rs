@@ -112,9 +112,9 @@ fn taps(f: i64, n: usize, k: usize) -> Taps {
         idx: [0; 4],
         w: [0.0; 4],
     };
-    for j in 0..4 {
-        t.idx[j] = (x0 as i64 - 1 + j as i64).clamp(0, n as i64 - 1) as u32;
-        t.w[j] = w[j] as f32;
+    for (j, (i, wt)) in t.idx.iter_mut().zip(&mut t.w).enumerate() {
+        *i = (x0 as i64 - 1 + j as i64).clamp(0, n as i64 - 1) as u32;
+        *wt = w[j] as f32;
     }
     t
 }
