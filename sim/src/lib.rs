@@ -8,10 +8,14 @@ pub mod board;
 pub mod camera;
 pub mod camera_clock;
 pub mod frames;
+pub mod gcs;
+pub mod grbl;
 pub mod motion;
+pub mod pty;
 pub mod render;
 pub mod rig;
 pub mod xl80;
+pub mod serve;
 
 pub use board::Board;
 pub use camera::CameraModel;

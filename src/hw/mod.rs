@@ -109,3 +109,9 @@ pub trait Camera: Send {
 pub mod pixfmt;
 #[cfg(feature = "v4l2")]
 pub mod v4l2;
+pub mod gcs;
+pub mod grbl;
+pub mod grbl_codes;
+pub mod limits;
+pub mod serial;
+pub mod sim_stage;
