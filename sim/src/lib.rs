@@ -19,7 +19,7 @@ pub mod serve;
 
 pub use board::Board;
 pub use camera::CameraModel;
-pub use frames::FrameRenderer;
 pub use camera_clock::{FrameClockCamera, SimFrame};
+pub use frames::FrameRenderer;
 pub use render::{SceneRenderer, View};
 pub use rig::{SimRig, SimRigConfig};

@@ -5,6 +5,8 @@
 //! The traits are synchronous on purpose: serial and V4L2 I/O are blocking calls with
 //! deadlines, and the daemon runs them on a dedicated blocking thread per job.
 
+pub mod sim_camera;
+
 use std::time::{Duration, SystemTime};
 
 pub use image::RgbImage;
