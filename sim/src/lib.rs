@@ -6,6 +6,7 @@
 
 pub mod board;
 pub mod camera;
+pub mod crb;
 pub mod motion;
 pub mod render;
 

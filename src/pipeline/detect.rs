@@ -1,1 +1,392 @@
-//! (being written)
+//! Finding targets with no prior layout: a red outer ring around a red inner disk (or ring).
+//!
+//! 1. Ink mask: a pixel is ink when it is red, i.e. `(R - max(G, B)) / R` is above a
+//!    threshold. The ratio does not depend on the illumination, so vignetting and uneven
+//!    light do not move it; dark pixels (where the ratio is noise) are never ink.
+//! 2. Connected components (8-connected) with their moments.
+//! 3. Shape: an outer ring is a component whose moments fit an annulus (area and mean
+//!    squared radius give both radii), round (isotropic second moments, square bounding box
+//!    of the annulus's size) with a hole where its centroid is. The inner shape is the
+//!    largest component inside that hole, itself a round disk or annulus.
+//! 4. Whatever cannot be measured is reported in `skipped` with the reason: red regions cut
+//!    by the frame edge, rings too near the edge for their ROI, rings with nothing inside.
+//!    Other red clutter (filled disks, rectangles, text) is rejected silently.
+
+use super::plane::Roi;
+use super::Skipped;
+use image::RgbImage;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::f64::consts::PI;
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DetectConfig {
+    /// A pixel is ink when `(R - max(G, B)) / R` is at least this.
+    pub min_redness: f64,
+    /// ... and its red value is at least this many DN (the ratio of dark pixels is noise).
+    pub min_red_dn: u8,
+    /// Smallest and largest rim radius of an outer ring, in pixels.
+    pub min_outer_radius_px: f64,
+    pub max_outer_radius_px: f64,
+    /// Relative tolerance of the roundness checks (moments and bounding box).
+    pub shape_tolerance: f64,
+    /// Paper kept around the outer rim in a target's ROI, in pixels (room for the blur).
+    pub roi_margin_px: f64,
+}
+
+impl Default for DetectConfig {
+    fn default() -> Self {
+        DetectConfig {
+            min_redness: 0.4,
+            min_red_dn: 20,
+            min_outer_radius_px: 4.0,
+            max_outer_radius_px: 250.0,
+            shape_tolerance: 0.2,
+            roi_margin_px: 4.0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Candidate {
+    pub outer_centre_px: [f64; 2],
+    pub inner_centre_px: [f64; 2],
+    /// [hole, rim] of the outer ring.
+    pub outer_radii_px: [f64; 2],
+    /// A disk: [0, r]; an inner ring: [hole, rim].
+    pub inner_radii_px: [f64; 2],
+    /// Box around the whole target with a margin for the blur.
+    pub roi: Roi,
+}
+
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Detection {
+    pub targets: Vec<Candidate>,
+    pub skipped: Vec<Skipped>,
+}
+
+/// One connected ink region and its moments.
+#[derive(Debug, Clone)]
+struct Component {
+    area: f64,
+    centroid: [f64; 2],
+    /// Central second moments per pixel: mean of dx², dy², dx·dy.
+    mxx: f64,
+    myy: f64,
+    mxy: f64,
+    bbox: [u32; 4], // x0, y0, x1, y1 inclusive
+    touches_edge: bool,
+}
+
+/// Shape of a component judged from its moments.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Form {
+    /// Filled round disk of this radius.
+    Disk(f64),
+    /// Round annulus [hole, rim].
+    Ring(f64, f64),
+    Other,
+}
+
+impl Component {
+    fn form(&self, tol: f64) -> Form {
+        let m = self.mxx + self.myy; // mean r² about the centroid
+        if self.area < 3.0 || m <= 0.0 {
+            return Form::Other;
+        }
+        // Isotropy: an ellipse has m_xx != m_yy or m_xy != 0.
+        let aniso = ((self.mxx - self.myy).powi(2) + 4.0 * self.mxy * self.mxy).sqrt() / m;
+        if aniso > tol {
+            return Form::Other;
+        }
+        let w = (self.bbox[2] - self.bbox[0] + 1) as f64;
+        let h = (self.bbox[3] - self.bbox[1] + 1) as f64;
+        if (w - h).abs() > tol * w.max(h) + 2.0 {
+            return Form::Other;
+        }
+        // Annulus: area = π(Ro² - Ri²), mean r² = (Ro² + Ri²)/2.
+        let half = self.area / (2.0 * PI);
+        let ro2 = m + half;
+        let ri2 = m - half;
+        let ro = ro2.sqrt();
+        // The bounding box of a round shape is its diameter (within a pixel or so).
+        if (w + h) / 2.0 - 2.0 * ro > tol * 2.0 * ro + 2.5 || 2.0 * ro - (w + h) / 2.0 > 2.5 {
+            return Form::Other;
+        }
+        if ri2 > (0.25 * ro).powi(2) {
+            Form::Ring(ri2.sqrt(), ro)
+        } else {
+            // A filled disk has Ri² ≈ 0; a square has Ri ≈ 0.2 Ro and fails the box test
+            // only when it is rotated, so also demand the disk's area from the box.
+            let r_box = (w + h) / 4.0;
+            if (self.area - PI * r_box * r_box).abs() > tol * PI * r_box * r_box + 2.0 * PI * r_box
+            {
+                return Form::Other;
+            }
+            Form::Disk((self.area / PI).sqrt())
+        }
+    }
+}
+
+/// Ink mask, one byte per pixel (1 = ink).
+fn ink_mask(img: &RgbImage, cfg: &DetectConfig) -> Vec<u8> {
+    let w = img.width() as usize;
+    let thr = (cfg.min_redness * 256.0).round() as i32;
+    let min_r = cfg.min_red_dn as i32;
+    let mut mask = vec![0u8; w * img.height() as usize];
+    if w == 0 {
+        return mask;
+    }
+    mask.par_chunks_mut(w)
+        .zip(img.as_raw().par_chunks(w * 3))
+        .for_each(|(m, row)| {
+            for (o, p) in m.iter_mut().zip(row.chunks_exact(3)) {
+                let (r, g, b) = (p[0] as i32, p[1] as i32, p[2] as i32);
+                let red = 256 * (r - g.max(b));
+                *o = (r >= min_r && red >= thr * r) as u8;
+            }
+        });
+    mask
+}
+
+/// 8-connected components of the mask; `labels` gets 1-based component indices (0 = paper).
+fn components(mask: &[u8], w: usize, h: usize, labels: &mut Vec<u32>) -> Vec<Component> {
+    labels.clear();
+    labels.resize(w * h, 0);
+    let mut comps = Vec::new();
+    let mut stack: Vec<(u32, u32)> = Vec::new();
+    for start in 0..w * h {
+        if mask[start] == 0 || labels[start] != 0 {
+            continue;
+        }
+        let id = comps.len() as u32 + 1;
+        let (mut n, mut sx, mut sy, mut sxx, mut syy, mut sxy) =
+            (0f64, 0f64, 0f64, 0f64, 0f64, 0f64);
+        let (sx0, sy0) = ((start % w) as f64, (start / w) as f64);
+        let mut bbox = [u32::MAX, u32::MAX, 0, 0];
+        labels[start] = id;
+        stack.push(((start % w) as u32, (start / w) as u32));
+        while let Some((x, y)) = stack.pop() {
+            // Moments about the seed keep the sums small (no cancellation in f64).
+            let (dx, dy) = (x as f64 - sx0, y as f64 - sy0);
+            n += 1.0;
+            sx += dx;
+            sy += dy;
+            sxx += dx * dx;
+            syy += dy * dy;
+            sxy += dx * dy;
+            bbox[0] = bbox[0].min(x);
+            bbox[1] = bbox[1].min(y);
+            bbox[2] = bbox[2].max(x);
+            bbox[3] = bbox[3].max(y);
+            let (x, y) = (x as usize, y as usize);
+            for ny in y.saturating_sub(1)..=(y + 1).min(h - 1) {
+                for nx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
+                    let i = ny * w + nx;
+                    if mask[i] != 0 && labels[i] == 0 {
+                        labels[i] = id;
+                        stack.push((nx as u32, ny as u32));
+                    }
+                }
+            }
+        }
+        let (mx, my) = (sx / n, sy / n);
+        comps.push(Component {
+            area: n,
+            centroid: [sx0 + mx, sy0 + my],
+            mxx: sxx / n - mx * mx,
+            myy: syy / n - my * my,
+            mxy: sxy / n - mx * my,
+            touches_edge: bbox[0] == 0
+                || bbox[1] == 0
+                || bbox[2] as usize == w - 1
+                || bbox[3] as usize == h - 1,
+            bbox,
+        });
+    }
+    comps
+}
+
+/// Find every target in a frame.
+pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let mut det = Detection::default();
+    if w == 0 || h == 0 {
+        return det;
+    }
+    let mask = ink_mask(img, cfg);
+    let mut labels = Vec::new();
+    let comps = components(&mask, w, h, &mut labels);
+    let tol = cfg.shape_tolerance;
+    let min_area = PI * cfg.min_outer_radius_px.powi(2) * 0.3;
+
+    let forms: Vec<Form> = comps.iter().map(|c| c.form(tol)).collect();
+    // Outer rings, largest first, so an inner ring is claimed by its outer one before it
+    // could be taken for an outer ring itself.
+    let mut rings: Vec<usize> = (0..comps.len())
+        .filter(|&i| !comps[i].touches_edge)
+        .filter(|&i| match forms[i] {
+            Form::Ring(_, ro) => ro >= cfg.min_outer_radius_px && ro <= cfg.max_outer_radius_px,
+            _ => false,
+        })
+        .filter(|&i| {
+            // The hole is paper (or another component) where the centroid is.
+            let c = comps[i].centroid;
+            let (x, y) = (c[0].round() as usize, c[1].round() as usize);
+            x < w && y < h && labels[y * w + x] != i as u32 + 1
+        })
+        .collect();
+    let ring_rim = |i: usize| match forms[i] {
+        Form::Ring(_, ro) => ro,
+        _ => 0.0,
+    };
+    rings.sort_by(|&a, &b| ring_rim(b).total_cmp(&ring_rim(a)));
+
+    let mut used = vec![false; comps.len()];
+    for &i in &rings {
+        if used[i] {
+            continue;
+        }
+        let Form::Ring(hole, rim) = forms[i] else {
+            continue;
+        };
+        let c = &comps[i];
+        // The inner shape: the largest round component inside the hole.
+        let inner = (0..comps.len())
+            .filter(|&j| j != i && !used[j])
+            .filter(|&j| {
+                let d = &comps[j];
+                d.bbox[0] > c.bbox[0]
+                    && d.bbox[1] > c.bbox[1]
+                    && d.bbox[2] < c.bbox[2]
+                    && d.bbox[3] < c.bbox[3]
+            })
+            .filter_map(|j| {
+                let reach = match forms[j] {
+                    Form::Disk(r) => r,
+                    Form::Ring(_, r) => r,
+                    Form::Other => return None,
+                };
+                let d = &comps[j];
+                let off = (d.centroid[0] - c.centroid[0]).hypot(d.centroid[1] - c.centroid[1]);
+                (off + reach <= hole + 1.5).then_some(j)
+            })
+            .max_by(|&a, &b| comps[a].area.total_cmp(&comps[b].area));
+        let centre = c.centroid;
+        let Some(j) = inner else {
+            det.skipped.push(Skipped {
+                centre_px: centre,
+                reason: format!(
+                    "red ring (rim radius {rim:.1} px) with no round inner disk or ring in its hole"
+                ),
+            });
+            continue;
+        };
+        used[i] = true;
+        used[j] = true;
+        let inner_radii = match forms[j] {
+            Form::Disk(r) => [0.0, r],
+            Form::Ring(a, b) => [a, b],
+            Form::Other => unreachable!("filtered above"),
+        };
+        let half = rim + cfg.roi_margin_px;
+        let (x0, y0) = ((centre[0] - half).floor(), (centre[1] - half).floor());
+        let (x1, y1) = ((centre[0] + half).ceil(), (centre[1] + half).ceil());
+        if x0 < 0.0 || y0 < 0.0 || x1 > (w - 1) as f64 || y1 > (h - 1) as f64 {
+            det.skipped.push(Skipped {
+                centre_px: centre,
+                reason: format!(
+                    "target too close to the frame edge: its ROI ({:.0}..{:.0}, {:.0}..{:.0}) leaves the {w}x{h} frame",
+                    x0, x1, y0, y1
+                ),
+            });
+            continue;
+        }
+        det.targets.push(Candidate {
+            outer_centre_px: centre,
+            inner_centre_px: comps[j].centroid,
+            outer_radii_px: [hole, rim],
+            inner_radii_px: inner_radii,
+            roi: Roi {
+                x: x0 as u32,
+                y: y0 as u32,
+                w: (x1 - x0) as u32 + 1,
+                h: (y1 - y0) as u32 + 1,
+            },
+        });
+    }
+    for (i, c) in comps.iter().enumerate() {
+        if c.touches_edge && c.area >= min_area {
+            det.skipped.push(Skipped {
+                centre_px: c.centroid,
+                reason: format!(
+                    "red region of {:.0} px cut by the frame edge (box x {}..{}, y {}..{}): a cut target cannot be measured",
+                    c.area, c.bbox[0], c.bbox[2], c.bbox[1], c.bbox[3]
+                ),
+            });
+            used[i] = true;
+        }
+    }
+    // Reading order: rows of targets top to bottom, left to right within a row.
+    det.targets.sort_by(|a, b| {
+        let (ya, yb) = (a.outer_centre_px[1], b.outer_centre_px[1]);
+        if (ya - yb).abs() > a.outer_radii_px[1].min(b.outer_radii_px[1]) {
+            ya.total_cmp(&yb)
+        } else {
+            a.outer_centre_px[0].total_cmp(&b.outer_centre_px[0])
+        }
+    });
+    tracing::debug!(
+        components = comps.len(),
+        targets = det.targets.len(),
+        skipped = det.skipped.len(),
+        "detect"
+    );
+    det
+}
+
+/// Mean of one channel over the pixels of `roi` whose distance from `c` lies in `[r0, r1]`.
+fn ring_mean(img: &RgbImage, roi: Roi, c: [f64; 2], r0: f64, r1: f64) -> Option<[f64; 3]> {
+    let mut s = [0.0; 3];
+    let mut n = 0.0;
+    for y in roi.y..(roi.y + roi.h).min(img.height()) {
+        for x in roi.x..(roi.x + roi.w).min(img.width()) {
+            let r = (x as f64 - c[0]).hypot(y as f64 - c[1]);
+            if r >= r0 && r <= r1 {
+                let p = img.get_pixel(x, y).0;
+                for k in 0..3 {
+                    s[k] += p[k] as f64;
+                }
+                n += 1.0;
+            }
+        }
+    }
+    (n > 0.0).then(|| s.map(|v| v / n))
+}
+
+/// The channel (0=R, 1=G, 2=B) with the most ink-to-paper contrast over the found targets.
+/// Green (the contrast of red ink on white paper) when there are no targets.
+pub fn measurement_channel(img: &RgbImage, det: &Detection) -> usize {
+    let mut contrast = [0.0f64; 3];
+    for t in &det.targets {
+        let [hole, rim] = t.outer_radii_px;
+        let c = t.outer_centre_px;
+        // Ink: the middle of the ring band, clear of the blurred edges when it is thick.
+        let band = ((rim - hole) / 2.0 - 1.5).max(0.3);
+        let mid = (rim + hole) / 2.0;
+        let ink = ring_mean(img, t.roi, c, mid - band, mid + band);
+        let paper = ring_mean(img, t.roi, c, rim + 2.0, f64::INFINITY);
+        if let (Some(ink), Some(paper)) = (ink, paper) {
+            for k in 0..3 {
+                contrast[k] += (paper[k] - ink[k]).abs();
+            }
+        }
+    }
+    if det.targets.is_empty() {
+        return 1;
+    }
+    (0..3)
+        .max_by(|&a, &b| contrast[a].total_cmp(&contrast[b]))
+        .unwrap_or(1)
+}

@@ -10,6 +10,7 @@
 
 pub mod detect;
 pub mod estimate;
+pub mod layout;
 pub mod plane;
 pub mod reconstruct;
 pub mod register;
@@ -104,6 +105,9 @@ pub struct ObjectResult {
     pub inner_radius_px: f64,
     /// Frames that contributed.
     pub frames: usize,
+    /// Size on the board of one pixel of the grid the offset was measured on
+    /// (`scale_um_per_px / k` for a reconstruction, the camera pixel otherwise).
+    pub effective_pixel_um: f64,
 }
 
 /// A target candidate that was found but not measured, and why.

@@ -1,0 +1,337 @@
+//! The model fit: Levenberg–Marquardt least squares of a blurred ring-and-disk image to the
+//! window's pixels.
+//!
+//! Model of pixel (x, y): `I = L(x, y) · (1 − c · cov(x, y))` with
+//! - `L = b0 + bx·X + by·Y`, the paper level as a plane (vignetting and uneven light are
+//!   smooth over one target), X and Y the position in the window scaled to about ±1;
+//! - `c` the ink contrast (1 − ink/paper);
+//! - `cov` the ink coverage: a sum of blurred circle edges, each `E(ρ − R) = ½·erfc((ρ −
+//!   R)/(√2·s))` of the signed distance to the circle, + for the rims, − for the holes.
+//!   One blur width `s` stands for the lens blur and the pixel's own area (their variances
+//!   add: s² ≈ σ_psf² + 1/12 px²).
+//!
+//! The parameters: both centres, all radii, `s`, `b0`, `bx`, `by`, `c` (12, 13 with an inner
+//! ring). The offset's covariance is the inner-minus-outer block of `(JᵀJ)⁻¹ · σ̂²`, with σ̂²
+//! the residual variance.
+
+use super::{CentreEstimate, EstimateError, Window};
+use crate::pipeline::detect::Candidate;
+use crate::pipeline::plane::Plane;
+use nalgebra::{DMatrix, DVector};
+
+const CXO: usize = 0;
+const CYO: usize = 1;
+const HOLE: usize = 2;
+const RIM: usize = 3;
+const CXI: usize = 4;
+const CYI: usize = 5;
+const RI: usize = 6;
+const S: usize = 7;
+const B0: usize = 8;
+const BX: usize = 9;
+const BY: usize = 10;
+const C: usize = 11;
+/// Hole of an inner ring (absent for an inner disk).
+const RIH: usize = 12;
+const MAXP: usize = 13;
+
+const MAX_ITER: usize = 60;
+/// Beyond this many blur widths an edge is flat (erfc < 1e-9): skip its special functions.
+const FLAT: f64 = 6.0;
+
+/// Blurred edge: coverage E and its derivative dE/dd at signed distance `d`.
+#[inline]
+fn edge(d: f64, s: f64) -> (f64, f64) {
+    let t = d / s;
+    if t > FLAT {
+        (0.0, 0.0)
+    } else if t < -FLAT {
+        (1.0, 0.0)
+    } else {
+        let e = 0.5 * libm::erfc(t * std::f64::consts::FRAC_1_SQRT_2);
+        let de = -(-0.5 * t * t).exp() / (s * (2.0 * std::f64::consts::PI).sqrt());
+        (e, de)
+    }
+}
+
+/// Normal equations and cost at one parameter vector.
+struct Normal {
+    h: [[f64; MAXP]; MAXP],
+    g: [f64; MAXP],
+    cost: f64,
+    n: usize,
+}
+
+struct Problem<'a> {
+    plane: &'a Plane,
+    win: &'a Window,
+    np: usize,
+    /// Window centre and half size for the background plane's X, Y.
+    mid: [f64; 2],
+    inv_half: f64,
+    reach_centre: [f64; 2],
+}
+
+impl Problem<'_> {
+    fn normal(&self, p: &[f64; MAXP]) -> Normal {
+        let mut out = Normal {
+            h: [[0.0; MAXP]; MAXP],
+            g: [0.0; MAXP],
+            cost: 0.0,
+            n: 0,
+        };
+        let ring_inner = self.np == MAXP;
+        let s = p[S];
+        let reach2 = self.win.reach * self.win.reach;
+        let mut idx = [0usize; MAXP];
+        let mut val = [0f64; MAXP];
+        for y in self.win.y0..self.win.y1 {
+            let fy = y as f64;
+            let row = &self.plane.data[y * self.plane.width..(y + 1) * self.plane.width];
+            for (x, &v) in row.iter().enumerate().take(self.win.x1).skip(self.win.x0) {
+                let fx = x as f64;
+                let (rx, ry) = (fx - self.reach_centre[0], fy - self.reach_centre[1]);
+                if rx * rx + ry * ry > reach2 {
+                    continue;
+                }
+                let (dxo, dyo) = (fx - p[CXO], fy - p[CYO]);
+                let ro = (dxo * dxo + dyo * dyo).sqrt().max(1e-9);
+                let (dxi, dyi) = (fx - p[CXI], fy - p[CYI]);
+                let ri = (dxi * dxi + dyi * dyi).sqrt().max(1e-9);
+                let (e_rim, d_rim) = edge(ro - p[RIM], s);
+                let (e_hole, d_hole) = edge(ro - p[HOLE], s);
+                let (e_in, d_in) = edge(ri - p[RI], s);
+                let (e_ih, d_ih) = if ring_inner {
+                    edge(ri - p[RIH], s)
+                } else {
+                    (0.0, 0.0)
+                };
+                let cov = e_rim - e_hole + e_in - e_ih;
+                let (bx, by) = (
+                    (fx - self.mid[0]) * self.inv_half,
+                    (fy - self.mid[1]) * self.inv_half,
+                );
+                let l = p[B0] + p[BX] * bx + p[BY] * by;
+                let shade = 1.0 - p[C] * cov;
+                let r = v as f64 - l * shade;
+                out.cost += r * r;
+                out.n += 1;
+                // The Jacobian row, sparse: the background terms always, the geometry only
+                // near an edge.
+                let mut k = 0;
+                let mut push = |i: usize, d: f64| {
+                    idx[k] = i;
+                    val[k] = d;
+                    k += 1;
+                };
+                push(B0, shade);
+                push(BX, bx * shade);
+                push(BY, by * shade);
+                if cov != 0.0 {
+                    push(C, -l * cov);
+                }
+                let lc = -l * p[C];
+                let douter = d_rim - d_hole;
+                if douter != 0.0 {
+                    // dρ/dcx = −dx/ρ.
+                    push(CXO, lc * douter * (-dxo / ro));
+                    push(CYO, lc * douter * (-dyo / ro));
+                    push(RIM, lc * -d_rim);
+                    push(HOLE, lc * d_hole);
+                }
+                let dinner = d_in - d_ih;
+                if dinner != 0.0 {
+                    push(CXI, lc * dinner * (-dxi / ri));
+                    push(CYI, lc * dinner * (-dyi / ri));
+                    push(RI, lc * -d_in);
+                    if ring_inner {
+                        push(RIH, lc * d_ih);
+                    }
+                }
+                if douter != 0.0 || dinner != 0.0 {
+                    // dE/ds = −E'(d)·d/s.
+                    let ds = -(d_rim * (ro - p[RIM]) - d_hole * (ro - p[HOLE])
+                        + d_in * (ri - p[RI])
+                        - d_ih * if ring_inner { ri - p[RIH] } else { 0.0 })
+                        / s;
+                    push(S, lc * ds);
+                }
+                for a in 0..k {
+                    let (ia, va) = (idx[a], val[a]);
+                    out.g[ia] += va * r;
+                    for b in a..k {
+                        out.h[ia][idx[b]] += va * val[b];
+                    }
+                }
+            }
+        }
+        // Only one triangle was filled (in whatever order the indices came): symmetrise.
+        for a in 0..MAXP {
+            for b in a + 1..MAXP {
+                let v = out.h[a][b] + out.h[b][a];
+                out.h[a][b] = v;
+                out.h[b][a] = v;
+            }
+        }
+        out
+    }
+
+    fn matrix(&self, n: &Normal) -> DMatrix<f64> {
+        DMatrix::from_fn(self.np, self.np, |a, b| n.h[a][b])
+    }
+}
+
+pub(super) fn estimate(
+    plane: &Plane,
+    win: &Window,
+    g: &Candidate,
+    k: f64,
+) -> Result<CentreEstimate, EstimateError> {
+    let (paper, ink) = win.levels(plane);
+    if paper - ink < 4.0 || paper <= 0.0 {
+        return Err(EstimateError::NoInk {
+            x: g.outer_centre_px[0],
+            y: g.outer_centre_px[1],
+            what: format!("no contrast between paper ({paper:.1} DN) and ink ({ink:.1} DN)"),
+        });
+    }
+    let ring_inner = g.inner_radii_px[0] > 0.0;
+    let np = if ring_inner { MAXP } else { MAXP - 1 };
+    let mut p = [0.0; MAXP];
+    p[CXO] = g.outer_centre_px[0];
+    p[CYO] = g.outer_centre_px[1];
+    p[HOLE] = g.outer_radii_px[0];
+    p[RIM] = g.outer_radii_px[1];
+    p[CXI] = g.inner_centre_px[0];
+    p[CYI] = g.inner_centre_px[1];
+    p[RI] = g.inner_radii_px[1];
+    p[RIH] = g.inner_radii_px[0];
+    p[S] = 0.8 * k;
+    p[B0] = paper;
+    p[C] = 1.0 - ink / paper;
+    let half = 0.5 * (win.x1 - win.x0).max(win.y1 - win.y0) as f64;
+    let prob = Problem {
+        plane,
+        win,
+        np,
+        mid: [
+            0.5 * (win.x0 + win.x1 - 1) as f64,
+            0.5 * (win.y0 + win.y1 - 1) as f64,
+        ],
+        inv_half: 1.0 / half.max(1.0),
+        reach_centre: g.outer_centre_px,
+    };
+    let diverged =
+        |iterations: usize, reason: String| EstimateError::Diverged { iterations, reason };
+    let sane = |q: &[f64; MAXP]| -> Option<String> {
+        if q[..np].iter().any(|v| !v.is_finite()) {
+            return Some("non-finite parameter".into());
+        }
+        if !(q[S] > 0.05 * k && q[S] < 0.5 * q[HOLE]) {
+            return Some(format!("blur width {:.3} px out of range", q[S]));
+        }
+        if !(q[HOLE] > 0.0 && q[RIM] > q[HOLE] && q[RI] > 0.0) {
+            return Some(format!(
+                "radii out of order: hole {:.2}, rim {:.2}, inner {:.2}",
+                q[HOLE], q[RIM], q[RI]
+            ));
+        }
+        if ring_inner && !(q[RIH] > 0.0 && q[RIH] < q[RI]) {
+            return Some(format!(
+                "inner ring radii out of order: {:.2}, {:.2}",
+                q[RIH], q[RI]
+            ));
+        }
+        let moved = (q[CXO] - g.outer_centre_px[0]).hypot(q[CYO] - g.outer_centre_px[1]);
+        let limit = 3.0 * k + 0.25 * g.outer_radii_px[0];
+        if moved > limit {
+            return Some(format!("outer centre moved {moved:.2} px from the guess"));
+        }
+        None
+    };
+
+    let mut cur = prob.normal(&p);
+    let mut lambda = 1e-3;
+    let mut iterations = 0;
+    let mut converged = false;
+    while iterations < MAX_ITER {
+        iterations += 1;
+        let h = prob.matrix(&cur);
+        let mut a = h.clone();
+        for i in 0..np {
+            a[(i, i)] += lambda * h[(i, i)].max(1e-12);
+        }
+        let rhs = DVector::from_fn(np, |i, _| cur.g[i]);
+        let Some(delta) = a.cholesky().map(|c| c.solve(&rhs)) else {
+            lambda *= 10.0;
+            if lambda > 1e12 {
+                return Err(diverged(iterations, "singular normal equations".into()));
+            }
+            continue;
+        };
+        let mut q = p;
+        for i in 0..np {
+            q[i] += delta[i];
+        }
+        let step_centres = [CXO, CYO, CXI, CYI]
+            .iter()
+            .map(|&i| delta[i].abs())
+            .fold(0.0, f64::max);
+        if sane(&q).is_none() {
+            let next = prob.normal(&q);
+            if next.cost <= cur.cost {
+                let gain = cur.cost - next.cost;
+                p = q;
+                cur = next;
+                lambda = (lambda * 0.3).max(1e-9);
+                if step_centres < 1e-5 * k && gain <= 1e-9 * cur.cost.max(1e-30) + 1e-12 {
+                    converged = true;
+                    break;
+                }
+                if step_centres < 1e-6 * k {
+                    converged = true;
+                    break;
+                }
+                continue;
+            }
+        }
+        lambda *= 10.0;
+        if lambda > 1e10 {
+            // No step lowers the cost any more: at the minimum to working precision.
+            converged = true;
+            break;
+        }
+    }
+    if let Some(reason) = sane(&p) {
+        return Err(diverged(iterations, reason));
+    }
+    if !converged {
+        return Err(diverged(
+            iterations,
+            format!("no convergence in {MAX_ITER} iterations"),
+        ));
+    }
+    let dof = cur.n.saturating_sub(np);
+    let offset_cov = if dof > 0 {
+        prob.matrix(&cur).try_inverse().map(|inv| {
+            let s2 = cur.cost / dof as f64;
+            // offset = inner − outer: var = Cii + Coo − 2·Cio per axis, and the cross terms.
+            let c = |a: usize, b: usize| inv[(a, b)] * s2;
+            let e = |a: usize, b: usize| {
+                let (ia, oa) = ([CXI, CYI][a], [CXO, CYO][a]);
+                let (ib, ob) = ([CXI, CYI][b], [CXO, CYO][b]);
+                c(ia, ib) - c(ia, ob) - c(oa, ib) + c(oa, ob)
+            };
+            [[e(0, 0), e(0, 1)], [e(1, 0), e(1, 1)]]
+        })
+    } else {
+        None
+    };
+    Ok(CentreEstimate {
+        outer_px: [p[CXO], p[CYO]],
+        inner_px: [p[CXI], p[CYI]],
+        outer_radius_px: p[RIM],
+        inner_radius_px: p[RI],
+        offset_cov_px2: offset_cov,
+    })
+}

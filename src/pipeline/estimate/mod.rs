@@ -1,0 +1,170 @@
+//! Centre estimators: from the pixels of one target to its outer and inner centres.
+//!
+//! - `paper`: what the paper did, centroids of the thresholded ring and disk regions.
+//! - `fit` (the default): a least-squares fit of a blurred ring-and-disk model, with the
+//!   offset's covariance from the fit.
+//!
+//! Both work on the pixels within the guessed outer rim plus a margin for the blur; the
+//! guess (from `detect`, or a registered first frame) only has to be good to a pixel or so.
+
+mod fit;
+mod paper;
+
+use super::detect::Candidate;
+use super::plane::Plane;
+use super::Estimator;
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CentreEstimate {
+    pub outer_px: [f64; 2],
+    pub inner_px: [f64; 2],
+    /// Rim radius of the outer ring.
+    pub outer_radius_px: f64,
+    /// Rim radius of the inner disk (or ring).
+    pub inner_radius_px: f64,
+    /// Covariance of `offset_px()` (fit only).
+    pub offset_cov_px2: Option<[[f64; 2]; 2]>,
+}
+
+impl CentreEstimate {
+    /// Inner centre minus outer centre.
+    pub fn offset_px(&self) -> [f64; 2] {
+        [
+            self.inner_px[0] - self.outer_px[0],
+            self.inner_px[1] - self.outer_px[1],
+        ]
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum EstimateError {
+    #[error("bad guess: {0}")]
+    BadGuess(String),
+    #[error(
+        "the target's window (x {x0:.0}..{x1:.0}, y {y0:.0}..{y1:.0}) is outside the {width}x{height} plane"
+    )]
+    RoiOutside {
+        x0: f64,
+        x1: f64,
+        y0: f64,
+        y1: f64,
+        width: usize,
+        height: usize,
+    },
+    #[error("no ink in the window around ({x:.1}, {y:.1}): {what}")]
+    NoInk { x: f64, y: f64, what: String },
+    #[error("fit diverged after {iterations} iterations: {reason}")]
+    Diverged { iterations: usize, reason: String },
+}
+
+/// Estimate the centres of one target in `plane` (the measurement channel).
+///
+/// `guess` is in `plane`'s own pixel coordinates (the caller shifts it for a crop and scales
+/// it for a k-times finer reconstruction); `px_per_camera_px` is k (1 for a raw frame) so
+/// priors such as the blur width scale with the grid.
+pub fn estimate(
+    plane: &Plane,
+    guess: &Candidate,
+    estimator: Estimator,
+    px_per_camera_px: f64,
+) -> Result<CentreEstimate, EstimateError> {
+    let k = px_per_camera_px;
+    if !(k.is_finite() && k > 0.0) {
+        return Err(EstimateError::BadGuess(format!(
+            "px_per_camera_px must be positive, got {k}"
+        )));
+    }
+    check_guess(guess)?;
+    let win = Window::around(plane, guess, k)?;
+    match estimator {
+        Estimator::Paper => paper::estimate(plane, &win, guess),
+        Estimator::Fit => fit::estimate(plane, &win, guess, k),
+    }
+}
+
+fn check_guess(g: &Candidate) -> Result<(), EstimateError> {
+    let finite = g
+        .outer_centre_px
+        .iter()
+        .chain(&g.inner_centre_px)
+        .chain(&g.outer_radii_px)
+        .chain(&g.inner_radii_px)
+        .all(|v| v.is_finite());
+    if !finite {
+        return Err(EstimateError::BadGuess(format!(
+            "non-finite centre or radius in {g:?}"
+        )));
+    }
+    let [hole, rim] = g.outer_radii_px;
+    let [ih, ir] = g.inner_radii_px;
+    if !(hole > 0.0 && rim > hole && ir > 0.0 && ih >= 0.0 && ih < ir) {
+        return Err(EstimateError::BadGuess(format!(
+            "radii must satisfy 0 < hole < rim and 0 <= inner hole < inner rim: outer {:?}, inner {:?}",
+            g.outer_radii_px, g.inner_radii_px
+        )));
+    }
+    Ok(())
+}
+
+/// The pixels an estimator looks at: a square around the guessed outer centre reaching the
+/// rim plus a margin for the blur, clipped to the plane.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Window {
+    pub x0: usize,
+    pub y0: usize,
+    pub x1: usize, // exclusive
+    pub y1: usize,
+    /// Pixels farther than this from the guessed outer centre are ignored (clutter).
+    pub reach: f64,
+}
+
+impl Window {
+    fn around(plane: &Plane, g: &Candidate, k: f64) -> Result<Window, EstimateError> {
+        let c = g.outer_centre_px;
+        let rim = g.outer_radii_px[1];
+        let want = rim + 3.5 * k;
+        let need = rim + 1.5 * k;
+        let (w, h) = (plane.width as f64, plane.height as f64);
+        let outside = c[0] - need < 0.0
+            || c[1] - need < 0.0
+            || c[0] + need > w - 1.0
+            || c[1] + need > h - 1.0;
+        if outside {
+            return Err(EstimateError::RoiOutside {
+                x0: c[0] - need,
+                x1: c[0] + need,
+                y0: c[1] - need,
+                y1: c[1] + need,
+                width: plane.width,
+                height: plane.height,
+            });
+        }
+        let x0 = (c[0] - want).floor().max(0.0) as usize;
+        let y0 = (c[1] - want).floor().max(0.0) as usize;
+        let x1 = ((c[0] + want).ceil() as usize + 1).min(plane.width);
+        let y1 = ((c[1] + want).ceil() as usize + 1).min(plane.height);
+        Ok(Window {
+            x0,
+            y0,
+            x1,
+            y1,
+            reach: want,
+        })
+    }
+
+    /// Paper and ink levels: high and low percentiles of the window (ink covers a good part
+    /// of it, paper most of the rest).
+    pub fn levels(&self, plane: &Plane) -> (f64, f64) {
+        let mut v: Vec<f32> = Vec::with_capacity((self.x1 - self.x0) * (self.y1 - self.y0));
+        for y in self.y0..self.y1 {
+            v.extend_from_slice(&plane.data[y * plane.width + self.x0..y * plane.width + self.x1]);
+        }
+        let n = v.len();
+        let lo = n / 10;
+        let hi = (n * 9 / 10).min(n - 1);
+        let (_, &mut a, _) = v.select_nth_unstable_by(lo, f32::total_cmp);
+        let (_, &mut b, _) = v.select_nth_unstable_by(hi, f32::total_cmp);
+        (b as f64, a as f64)
+    }
+}
