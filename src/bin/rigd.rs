@@ -1,1 +1,91 @@
-fn main() {}
+//! `rigd`: the rig daemon. `rigd --sim` runs the simulated rig with no configuration.
+
+use anyhow::{bail, Context};
+use clap::Parser;
+use rigd::daemon::simrig::{sim_rig, Fault, SimSettings};
+use rigd::daemon::{default_socket, server, settings_from_config, DaemonSettings};
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(name = "rigd", version, about = "Rig-control and acquisition daemon")]
+struct Args {
+    /// The rig's TOML configuration.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Run the simulated rig (no hardware, no configuration needed).
+    #[arg(long)]
+    sim: bool,
+    /// Socket path (overrides the configuration).
+    #[arg(long, value_name = "PATH")]
+    socket: Option<PathBuf>,
+    /// Where sessions are written (overrides the configuration; sim default ./rigd-sessions).
+    #[arg(long, value_name = "DIR")]
+    data_root: Option<PathBuf>,
+    /// Inject a fault into the simulated rig: alarm@N, serial-loss@N (N-th move),
+    /// camera-timeout@N (N-th grab). Repeatable.
+    #[arg(long = "fault", value_name = "KIND@N")]
+    faults: Vec<Fault>,
+}
+
+fn main() -> std::process::ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match run(Args::parse()) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("rigd: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(a: Args) -> anyhow::Result<()> {
+    let from_config = match &a.config {
+        Some(p) => {
+            let text =
+                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            Some(
+                settings_from_config(&text, &p.display().to_string())
+                    .map_err(anyhow::Error::msg)?,
+            )
+        }
+        None => None,
+    };
+    if !a.sim {
+        if from_config.is_none() {
+            bail!("give --config FILE for a rig, or --sim for the simulated rig");
+        }
+        bail!("this build drives only the simulated rig: run with --sim (the hardware drivers are not wired into the daemon yet)");
+    }
+    if !a.faults.is_empty() && !a.sim {
+        bail!("--fault needs --sim");
+    }
+    let settings = DaemonSettings {
+        socket: a
+            .socket
+            .or(from_config.as_ref().map(|c| c.socket.clone()))
+            .unwrap_or_else(default_socket),
+        group: from_config.as_ref().and_then(|c| c.group.clone()),
+        data_root: a
+            .data_root
+            .or(from_config.as_ref().map(|c| c.data_root.clone()))
+            .unwrap_or_else(|| PathBuf::from("rigd-sessions")),
+    };
+    let rig = sim_rig(&SimSettings {
+        faults: a.faults,
+        ..SimSettings::default()
+    });
+    let rt = tokio::runtime::Runtime::new()?;
+    rt.block_on(server::run(
+        settings,
+        rig,
+        std::future::pending::<()>(),
+        true,
+    ))?;
+    Ok(())
+}

@@ -1,7 +1,16 @@
 //! The `rigctl` command line: one module per subcommand, wired here.
 
+pub mod cancel;
+pub mod client;
+pub mod demo;
+pub mod fetch;
 pub mod hw;
+pub mod list;
 pub mod process;
+pub mod replay;
+pub mod status;
+pub mod submit;
+pub mod watch;
 
 use clap::{Parser, Subcommand};
 
@@ -18,6 +27,22 @@ pub struct Cli {
 
 #[derive(Subcommand)]
 pub enum Command {
+    /// Run the paper's study on a simulated rig through a temporary daemon, print Tables 1-3.
+    Demo(demo::DemoArgs),
+    /// Queue a capture job and follow it.
+    Submit(submit::SubmitArgs),
+    /// Follow a job until it ends.
+    Watch(watch::WatchArgs),
+    /// The daemon's state, or one job's.
+    Status(status::StatusArgs),
+    /// Cancel a job.
+    Cancel(cancel::CancelArgs),
+    /// Jobs and sessions.
+    List(list::ListArgs),
+    /// A job's result.
+    Fetch(fetch::FetchArgs),
+    /// Run a recorded session again, optionally with other processing settings.
+    Replay(replay::ReplayArgs),
     /// Measure target offsets in a folder of frames (frames/*.png + steps.csv), offline.
     Process(process::ProcessArgs),
     /// Talk to the configured hardware directly (bring-up; only when no daemon holds it).
@@ -28,6 +53,14 @@ pub enum Command {
 pub fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
+        Command::Demo(a) => demo::run(a),
+        Command::Submit(a) => submit::run(a),
+        Command::Watch(a) => watch::run(a),
+        Command::Status(a) => status::run(a),
+        Command::Cancel(a) => cancel::run(a),
+        Command::List(a) => list::run(a),
+        Command::Fetch(a) => fetch::run(a),
+        Command::Replay(a) => replay::run(a),
         Command::Process(a) => process::run(a),
         Command::Hw(a) => hw::run(a),
     }

@@ -1,0 +1,144 @@
+//! `rigctl demo`: the paper's study on the simulated rig, through the daemon's socket.
+//!
+//! Starts a simulated rig and a daemon in-process on a temporary socket, submits the study
+//! (20 repeats of case 1: one raw frame; case 2: 10 frames at 100 µm, k = 5; case 3: 20
+//! frames at 50 µm, k = 10; each repeat from a different sub-pixel start), prints Tables 1-3
+//! and writes the session and the report.
+
+use crate::cli::client::{follow, report_end, Client};
+use crate::daemon::protocol::{JobSpec, PaperCase, Request};
+use crate::daemon::simrig::{sim_rig, SimSettings};
+use crate::daemon::study::{tables, StudySummary};
+use crate::daemon::{server, DaemonSettings};
+use anyhow::Context;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(clap::Args, Debug)]
+pub struct DemoArgs {
+    /// Socket of the demo's daemon (default: a temporary one).
+    #[arg(long, value_name = "PATH")]
+    pub socket: Option<PathBuf>,
+    /// Where the session and the report are written.
+    #[arg(long, default_value = "rigd-demo")]
+    pub data_root: PathBuf,
+    /// Repeats of each case (the paper: 20).
+    #[arg(long, default_value_t = 20)]
+    pub repeats: u32,
+    /// Print the report as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The paper's study as a job: each repeat starts 1/repeats of a pixel further.
+pub fn paper_study(repeats: u32, scale_um_per_px: f64) -> JobSpec {
+    JobSpec {
+        study: Some(PaperCase::ALL.to_vec()),
+        repeats,
+        repeat_shift_um: scale_um_per_px / repeats.max(1) as f64,
+        settle_ms: 0,
+        label: Some("paper study (demo)".into()),
+        ..JobSpec::default()
+    }
+}
+
+pub fn run(a: DemoArgs) -> anyhow::Result<()> {
+    let t0 = Instant::now();
+    let socket = a.socket.clone().unwrap_or_else(|| {
+        std::env::temp_dir().join(format!("rigd-demo-{}.sock", std::process::id()))
+    });
+    std::fs::create_dir_all(&a.data_root)
+        .with_context(|| format!("creating {}", a.data_root.display()))?;
+    let settings = DaemonSettings {
+        socket: socket.clone(),
+        group: None,
+        data_root: a.data_root.clone(),
+    };
+    let sim = SimSettings::default();
+    let scale = sim.camera.scale_um_per_px;
+    let rig = sim_rig(&sim);
+    // The daemon runs on its own runtime thread; this thread is an ordinary client.
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel::<anyhow::Result<()>>();
+    let daemon = std::thread::spawn(move || -> anyhow::Result<()> {
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()?;
+        rt.block_on(async move {
+            let stop = async move {
+                let _ = stop_rx.await;
+            };
+            let _ = ready_tx.send(Ok(()));
+            server::run(settings, rig, stop, false).await?;
+            Ok(())
+        })
+    });
+    ready_rx.recv().context("the demo daemon did not start")??;
+    let mut c = connect_retry(&socket)?;
+    c.request(&Request::Subscribe { job_id: None })?;
+    let r = c.request(&Request::Submit {
+        job: paper_study(a.repeats, scale),
+    })?;
+    let id = r["job_id"].as_u64().unwrap_or_default();
+    let total = r["total_frames"].as_u64().unwrap_or_default() as u32;
+    if !a.json {
+        eprintln!(
+            "rigctl demo: the paper's study on the simulated rig: {} repeats x 3 cases = {total} frames",
+            a.repeats
+        );
+    }
+    let end = follow(&mut c, id, total, a.json)?;
+    let fetched = c.request(&Request::Result { job_id: id });
+    drop(c);
+    let _ = stop_tx.send(());
+    let joined = daemon.join();
+    report_end(id, &end).map_err(|e| anyhow::anyhow!("{e:#}"))?;
+    match joined {
+        Ok(r) => r?,
+        Err(_) => anyhow::bail!("the demo daemon panicked"),
+    }
+    let fetched = fetched?;
+    let session = fetched["session"].as_str().unwrap_or_default().to_string();
+    let study: StudySummary = serde_json::from_value(fetched["result"]["study"].clone())
+        .context("the study's result has no summary")?;
+    let failed: usize = study.cases.iter().map(|c| c.runs_failed).sum();
+    let runtime_s = t0.elapsed().as_secs_f64();
+    let report = serde_json::json!({
+        "session": session,
+        "session_dir": a.data_root.join(&session),
+        "repeats": a.repeats,
+        "runtime_s": runtime_s,
+        "runs_failed": failed,
+        "cases": study.cases,
+        "paper_rms_std_um": { "case1": 281.5, "case2": 96.6, "case3": 69.9 },
+    });
+    let dir = a.data_root.join(&session);
+    let text = tables(&study);
+    std::fs::write(dir.join("report.json"), serde_json::to_vec_pretty(&report)?)?;
+    std::fs::write(dir.join("report.txt"), &text)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!("{text}");
+        println!(
+            "The paper: 281.5 µm (case 1), 96.6 µm (case 2), 69.9 µm (case 3).\nSession and report: {} ({runtime_s:.1} s)",
+            dir.display()
+        );
+        if failed > 0 {
+            println!("{failed} runs could not be processed (see result.json)");
+        }
+    }
+    Ok(())
+}
+
+fn connect_retry(socket: &std::path::Path) -> anyhow::Result<Client> {
+    let t = Instant::now();
+    loop {
+        match Client::connect(socket) {
+            Ok(c) => return Ok(c),
+            Err(e) if t.elapsed().as_secs() > 10 => return Err(e),
+            Err(_) => std::thread::sleep(std::time::Duration::from_millis(20)),
+        }
+    }
+}

@@ -1,0 +1,149 @@
+//! `rigctl submit`: queue a capture job and follow it with a progress bar.
+
+use crate::cli::client::{follow, report_end, SocketArg};
+use crate::daemon::protocol::{JobSpec, PaperCase, Request, StageKind};
+use crate::pipeline::{Combine, Estimator};
+
+#[derive(clap::Args, Debug)]
+pub struct SubmitArgs {
+    #[command(flatten)]
+    pub socket: SocketArg,
+    /// Stage to step.
+    #[arg(long, value_enum, default_value = "axis")]
+    pub stage: StageArg,
+    /// Distance between frames (µm).
+    #[arg(long)]
+    pub step_um: Option<f64>,
+    /// Number of frames.
+    #[arg(long)]
+    pub steps: Option<u32>,
+    /// Upsampling factor of the reconstruction.
+    #[arg(long)]
+    pub k: Option<u32>,
+    /// Run these of the paper's cases instead of one scan (comma-separated: case1,case2,case3).
+    #[arg(long, value_delimiter = ',', value_enum)]
+    pub study: Vec<CaseArg>,
+    #[arg(long, default_value_t = 20)]
+    pub settle_ms: u64,
+    #[arg(long, value_enum, default_value = "fit")]
+    pub estimator: EstimatorArg,
+    #[arg(long, value_enum)]
+    pub combine: Option<CombineArg>,
+    #[arg(long, default_value_t = 1)]
+    pub repeats: u32,
+    /// Absolute start position (µm); default: the rig's.
+    #[arg(long)]
+    pub start_um: Option<f64>,
+    /// Shift of each repeat's start (µm), for different sub-pixel phases.
+    #[arg(long, default_value_t = 0.0)]
+    pub repeat_shift_um: f64,
+    /// Capture and record only.
+    #[arg(long)]
+    pub no_process: bool,
+    #[arg(long)]
+    pub label: Option<String>,
+    /// Return once queued instead of following the job.
+    #[arg(long)]
+    pub detach: bool,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum StageArg {
+    Axis,
+    Piezo,
+}
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum CaseArg {
+    Case1,
+    Case2,
+    Case3,
+}
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum EstimatorArg {
+    Paper,
+    Fit,
+}
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum CombineArg {
+    Interp,
+    Splat,
+    Mean,
+}
+
+impl From<EstimatorArg> for Estimator {
+    fn from(e: EstimatorArg) -> Self {
+        match e {
+            EstimatorArg::Paper => Estimator::Paper,
+            EstimatorArg::Fit => Estimator::Fit,
+        }
+    }
+}
+impl From<CombineArg> for Combine {
+    fn from(c: CombineArg) -> Self {
+        match c {
+            CombineArg::Interp => Combine::Interp,
+            CombineArg::Splat => Combine::Splat,
+            CombineArg::Mean => Combine::Mean,
+        }
+    }
+}
+
+impl SubmitArgs {
+    pub fn spec(&self) -> JobSpec {
+        JobSpec {
+            stage: match self.stage {
+                StageArg::Axis => StageKind::Axis,
+                StageArg::Piezo => StageKind::Piezo,
+            },
+            step_um: self.step_um,
+            steps: self.steps,
+            k: self.k,
+            study: (!self.study.is_empty()).then(|| {
+                self.study
+                    .iter()
+                    .map(|c| match c {
+                        CaseArg::Case1 => PaperCase::Case1,
+                        CaseArg::Case2 => PaperCase::Case2,
+                        CaseArg::Case3 => PaperCase::Case3,
+                    })
+                    .collect()
+            }),
+            settle_ms: self.settle_ms,
+            estimator: self.estimator.into(),
+            combine: self.combine.map(Into::into),
+            repeats: self.repeats,
+            start_um: self.start_um,
+            repeat_shift_um: self.repeat_shift_um,
+            process: !self.no_process,
+            label: self.label.clone(),
+        }
+    }
+}
+
+/// Submit `req` (a submit or a replay) and follow it unless `detach`.
+pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyhow::Result<u64> {
+    let mut c = socket.connect()?;
+    if !detach {
+        // Subscribe first so no event of the new job can be missed.
+        c.request(&Request::Subscribe { job_id: None })?;
+    }
+    let r = c.request(&req)?;
+    let id = r["job_id"].as_u64().unwrap_or_default();
+    let total = r["total_frames"].as_u64().unwrap_or_default() as u32;
+    eprintln!(
+        "job {id} queued ({total} frames, {} ahead)",
+        r["queue_position"].as_u64().unwrap_or_default()
+    );
+    if detach {
+        println!("{id}");
+        return Ok(id);
+    }
+    let end = follow(&mut c, id, total, false)?;
+    report_end(id, &end)?;
+    Ok(id)
+}
+
+pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
+    let req = Request::Submit { job: a.spec() };
+    submit_and_follow(&a.socket, req, a.detach).map(|_| ())
+}

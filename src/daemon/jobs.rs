@@ -1,0 +1,217 @@
+//! The job table and queue: what was submitted, what runs, what waits. One job runs at a
+//! time because the rig is exclusive.
+
+use crate::daemon::plan::Plan;
+use crate::daemon::protocol::{JobSpec, ProcessingOverride};
+use crate::daemon::runner::{CANCEL, RUN};
+use serde::Serialize;
+use std::collections::{BTreeMap, VecDeque};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::Arc;
+
+/// Finished jobs kept in memory; older ones are still listed from their sessions on disk.
+const KEEP_FINISHED: usize = 256;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    Queued,
+    Running,
+    Finished,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    pub fn is_done(self) -> bool {
+        matches!(
+            self,
+            JobState::Finished | JobState::Failed | JobState::Cancelled
+        )
+    }
+}
+
+#[derive(Debug, Clone)]
+pub enum JobSource {
+    Live,
+    Replay {
+        dir: PathBuf,
+        overrides: ProcessingOverride,
+    },
+}
+
+#[derive(Debug, Clone)]
+pub struct JobRecord {
+    pub id: u64,
+    pub spec: JobSpec,
+    pub plan: Plan,
+    pub source: JobSource,
+    pub state: JobState,
+    pub session: Option<String>,
+    pub frames_done: u32,
+    pub reason: Option<String>,
+    pub stop: Arc<AtomicU8>,
+}
+
+/// The public view of a job (status and list replies).
+#[derive(Debug, Clone, Serialize)]
+pub struct JobStatus {
+    pub job_id: u64,
+    pub state: JobState,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub label: Option<String>,
+    pub replay_of: Option<String>,
+    pub session: Option<String>,
+    pub frames_done: u32,
+    pub total_frames: u32,
+    pub reason: Option<String>,
+}
+
+impl JobRecord {
+    pub fn status(&self) -> JobStatus {
+        JobStatus {
+            job_id: self.id,
+            state: self.state,
+            label: self.spec.label.clone(),
+            replay_of: match &self.source {
+                JobSource::Replay { dir, .. } => {
+                    dir.file_name().map(|n| n.to_string_lossy().into_owned())
+                }
+                JobSource::Live => None,
+            },
+            session: self.session.clone(),
+            frames_done: self.frames_done,
+            total_frames: self.plan.total_frames,
+            reason: self.reason.clone(),
+        }
+    }
+}
+
+#[derive(Default)]
+pub struct Jobs {
+    next_id: u64,
+    table: BTreeMap<u64, JobRecord>,
+    queue: VecDeque<u64>,
+    running: Option<u64>,
+    finished_order: VecDeque<u64>,
+}
+
+impl Jobs {
+    /// Start numbering after `last_id` (the highest id recorded on disk).
+    pub fn starting_after(last_id: u64) -> Jobs {
+        Jobs {
+            next_id: last_id + 1,
+            ..Jobs::default()
+        }
+    }
+
+    /// Queue a job; returns its id and how many jobs are ahead of it.
+    pub fn submit(&mut self, spec: JobSpec, plan: Plan, source: JobSource) -> (u64, usize) {
+        let id = self.next_id;
+        self.next_id += 1;
+        self.table.insert(
+            id,
+            JobRecord {
+                id,
+                spec,
+                plan,
+                source,
+                state: JobState::Queued,
+                session: None,
+                frames_done: 0,
+                reason: None,
+                stop: Arc::new(AtomicU8::new(RUN)),
+            },
+        );
+        let ahead = self.queue.len() + usize::from(self.running.is_some());
+        self.queue.push_back(id);
+        (id, ahead)
+    }
+
+    /// Take the next queued job and mark it running.
+    pub fn start_next(&mut self) -> Option<JobRecord> {
+        let id = self.queue.pop_front()?;
+        self.running = Some(id);
+        let rec = self.table.get_mut(&id)?;
+        rec.state = JobState::Running;
+        Some(rec.clone())
+    }
+
+    pub fn get(&self, id: u64) -> Option<&JobRecord> {
+        self.table.get(&id)
+    }
+
+    pub fn get_mut(&mut self, id: u64) -> Option<&mut JobRecord> {
+        self.table.get_mut(&id)
+    }
+
+    pub fn running(&self) -> Option<u64> {
+        self.running
+    }
+
+    pub fn queued(&self) -> Vec<u64> {
+        self.queue.iter().copied().collect()
+    }
+
+    pub fn all(&self) -> impl Iterator<Item = &JobRecord> {
+        self.table.values()
+    }
+
+    /// Cancel: a queued job ends now (returns true); a running one is told to stop after
+    /// its current step (returns false). Err if unknown or already done.
+    pub fn cancel(&mut self, id: u64) -> Result<bool, String> {
+        let rec = self
+            .table
+            .get_mut(&id)
+            .ok_or_else(|| format!("no job {id}"))?;
+        match rec.state {
+            JobState::Queued => {
+                self.queue.retain(|&q| q != id);
+                rec.state = JobState::Cancelled;
+                rec.reason = Some("cancelled by a client before it started".into());
+                self.retire(id);
+                Ok(true)
+            }
+            JobState::Running => {
+                rec.stop.store(CANCEL, Ordering::SeqCst);
+                Ok(false)
+            }
+            s => Err(format!("job {id} is already {s:?}").to_lowercase()),
+        }
+    }
+
+    /// Record the end of the running job.
+    pub fn finish(&mut self, id: u64, state: JobState, reason: Option<String>) {
+        if let Some(rec) = self.table.get_mut(&id) {
+            rec.state = state;
+            rec.reason = reason;
+        }
+        if self.running == Some(id) {
+            self.running = None;
+        }
+        self.retire(id);
+    }
+
+    fn retire(&mut self, id: u64) {
+        self.finished_order.push_back(id);
+        while self.finished_order.len() > KEEP_FINISHED {
+            if let Some(old) = self.finished_order.pop_front() {
+                self.table.remove(&old);
+            }
+        }
+    }
+
+    /// Take every queued job out (shutdown).
+    pub fn drain_queue(&mut self) -> Vec<u64> {
+        let ids: Vec<u64> = self.queue.drain(..).collect();
+        for &id in &ids {
+            if let Some(r) = self.table.get_mut(&id) {
+                r.state = JobState::Cancelled;
+                r.reason = Some("the daemon is shutting down".into());
+            }
+            self.retire(id);
+        }
+        ids
+    }
+}

@@ -1,0 +1,181 @@
+//! Replay: a recorded session as a rig. The stage reports the recorded axis positions, the
+//! camera yields the recorded frames and the interferometer the recorded readings, in the
+//! order the job recorded them, so the replayed job goes through the same runner and
+//! pipeline and gets the same result (or another, with other processing settings).
+
+use crate::daemon::protocol::{JobSpec, ProcessingOverride};
+use crate::daemon::rig::{PositionLog, Rig, RigInfo};
+use crate::daemon::session::{Session, StepRow};
+use crate::hw::{Camera, Frame, HwError, MotionState, Stage, StageStatus};
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+/// The job spec to replay a session with: the recorded one, processing overridden, and
+/// only as many frames as were captured (an incomplete session replays what it holds).
+pub fn replay_spec(session: &Session, ov: &ProcessingOverride) -> JobSpec {
+    let mut spec = session.manifest.job.clone();
+    if let Some(e) = ov.estimator {
+        spec.estimator = e;
+    }
+    if let Some(c) = ov.combine {
+        spec.combine = Some(c);
+    }
+    spec.process = true;
+    // The frames are already settled: replay as fast as the pipeline goes.
+    spec.settle_ms = 0;
+    spec
+}
+
+/// The recorded plan cut to the frames the session holds, with `k` overridden.
+pub fn replay_plan(session: &Session, ov: &ProcessingOverride) -> crate::daemon::plan::Plan {
+    let mut plan = session.manifest.plan.clone();
+    let mut left = session.steps.len();
+    plan.runs.retain_mut(|r| {
+        if left == 0 {
+            return false;
+        }
+        let n = r.positions_um.len().min(left);
+        r.positions_um.truncate(n);
+        r.case.frames = n as u32;
+        left -= n;
+        if let Some(k) = ov.k {
+            r.case.k = k;
+        }
+        true
+    });
+    plan.total_frames = plan.runs.iter().map(|r| r.positions_um.len() as u32).sum();
+    plan
+}
+
+/// Build the replay rig for `session`.
+pub fn replay_rig(session: &Session) -> Rig {
+    let rows = Arc::new(Mutex::new(VecDeque::from(session.steps.clone())));
+    let mut info: RigInfo = session.manifest.rig.clone();
+    info.mode = "replay".into();
+    let stage = || -> Box<dyn Stage> {
+        Box::new(ReplayStage {
+            rows: session.steps.clone().into(),
+            position_um: 0.0,
+        })
+    };
+    Rig {
+        info,
+        axis: stage(),
+        piezo: Some(stage()),
+        camera: Box::new(ReplayCamera {
+            dir: session.dir.clone(),
+            rows: rows.clone(),
+            size: session.manifest.rig.frame_size,
+        }),
+        log: Some(Box::new(ReplayLog {
+            rows: session.steps.clone(),
+        })),
+    }
+}
+
+/// Reports the recorded axis position of each step in turn.
+struct ReplayStage {
+    rows: VecDeque<StepRow>,
+    position_um: f64,
+}
+
+impl Stage for ReplayStage {
+    fn name(&self) -> &str {
+        "replay-stage"
+    }
+    fn move_rel(&mut self, delta_um: f64) -> Result<(), HwError> {
+        self.move_abs(self.position_um + delta_um)
+    }
+    fn move_abs(&mut self, target_um: f64) -> Result<(), HwError> {
+        let row = self.rows.pop_front().ok_or_else(|| HwError::Other {
+            device: "replay-stage".into(),
+            message: format!("no recorded step left for a move to {target_um} µm"),
+        })?;
+        self.position_um = row.axis_um;
+        Ok(())
+    }
+    fn wait_settled(&mut self, _timeout: Duration) -> Result<f64, HwError> {
+        Ok(self.position_um)
+    }
+    fn position_um(&mut self) -> Result<f64, HwError> {
+        Ok(self.position_um)
+    }
+    fn stop(&mut self) -> Result<(), HwError> {
+        Ok(())
+    }
+    fn home(&mut self) -> Result<(), HwError> {
+        Ok(())
+    }
+    fn status(&mut self) -> Result<StageStatus, HwError> {
+        Ok(StageStatus {
+            state: MotionState::Idle,
+            position_um: self.position_um,
+        })
+    }
+}
+
+/// Yields the recorded frames in order, with their recorded timestamps and sequences.
+struct ReplayCamera {
+    dir: PathBuf,
+    rows: Arc<Mutex<VecDeque<StepRow>>>,
+    size: (u32, u32),
+}
+
+impl ReplayCamera {
+    fn next(&mut self) -> Result<Frame, HwError> {
+        let err = |message: String| HwError::Other {
+            device: "replay-camera".into(),
+            message,
+        };
+        let row = self
+            .rows
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .pop_front()
+            .ok_or_else(|| err("no recorded frame left".into()))?;
+        let path = self
+            .dir
+            .join("frames")
+            .join(crate::daemon::session::frame_name(row.index));
+        let image = image::open(&path)
+            .map_err(|e| err(format!("{}: {e}", path.display())))?
+            .into_rgb8();
+        Ok(Frame {
+            image,
+            sequence: row.sequence,
+            timestamp: UNIX_EPOCH + Duration::from_secs_f64(row.t_unix_s.max(0.0)),
+        })
+    }
+}
+
+impl Camera for ReplayCamera {
+    fn name(&self) -> &str {
+        "replay-camera"
+    }
+    fn size(&self) -> (u32, u32) {
+        self.size
+    }
+    fn grab(&mut self, _timeout: Duration) -> Result<Frame, HwError> {
+        self.next()
+    }
+    fn grab_fresh(&mut self, _nb: SystemTime, _timeout: Duration) -> Result<Frame, HwError> {
+        self.next()
+    }
+}
+
+/// The recorded interferometer readings, looked up by the frame's recorded time.
+struct ReplayLog {
+    rows: Vec<StepRow>,
+}
+
+impl PositionLog for ReplayLog {
+    fn position_at(&mut self, t: SystemTime) -> Option<f64> {
+        let t = crate::daemon::session::unix_s(t);
+        self.rows
+            .iter()
+            .min_by(|a, b| (a.t_unix_s - t).abs().total_cmp(&(b.t_unix_s - t).abs()))
+            .and_then(|r| r.interferometer_um)
+    }
+}

@@ -1,0 +1,278 @@
+//! Runs one job on the rig: per step move, settle, grab a fresh frame, record it; frame i
+//! is processed on a second thread while the axis moves to i+1. Blocking code: it runs on
+//! its own thread, never on the async runtime.
+
+use crate::daemon::plan::Plan;
+use crate::daemon::protocol::{process_options, EventBody, JobSpec, StepTimings};
+use crate::daemon::rig::Rig;
+use crate::daemon::session::{unix_s, SessionWriter, StepRow};
+use crate::daemon::study::{summarize, RunResult};
+use crate::hw::HwError;
+use crate::pipeline::Pipeline;
+use image::RgbImage;
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::mpsc;
+use std::time::{Duration, Instant, SystemTime};
+
+/// Values of a job's stop flag.
+pub const RUN: u8 = 0;
+pub const CANCEL: u8 = 1;
+pub const SHUTDOWN: u8 = 2;
+
+const MOVE_TIMEOUT: Duration = Duration::from_secs(30);
+const GRAB_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// How a job ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Outcome {
+    Finished,
+    Failed(String),
+    Cancelled(String),
+}
+
+/// What a job produced, whatever its outcome.
+pub struct JobOutput {
+    pub outcome: Outcome,
+    /// `{"runs": [...], "study": {...}}`; runs that finished before a fault are kept.
+    pub result: serde_json::Value,
+    pub images: Vec<(String, image::ImageBuffer<image::Luma<u16>, Vec<u16>>)>,
+}
+
+/// Everything the runner needs besides the rig and the session.
+pub struct JobContext<'a> {
+    pub spec: &'a JobSpec,
+    pub plan: &'a Plan,
+    pub stop: &'a AtomicU8,
+    pub emit: &'a (dyn Fn(EventBody) + Sync),
+}
+
+enum ToProcessor {
+    Frame {
+        run: u32,
+        index: u32,
+        image: RgbImage,
+        position_um: f64,
+    },
+    EndRun(u32),
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+/// Run `ctx`'s plan on `rig`, recording into `session`.
+pub fn run_job(ctx: &JobContext<'_>, rig: &mut Rig, session: &mut SessionWriter) -> JobOutput {
+    let (tx, rx) = mpsc::sync_channel::<ToProcessor>(4);
+    let info = rig.info.clone();
+    std::thread::scope(|scope| {
+        let processor = scope.spawn(|| process_frames(ctx, &info, rx));
+        let outcome = capture(ctx, rig, session, &tx);
+        drop(tx);
+        let (runs, images) = processor
+            .join()
+            .unwrap_or_else(|_| (Vec::new(), Vec::new()));
+        let study = (ctx.spec.process && !runs.is_empty()).then(|| summarize(&runs));
+        JobOutput {
+            outcome,
+            result: serde_json::json!({ "runs": runs, "study": study }),
+            images,
+        }
+    })
+}
+
+/// The capture loop. On any fault or stop the stage is stopped before returning.
+fn capture(
+    ctx: &JobContext<'_>,
+    rig: &mut Rig,
+    session: &mut SessionWriter,
+    tx: &mpsc::SyncSender<ToProcessor>,
+) -> Outcome {
+    let total = ctx.plan.total_frames;
+    let stop_stage = |rig: &mut Rig| {
+        if let Ok(s) = rig.stage(ctx.spec.stage) {
+            let _ = s.stop();
+        }
+    };
+    let mut index = 0u32;
+    for run in &ctx.plan.runs {
+        for &commanded_um in &run.positions_um {
+            match ctx.stop.load(Ordering::SeqCst) {
+                RUN => {}
+                CANCEL => {
+                    stop_stage(rig);
+                    return Outcome::Cancelled("cancelled by a client".into());
+                }
+                _ => {
+                    stop_stage(rig);
+                    return Outcome::Cancelled("the daemon is shutting down".into());
+                }
+            }
+            let step = step(ctx, rig, commanded_um);
+            let (axis_um, frame, timings) = match step {
+                Ok(s) => s,
+                Err(e) => {
+                    stop_stage(rig);
+                    return Outcome::Failed(e.to_string());
+                }
+            };
+            let interferometer_um = rig
+                .log
+                .as_mut()
+                .and_then(|l| l.position_at(frame.timestamp));
+            let row = StepRow {
+                index,
+                position_um: commanded_um,
+                run: run.run,
+                case: run.case.name.clone(),
+                repeat: run.repeat,
+                axis_um,
+                interferometer_um,
+                t_unix_s: unix_s(frame.timestamp),
+                sequence: frame.sequence,
+                move_ms: timings.move_ms,
+                settle_ms: timings.settle_ms,
+                grab_ms: timings.grab_ms,
+            };
+            if let Err(e) = session.record(row, &frame.image) {
+                stop_stage(rig);
+                return Outcome::Failed(format!("disk: {e}"));
+            }
+            (ctx.emit)(EventBody::Step {
+                index,
+                run: run.run,
+                case: run.case.name.clone(),
+                repeat: run.repeat,
+                commanded_um,
+                axis_um,
+                interferometer_um,
+                timings,
+                total_frames: total,
+            });
+            if ctx.spec.process {
+                // Blocks only if processing falls four frames behind the capture.
+                let _ = tx.send(ToProcessor::Frame {
+                    run: run.run,
+                    index,
+                    image: frame.image,
+                    position_um: commanded_um,
+                });
+            }
+            index += 1;
+        }
+        if ctx.spec.process {
+            let _ = tx.send(ToProcessor::EndRun(run.run));
+        }
+    }
+    Outcome::Finished
+}
+
+/// Move, settle, grab one fresh frame.
+fn step(
+    ctx: &JobContext<'_>,
+    rig: &mut Rig,
+    commanded_um: f64,
+) -> Result<(f64, crate::hw::Frame, StepTimings), HwError> {
+    let t0 = Instant::now();
+    let stage = rig.stage(ctx.spec.stage)?;
+    stage.move_abs(commanded_um)?;
+    let axis_um = stage.wait_settled(MOVE_TIMEOUT)?;
+    let t1 = Instant::now();
+    // Settle in short sleeps so a cancel is not held up by a long settle time.
+    let settle = Duration::from_millis(ctx.spec.settle_ms);
+    while t1.elapsed() < settle && ctx.stop.load(Ordering::SeqCst) == RUN {
+        std::thread::sleep((settle - t1.elapsed()).min(Duration::from_millis(20)));
+    }
+    let t2 = Instant::now();
+    let frame = rig.camera.grab_fresh(SystemTime::now(), GRAB_TIMEOUT)?;
+    let t3 = Instant::now();
+    Ok((
+        axis_um,
+        frame,
+        StepTimings {
+            move_ms: ms(t1 - t0),
+            settle_ms: ms(t2 - t1),
+            grab_ms: ms(t3 - t2),
+            process_ms: None,
+        },
+    ))
+}
+
+type Images = Vec<(String, image::ImageBuffer<image::Luma<u16>, Vec<u16>>)>;
+
+/// The processing side: one pipeline per run, fed as frames arrive.
+fn process_frames(
+    ctx: &JobContext<'_>,
+    info: &crate::daemon::rig::RigInfo,
+    rx: mpsc::Receiver<ToProcessor>,
+) -> (Vec<RunResult>, Images) {
+    let mut results = Vec::new();
+    let mut images = Vec::new();
+    let mut current: Option<(u32, Result<Pipeline, String>)> = None;
+    for msg in rx {
+        match msg {
+            ToProcessor::Frame {
+                run,
+                index,
+                image,
+                position_um,
+            } => {
+                if current.as_ref().map(|c| c.0) != Some(run) {
+                    let case = &ctx.plan.runs[run as usize].case;
+                    let opts =
+                        process_options(ctx.spec, case.k, info.scale_um_per_px, info.axis_dir);
+                    let p = Pipeline::new(opts, info.board.clone()).map_err(|e| e.to_string());
+                    current = Some((run, p));
+                }
+                let Some((_, Ok(p))) = current.as_mut() else {
+                    continue;
+                };
+                let t = Instant::now();
+                match p.push(&image, position_um) {
+                    Ok(r) => (ctx.emit)(EventBody::Processed {
+                        index,
+                        process_ms: ms(t.elapsed()),
+                        targets_found: r.targets_found,
+                    }),
+                    Err(e) => {
+                        current.as_mut().expect("set above").1 = Err(format!("frame {index}: {e}"))
+                    }
+                }
+            }
+            ToProcessor::EndRun(run) => {
+                let plan = &ctx.plan.runs[run as usize];
+                let outcome = match current.take() {
+                    Some((r, Ok(p))) if r == run => p.finish().map_err(|e| e.to_string()),
+                    Some((r, Err(e))) if r == run => Err(e),
+                    _ => Err("no frame reached processing".into()),
+                };
+                let (result, error) = match outcome {
+                    Ok(f) => {
+                        for im in f.images {
+                            images.push((format!("run-{run:03}-{}", im.name), im.image));
+                        }
+                        (Some(f.result), None)
+                    }
+                    Err(e) => (None, Some(e)),
+                };
+                (ctx.emit)(EventBody::Result {
+                    run,
+                    case: plan.case.name.clone(),
+                    repeat: plan.repeat,
+                    objects: result.as_ref().map(|r| r.objects.len()),
+                    error: error.clone(),
+                });
+                results.push(RunResult {
+                    run,
+                    case: plan.case.name.clone(),
+                    repeat: plan.repeat,
+                    frames: plan.case.frames,
+                    step_um: plan.case.step_um,
+                    k: plan.case.k,
+                    result,
+                    error,
+                });
+            }
+        }
+    }
+    (results, images)
+}

@@ -1,0 +1,132 @@
+//! The socket and the accept loop, and a clean stop: on SIGTERM (or SIGINT) the server stops
+//! accepting, the running job stops after its current step with the axis stopped, queued
+//! jobs are cancelled, the session is closed and the socket removed.
+
+use crate::daemon::protocol::EventBody;
+use crate::daemon::rig::Rig;
+use crate::daemon::runner::SHUTDOWN;
+use crate::daemon::session;
+use crate::daemon::{connection, worker, DaemonSettings, Shared};
+use std::os::unix::fs::PermissionsExt;
+use std::path::Path;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use tokio::net::UnixListener;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServerError {
+    #[error("socket {path}: {message}")]
+    Socket { path: String, message: String },
+    #[error("data root: {0}")]
+    Session(#[from] session::SessionError),
+}
+
+/// Bind the socket: mode 0660, group from the settings. A stale socket (nobody listening)
+/// is replaced; a live one is an error.
+pub fn bind(path: &Path, group: Option<&str>) -> Result<UnixListener, ServerError> {
+    let err = |message: String| ServerError::Socket {
+        path: path.display().to_string(),
+        message,
+    };
+    if path.exists() {
+        if std::os::unix::net::UnixStream::connect(path).is_ok() {
+            return Err(err("another daemon is listening on it".into()));
+        }
+        std::fs::remove_file(path)
+            .map_err(|e| err(format!("cannot remove the stale socket: {e}")))?;
+    }
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(|e| err(format!("cannot create its folder: {e}")))?;
+    }
+    let listener = UnixListener::bind(path).map_err(|e| err(e.to_string()))?;
+    std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o660))
+        .map_err(|e| err(format!("chmod 0660: {e}")))?;
+    if let Some(g) = group {
+        let gid = group_id(g).ok_or_else(|| err(format!("no group {g:?}")))?;
+        std::os::unix::fs::chown(path, None, Some(gid))
+            .map_err(|e| err(format!("chgrp {g}: {e}")))?;
+    }
+    Ok(listener)
+}
+
+fn group_id(name: &str) -> Option<u32> {
+    let c = std::ffi::CString::new(name).ok()?;
+    // SAFETY: getgrnam reads a NUL-terminated name; the result is copied out at once.
+    let gr = unsafe { libc::getgrnam(c.as_ptr()) };
+    if gr.is_null() {
+        None
+    } else {
+        Some(unsafe { (*gr).gr_gid })
+    }
+}
+
+/// Run the daemon until `stop` resolves (or SIGTERM/SIGINT when `signals`). Returns the
+/// rig, stopped, once the running job has ended.
+pub async fn run(
+    settings: DaemonSettings,
+    rig: Rig,
+    stop: impl std::future::Future<Output = ()>,
+    signals: bool,
+) -> Result<Rig, ServerError> {
+    std::fs::create_dir_all(&settings.data_root).map_err(|e| session::SessionError::Io {
+        path: settings.data_root.display().to_string(),
+        source: e,
+    })?;
+    let (last_id, marked) = session::recover(&settings.data_root)?;
+    for name in &marked {
+        tracing::warn!(session = %name, "marked incomplete: the daemon stopped while it ran");
+    }
+    let listener = bind(&settings.socket, settings.group.as_deref())?;
+    tracing::info!(socket = %settings.socket.display(), data_root = %settings.data_root.display(), rig = %rig.info.mode, "rigd listening");
+    let shared = Arc::new(Shared::new(settings.clone(), rig.info.clone(), last_id));
+    let worker = tokio::spawn(worker::run(shared.clone(), rig));
+    let signal = async {
+        if !signals {
+            return std::future::pending::<()>().await;
+        }
+        use tokio::signal::unix::{signal, SignalKind};
+        match (
+            signal(SignalKind::terminate()),
+            signal(SignalKind::interrupt()),
+        ) {
+            (Ok(mut t), Ok(mut i)) => {
+                tokio::select! { _ = t.recv() => {}, _ = i.recv() => {} }
+            }
+            _ => std::future::pending::<()>().await,
+        }
+    };
+    tokio::pin!(stop);
+    tokio::pin!(signal);
+    loop {
+        tokio::select! {
+            acc = listener.accept() => match acc {
+                Ok((stream, _)) => { tokio::spawn(connection::serve(stream, shared.clone())); }
+                Err(e) => tracing::warn!(error = %e, "accept failed"),
+            },
+            _ = &mut stop => break,
+            _ = &mut signal => { tracing::info!("signal: stopping"); break; }
+        }
+    }
+    drop(listener);
+    let _ = std::fs::remove_file(&settings.socket);
+    // Stop: no new jobs, queued ones cancelled, the running one stops after its step.
+    shared.shutting_down.store(true, Ordering::SeqCst);
+    let drained = shared.jobs().drain_queue();
+    for id in drained {
+        shared
+            .events
+            .emit(id, EventBody::Cancelled { session: None });
+    }
+    if let Some(id) = shared.jobs().running() {
+        if let Some(r) = shared.jobs().get(id) {
+            r.stop.store(SHUTDOWN, Ordering::SeqCst);
+        }
+    }
+    shared.wake.notify_one();
+    let rig = worker.await.map_err(|e| ServerError::Socket {
+        path: settings.socket.display().to_string(),
+        message: format!("worker ended badly: {e}"),
+    })?;
+    tracing::info!("rigd stopped");
+    Ok(rig)
+}

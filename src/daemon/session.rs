@@ -1,0 +1,411 @@
+//! Session folders: one per job under the data root (docs/sessions.md).
+//!
+//! Crash safety: every file is written under a temporary name, synced and renamed into
+//! place, so a reader sees either the old or the new version, never half a file. A frame's
+//! PNG and its `steps.csv` row are in place before the job reports the step, and the
+//! manifest's state is updated last. After a crash the manifest still says `running`; the
+//! next daemon start marks such sessions `incomplete`.
+
+use crate::daemon::plan::Plan;
+use crate::daemon::protocol::{JobSpec, PROTOCOL_VERSION};
+use crate::daemon::rig::RigInfo;
+use image::RgbImage;
+use serde::{Deserialize, Serialize};
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::SystemTime;
+
+pub const FORMAT: &str = "rigd-session/1";
+pub const MANIFEST: &str = "manifest.json";
+pub const STEPS: &str = "steps.csv";
+pub const INTERFEROMETER: &str = "interferometer.csv";
+pub const RESULT: &str = "result.json";
+
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    #[error("session {path}: {source}")]
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("session {path}: {message}")]
+    Format { path: String, message: String },
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SessionError + '_ {
+    move |source| SessionError::Io {
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SessionState {
+    Running,
+    Finished,
+    Failed,
+    Cancelled,
+    /// The daemon died while the job ran: everything on disk is readable, the rest is lost.
+    Incomplete,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Versions {
+    pub rigd: String,
+    pub protocol: u32,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Manifest {
+    pub format: String,
+    pub name: String,
+    pub job_id: u64,
+    pub state: SessionState,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    pub created_unix_s: f64,
+    pub updated_unix_s: f64,
+    pub job: JobSpec,
+    pub plan: Plan,
+    /// The session this one replays, if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub replay_of: Option<String>,
+    pub rig: RigInfo,
+    pub versions: Versions,
+    pub frames_captured: u32,
+}
+
+/// One row of `steps.csv`: the `rigctl process` contract (`index,position_um`) first.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StepRow {
+    pub index: u32,
+    /// Commanded position.
+    pub position_um: f64,
+    pub run: u32,
+    pub case: String,
+    pub repeat: u32,
+    pub axis_um: f64,
+    pub interferometer_um: Option<f64>,
+    /// Exposure time of the frame.
+    pub t_unix_s: f64,
+    pub sequence: u64,
+    pub move_ms: f64,
+    pub settle_ms: f64,
+    pub grab_ms: f64,
+}
+
+pub fn unix_s(t: SystemTime) -> f64 {
+    t.duration_since(SystemTime::UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
+}
+
+/// Write `bytes` to `path` atomically: temporary file, fsync, rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
+    let tmp = path.with_file_name(format!(".{name}.tmp"));
+    let mut f = fs::File::create(&tmp).map_err(io(&tmp))?;
+    f.write_all(bytes).map_err(io(&tmp))?;
+    f.sync_all().map_err(io(&tmp))?;
+    drop(f);
+    fs::rename(&tmp, path).map_err(io(path))
+}
+
+fn sync_dir(dir: &Path) -> Result<(), SessionError> {
+    fs::File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(io(dir))
+}
+
+/// File name of frame `index` under `frames/`.
+pub fn frame_name(index: u32) -> String {
+    format!("{index:06}.png")
+}
+
+/// Writes one session as a job runs.
+pub struct SessionWriter {
+    dir: PathBuf,
+    manifest: Manifest,
+    rows: Vec<StepRow>,
+}
+
+impl SessionWriter {
+    /// Create `<data_root>/<name>` with its manifest in state `running`.
+    pub fn create(
+        data_root: &Path,
+        job_id: u64,
+        job: &JobSpec,
+        plan: &Plan,
+        rig: &RigInfo,
+        replay_of: Option<String>,
+    ) -> Result<SessionWriter, SessionError> {
+        fs::create_dir_all(data_root).map_err(io(data_root))?;
+        let now = SystemTime::now();
+        let secs = unix_s(now) as u64;
+        let base = format!("{}-job{job_id}", utc_stamp(secs));
+        let mut name = base.clone();
+        let mut n = 1;
+        let dir = loop {
+            let d = data_root.join(&name);
+            match fs::create_dir(&d) {
+                Ok(()) => break d,
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    n += 1;
+                    name = format!("{base}-{n}");
+                }
+                Err(e) => return Err(io(&d)(e)),
+            }
+        };
+        fs::create_dir(dir.join("frames")).map_err(io(&dir))?;
+        let manifest = Manifest {
+            format: FORMAT.into(),
+            name,
+            job_id,
+            state: SessionState::Running,
+            reason: None,
+            created_unix_s: unix_s(now),
+            updated_unix_s: unix_s(now),
+            job: job.clone(),
+            plan: plan.clone(),
+            replay_of,
+            rig: rig.clone(),
+            versions: Versions {
+                rigd: env!("CARGO_PKG_VERSION").into(),
+                protocol: PROTOCOL_VERSION,
+            },
+            frames_captured: 0,
+        };
+        let mut w = SessionWriter {
+            dir,
+            manifest,
+            rows: Vec::new(),
+        };
+        w.write_steps()?;
+        w.write_manifest()?;
+        sync_dir(data_root)?;
+        Ok(w)
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+    pub fn name(&self) -> &str {
+        &self.manifest.name
+    }
+
+    /// Record a captured frame: PNG, then its steps.csv and interferometer rows. When this
+    /// returns, the frame is on disk and may be reported captured.
+    pub fn record(&mut self, row: StepRow, image: &RgbImage) -> Result<(), SessionError> {
+        let path = self.dir.join("frames").join(frame_name(row.index));
+        let mut png = Vec::with_capacity(image.as_raw().len() / 2);
+        image::DynamicImage::ImageRgb8(image.clone())
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .map_err(|e| SessionError::Format {
+                path: path.display().to_string(),
+                message: format!("PNG encoding: {e}"),
+            })?;
+        write_atomic(&path, &png)?;
+        self.rows.push(row);
+        self.write_steps()?;
+        self.manifest.frames_captured = self.rows.len() as u32;
+        Ok(())
+    }
+
+    fn write_steps(&self) -> Result<(), SessionError> {
+        let mut w = csv::Writer::from_writer(Vec::new());
+        let mut log = String::from("t_unix_s,position_um\n");
+        if self.rows.is_empty() {
+            w.write_record([
+                "index",
+                "position_um",
+                "run",
+                "case",
+                "repeat",
+                "axis_um",
+                "interferometer_um",
+                "t_unix_s",
+                "sequence",
+                "move_ms",
+                "settle_ms",
+                "grab_ms",
+            ])
+            .map_err(|e| self.format_err(e))?;
+        }
+        for r in &self.rows {
+            w.serialize(r).map_err(|e| self.format_err(e))?;
+            if let Some(x) = r.interferometer_um {
+                log.push_str(&format!("{:.6},{x}\n", r.t_unix_s));
+            }
+        }
+        let bytes = w.into_inner().map_err(|e| self.format_err(e))?;
+        write_atomic(&self.dir.join(STEPS), &bytes)?;
+        write_atomic(&self.dir.join(INTERFEROMETER), log.as_bytes())
+    }
+
+    fn format_err(&self, e: impl std::fmt::Display) -> SessionError {
+        SessionError::Format {
+            path: self.dir.display().to_string(),
+            message: e.to_string(),
+        }
+    }
+
+    /// Write the result and its images (before the final state).
+    pub fn write_result(
+        &mut self,
+        result: &serde_json::Value,
+        images: &[(String, image::ImageBuffer<image::Luma<u16>, Vec<u16>>)],
+    ) -> Result<(), SessionError> {
+        if !images.is_empty() {
+            let dir = self.dir.join("images");
+            fs::create_dir_all(&dir).map_err(io(&dir))?;
+            for (name, img) in images {
+                let path = dir.join(format!("{name}.png"));
+                let mut png = Vec::new();
+                image::DynamicImage::ImageLuma16(img.clone())
+                    .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+                    .map_err(|e| self.format_err(e))?;
+                write_atomic(&path, &png)?;
+            }
+        }
+        let bytes = serde_json::to_vec_pretty(result).map_err(|e| self.format_err(e))?;
+        write_atomic(&self.dir.join(RESULT), &bytes)
+    }
+
+    /// Close the session with its final state: the manifest is written last.
+    pub fn close(
+        mut self,
+        state: SessionState,
+        reason: Option<String>,
+    ) -> Result<(), SessionError> {
+        self.manifest.state = state;
+        self.manifest.reason = reason;
+        self.write_manifest()?;
+        sync_dir(&self.dir)
+    }
+
+    fn write_manifest(&mut self) -> Result<(), SessionError> {
+        self.manifest.updated_unix_s = unix_s(SystemTime::now());
+        let bytes = serde_json::to_vec_pretty(&self.manifest).map_err(|e| self.format_err(e))?;
+        write_atomic(&self.dir.join(MANIFEST), &bytes)
+    }
+}
+
+/// A session read back from disk.
+#[derive(Debug, Clone)]
+pub struct Session {
+    pub dir: PathBuf,
+    pub manifest: Manifest,
+    pub steps: Vec<StepRow>,
+}
+
+impl Session {
+    pub fn open(dir: &Path) -> Result<Session, SessionError> {
+        let mpath = dir.join(MANIFEST);
+        let text = fs::read(&mpath).map_err(io(&mpath))?;
+        let manifest: Manifest =
+            serde_json::from_slice(&text).map_err(|e| SessionError::Format {
+                path: mpath.display().to_string(),
+                message: e.to_string(),
+            })?;
+        let spath = dir.join(STEPS);
+        let mut rd = csv::Reader::from_path(&spath).map_err(|e| SessionError::Format {
+            path: spath.display().to_string(),
+            message: e.to_string(),
+        })?;
+        let mut steps = Vec::new();
+        for (i, row) in rd.deserialize::<StepRow>().enumerate() {
+            steps.push(row.map_err(|e| SessionError::Format {
+                path: spath.display().to_string(),
+                message: format!("row {}: {e}", i + 1),
+            })?);
+        }
+        Ok(Session {
+            dir: dir.to_path_buf(),
+            manifest,
+            steps,
+        })
+    }
+
+    pub fn frame_path(&self, index: u32) -> PathBuf {
+        self.dir.join("frames").join(frame_name(index))
+    }
+
+    /// The stored result, if the job got that far.
+    pub fn result(&self) -> Option<serde_json::Value> {
+        let bytes = fs::read(self.dir.join(RESULT)).ok()?;
+        serde_json::from_slice(&bytes).ok()
+    }
+}
+
+/// Sessions under `data_root`, oldest first (by name: names start with a UTC stamp).
+pub fn list(data_root: &Path) -> Vec<Session> {
+    let Ok(rd) = fs::read_dir(data_root) else {
+        return Vec::new();
+    };
+    let mut v: Vec<Session> = rd
+        .flatten()
+        .filter(|e| e.path().join(MANIFEST).is_file())
+        .filter_map(|e| Session::open(&e.path()).ok())
+        .collect();
+    v.sort_by(|a, b| a.manifest.name.cmp(&b.manifest.name));
+    v
+}
+
+/// At daemon start: sessions left `running` by a daemon that died are marked `incomplete`.
+/// Returns the highest job id seen, so new ids do not collide with recorded ones.
+pub fn recover(data_root: &Path) -> Result<(u64, Vec<String>), SessionError> {
+    let mut max_id = 0;
+    let mut marked = Vec::new();
+    for s in list(data_root) {
+        max_id = max_id.max(s.manifest.job_id);
+        if s.manifest.state == SessionState::Running {
+            let mut m = s.manifest.clone();
+            m.state = SessionState::Incomplete;
+            m.reason = Some("the daemon stopped while the job ran".into());
+            m.frames_captured = s.steps.len() as u32;
+            m.updated_unix_s = unix_s(SystemTime::now());
+            let bytes = serde_json::to_vec_pretty(&m).map_err(|e| SessionError::Format {
+                path: s.dir.display().to_string(),
+                message: e.to_string(),
+            })?;
+            write_atomic(&s.dir.join(MANIFEST), &bytes)?;
+            marked.push(m.name);
+        }
+    }
+    Ok((max_id, marked))
+}
+
+/// `YYYYMMDDTHHMMSSZ` for seconds since the epoch (UTC, proleptic Gregorian).
+pub fn utc_stamp(secs: u64) -> String {
+    let days = (secs / 86_400) as i64;
+    let rem = secs % 86_400;
+    // Howard Hinnant's civil-from-days.
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + if m <= 2 { 1 } else { 0 };
+    format!(
+        "{y:04}{m:02}{d:02}T{:02}{:02}{:02}Z",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn utc_stamps_match_known_dates() {
+        assert_eq!(utc_stamp(0), "19700101T000000Z");
+        assert_eq!(utc_stamp(1_795_000_000), "20261118T110640Z");
+    }
+}

@@ -1,0 +1,136 @@
+//! The worker: takes queued jobs one at a time and runs each on a blocking thread with the
+//! rig, then records how it ended.
+
+use crate::daemon::jobs::{JobRecord, JobSource, JobState};
+use crate::daemon::protocol::EventBody;
+use crate::daemon::replay::replay_rig;
+use crate::daemon::rig::Rig;
+use crate::daemon::runner::{run_job, JobContext, Outcome};
+use crate::daemon::session::{Session, SessionState, SessionWriter};
+use crate::daemon::Shared;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+/// Run jobs until the daemon shuts down; returns the rig (stopped).
+pub async fn run(shared: Arc<Shared>, mut rig: Rig) -> Rig {
+    loop {
+        let notified = shared.wake.notified();
+        if shared.shutting_down.load(Ordering::SeqCst) {
+            return rig;
+        }
+        let next = shared.jobs().start_next();
+        let Some(job) = next else {
+            notified.await;
+            continue;
+        };
+        let sh = shared.clone();
+        let handle = tokio::task::spawn_blocking(move || {
+            execute(&sh, &job, &mut rig);
+            rig
+        });
+        match handle.await {
+            Ok(r) => rig = r,
+            // The rig went down with a panicking job: nothing safe is left to drive.
+            Err(e) => panic!("job thread panicked: {e}"),
+        }
+    }
+}
+
+/// Run one job start to finish, on the calling (blocking) thread.
+fn execute(shared: &Shared, job: &JobRecord, live: &mut Rig) {
+    let id = job.id;
+    let emit = |body: EventBody| {
+        if let EventBody::Step { index, .. } = &body {
+            if let Some(r) = shared.jobs().get_mut(id) {
+                r.frames_done = index + 1;
+            }
+        }
+        shared.events.emit(id, body);
+    };
+    let fail = |reason: String, session: Option<String>| {
+        tracing::warn!(job = id, %reason, "job failed");
+        shared
+            .jobs()
+            .finish(id, JobState::Failed, Some(reason.clone()));
+        shared
+            .events
+            .emit(id, EventBody::Failed { reason, session });
+    };
+    // A replay runs on a rig made of the recorded session; a live job on the rig.
+    let mut replay;
+    let (rig, replay_of): (&mut Rig, Option<String>) = match &job.source {
+        JobSource::Live => (live, None),
+        JobSource::Replay { dir, .. } => match Session::open(dir) {
+            Ok(s) => {
+                replay = replay_rig(&s);
+                (&mut replay, Some(s.manifest.name.clone()))
+            }
+            Err(e) => return fail(e.to_string(), None),
+        },
+    };
+    let mut session = match SessionWriter::create(
+        &shared.settings.data_root,
+        id,
+        &job.spec,
+        &job.plan,
+        &rig.info,
+        replay_of,
+    ) {
+        Ok(s) => s,
+        Err(e) => return fail(format!("disk: {e}"), None),
+    };
+    let name = session.name().to_string();
+    if let Some(r) = shared.jobs().get_mut(id) {
+        r.session = Some(name.clone());
+    }
+    tracing::info!(job = id, session = %name, frames = job.plan.total_frames, "job started");
+    shared.events.emit(
+        id,
+        EventBody::Started {
+            session: name.clone(),
+            total_frames: job.plan.total_frames,
+        },
+    );
+    let ctx = JobContext {
+        spec: &job.spec,
+        plan: &job.plan,
+        stop: &job.stop,
+        emit: &emit,
+    };
+    let out = run_job(&ctx, rig, &mut session);
+    let images: Vec<_> = out.images;
+    let wrote = session.write_result(&out.result, &images);
+    let (state, jstate, reason) = match (&out.outcome, wrote) {
+        (_, Err(e)) => (
+            SessionState::Failed,
+            JobState::Failed,
+            Some(format!("disk: {e}")),
+        ),
+        (Outcome::Finished, Ok(())) => (SessionState::Finished, JobState::Finished, None),
+        (Outcome::Failed(r), Ok(())) => (SessionState::Failed, JobState::Failed, Some(r.clone())),
+        (Outcome::Cancelled(r), Ok(())) => (
+            SessionState::Cancelled,
+            JobState::Cancelled,
+            Some(r.clone()),
+        ),
+    };
+    let closed = session.close(state, reason.clone());
+    let (jstate, reason) = match closed {
+        Err(e) => (JobState::Failed, Some(format!("disk: {e}"))),
+        Ok(()) => (jstate, reason),
+    };
+    tracing::info!(job = id, state = ?jstate, reason = ?reason, "job ended");
+    shared.jobs().finish(id, jstate, reason.clone());
+    let session = Some(name);
+    let body = match jstate {
+        JobState::Finished => EventBody::Finished {
+            session: session.unwrap_or_default(),
+        },
+        JobState::Cancelled => EventBody::Cancelled { session },
+        _ => EventBody::Failed {
+            reason: reason.unwrap_or_default(),
+            session,
+        },
+    };
+    shared.events.emit(id, body);
+}
