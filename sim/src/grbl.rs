@@ -342,13 +342,13 @@ impl Grbl {
         let (mut x, mut f, mut p) = (None, None, None);
         for (letter, value) in words {
             match letter {
-                'G' => match value {
-                    v if v == 0.0 => motion = Some(true),
-                    v if v == 1.0 => motion = Some(false),
-                    v if v == 4.0 => dwell = true,
-                    v if v == 90.0 => absolute = true,
-                    v if v == 91.0 => absolute = false,
-                    v if [17.0, 21.0, 54.0, 94.0].contains(&v) => {}
+                'G' => match (value.fract() == 0.0).then_some(value as i64) {
+                    Some(0) => motion = Some(true),
+                    Some(1) => motion = Some(false),
+                    Some(4) => dwell = true,
+                    Some(90) => absolute = true,
+                    Some(91) => absolute = false,
+                    Some(17 | 21 | 54 | 94) => {}
                     _ => return Err(20),
                 },
                 'X' => x = Some(value),
@@ -543,31 +543,30 @@ impl Controller for Grbl {
         {
             self.state = State::Idle;
         }
+        let planner_empty =
+            self.current.is_none() && self.queue.is_empty() && self.state != State::Hold;
         match self.block {
-            Some(Block::Dwell { secs, since }) => {
-                if self.current.is_none() && self.queue.is_empty() && self.state != State::Hold {
-                    let since = since.unwrap_or(now);
-                    if now >= since + Duration::from_secs_f64(secs) {
-                        self.block = None;
-                        out.reply("ok\r\n");
-                    } else {
-                        self.block = Some(Block::Dwell {
-                            secs,
-                            since: Some(since),
-                        });
-                    }
-                }
-            }
-            Some(Block::Homing { ends }) => {
-                if now >= ends {
+            // The dwell starts once the planner has run dry; its `ok` comes after it.
+            Some(Block::Dwell { secs, since }) if planner_empty => {
+                let since = since.unwrap_or(now);
+                if now >= since + Duration::from_secs_f64(secs) {
                     self.block = None;
-                    self.axis.set_position(self.opts.home_position_um);
-                    self.plan_end_um = self.opts.home_position_um;
-                    self.state = State::Idle;
                     out.reply("ok\r\n");
+                } else {
+                    self.block = Some(Block::Dwell {
+                        secs,
+                        since: Some(since),
+                    });
                 }
             }
-            None => {}
+            Some(Block::Homing { ends }) if now >= ends => {
+                self.block = None;
+                self.axis.set_position(self.opts.home_position_um);
+                self.plan_end_um = self.opts.home_position_um;
+                self.state = State::Idle;
+                out.reply("ok\r\n");
+            }
+            _ => {}
         }
         while self.block.is_none() && !self.critical {
             let Some(line) = self.pending.pop_front() else {
