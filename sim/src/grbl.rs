@@ -29,6 +29,9 @@ pub struct GrblSimOptions {
     pub alarm_on_boot: bool,
     /// Machine position the homing cycle assigns at the switch (µm).
     pub home_position_um: f64,
+    /// Opening the port resets the board (DTR wired to reset, as on an Arduino). When
+    /// false, opening is silent: no reset, no banner.
+    pub reset_on_open: bool,
 }
 
 impl Default for GrblSimOptions {
@@ -38,6 +41,7 @@ impl Default for GrblSimOptions {
             homing_enabled: true,
             alarm_on_boot: false,
             home_position_um: 0.0,
+            reset_on_open: true,
         }
     }
 }
@@ -456,6 +460,9 @@ fn parse_words(text: &str) -> Result<Vec<(char, f64)>, u32> {
 
 impl Controller for Grbl {
     fn on_open(&mut self, now: Instant, _out: &mut Outbox) {
+        if !self.opts.reset_on_open {
+            return;
+        }
         // DTR resets the board: everything stops, and the banner comes after the boot delay.
         self.reset(now);
         self.critical = false;
