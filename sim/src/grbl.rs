@@ -599,6 +599,57 @@ impl Controller for Grbl {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::motion::AxisParams;
+    use crate::pty::TestClient;
+
+    const T: Duration = Duration::from_secs(2);
+
+    fn booted() -> (Arc<Axis>, GrblSim, TestClient) {
+        let axis = Arc::new(Axis::new(AxisParams::default()));
+        let sim = GrblSim::spawn(axis.clone(), GrblSimOptions::default(), None).unwrap();
+        let mut c = TestClient::open(&sim.path());
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), BANNER);
+        (axis, sim, c)
+    }
+
+    #[test]
+    fn dwell_is_answered_only_after_the_move_and_hold_resume_work() {
+        let (axis, _sim, mut c) = booted();
+        c.send(b"G91 G1 X4 F1200\n");
+        assert_eq!(c.line(T).unwrap(), "ok");
+        assert!(axis.is_moving(Instant::now()));
+        c.send(b"!?");
+        let r = c.line(T).unwrap();
+        assert!(r.starts_with("<Hold:0|MPos:"), "{r}");
+        assert!(!axis.is_moving(Instant::now()));
+        c.send(b"G4 P0\n");
+        // Held: the dwell does not complete.
+        assert_eq!(c.line(Duration::from_millis(100)), None);
+        c.send(b"~");
+        assert_eq!(c.line(T).unwrap(), "ok");
+        assert!(!axis.is_moving(Instant::now()));
+        c.send(b"?");
+        assert_eq!(c.line(T).unwrap(), "<Idle|MPos:4.000,0.000,0.000|FS:0,0>");
+    }
+
+    #[test]
+    fn reset_while_moving_alarms_and_unlock_clears_it() {
+        let (_axis, _sim, mut c) = booted();
+        c.send(b"G1 X4 F1200\n");
+        assert_eq!(c.line(T).unwrap(), "ok");
+        c.send(&[0x18]);
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), "ALARM:3");
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), BANNER);
+        c.send(b"G1 X1\n");
+        assert_eq!(c.line_where(T, |l| !l.starts_with('[')).unwrap(), "error:9");
+        c.send(b"$X\n");
+        assert_eq!(c.line_where(T, |l| !l.starts_with('[')).unwrap(), "ok");
+        // The reset also cleared the modal feed rate.
+        c.send(b"G1 X1\n");
+        assert_eq!(c.line(T).unwrap(), "error:22");
+        c.send(b"G1 X1 F600\n");
+        assert_eq!(c.line(T).unwrap(), "ok");
+    }
 
     #[test]
     fn words_are_split_and_bad_ones_get_grbl_codes() {
