@@ -21,15 +21,23 @@ struct Rig {
 
 /// A 100 µm flexure that positions to 5 nm RMS; settles 10 ms after the profile ends.
 fn rig_with(sim_opts: GcsSimOptions) -> Rig {
-    let dir = tempfile::tempdir().unwrap();
-    let axis = Arc::new(Axis::new(AxisParams {
+    rig_with_axis(sim_opts, piezo())
+}
+
+fn piezo() -> AxisParams {
+    AxisParams {
         max_speed_um_s: 2_000.0,
         accel_um_s2: 200_000.0,
         position_error_rms_um: 0.005,
         hard_min_um: 0.0,
         hard_max_um: 100.0,
         seed: 7,
-    }));
+    }
+}
+
+fn rig_with_axis(sim_opts: GcsSimOptions, params: AxisParams) -> Rig {
+    let dir = tempfile::tempdir().unwrap();
+    let axis = Arc::new(Axis::new(params));
     let link = dir.path().join("piezo");
     let sim = GcsSim::spawn(axis.clone(), sim_opts, Some(&link)).unwrap();
     let mut opts = GcsOptions::new(
@@ -113,11 +121,17 @@ fn um_per_unit_scales_the_protocol_values() {
 
 #[test]
 fn stop_mid_move_halts_and_accepts_the_stop_error() {
-    let r = rig();
+    // A slow flexure so the stop lands mid-move even on a loaded machine: 50 µm ~ 0.2 s.
+    let r = rig_with_axis(
+        GcsSimOptions::default(),
+        AxisParams {
+            max_speed_um_s: 250.0,
+            ..piezo()
+        },
+    );
     let mut s = GcsStage::connect("piezo", r.opts.clone()).unwrap();
-    // 50 µm at 2 mm/s: ~35 ms of motion.
     s.move_abs(50.0).unwrap();
-    std::thread::sleep(Duration::from_millis(12));
+    std::thread::sleep(Duration::from_millis(40));
     s.stop().unwrap();
     let here = s.position_um().unwrap();
     assert!(here > 0.5 && here < 49.5, "stopped at {here}");

@@ -60,17 +60,33 @@ fn connect_waits_for_the_banner_and_reports_idle() {
 
 #[test]
 fn a_board_that_does_not_reset_on_open_gets_a_soft_reset() {
-    // A boot delay longer than the banner timeout: the first wait times out, the driver
-    // sends 0x18 and the reset banner arrives.
+    // No DTR reset: opening is silent, so the first banner wait times out, the driver sends
+    // 0x18, and the reset's banner arrives.
     let r = rig_with(GrblSimOptions {
-        boot_delay: Duration::from_millis(400),
+        reset_on_open: false,
+        ..GrblSimOptions::default()
+    });
+    let t = Instant::now();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    assert!(t.elapsed() >= Duration::from_millis(r.opts.banner_timeout_ms));
+    assert_eq!(s.banners_seen(), 1);
+    assert_eq!(s.status().unwrap().state, MotionState::Idle);
+    s.move_rel(50.0).unwrap();
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+}
+
+#[test]
+fn a_board_that_never_answers_times_out_naming_the_banner() {
+    let r = rig_with(GrblSimOptions {
+        boot_delay: Duration::from_secs(5),
         ..GrblSimOptions::default()
     });
     let mut opts = r.opts.clone();
-    opts.banner_timeout_ms = 600;
-    let mut s = GrblStage::connect("axis", opts).unwrap();
-    assert!(s.banners_seen() >= 1);
-    assert_eq!(s.status().unwrap().state, MotionState::Idle);
+    opts.banner_timeout_ms = 100;
+    match GrblStage::connect("axis", opts).unwrap_err() {
+        HwError::Timeout { waiting_for, .. } => assert!(waiting_for.contains("banner")),
+        e => panic!("expected a timeout, got {e}"),
+    }
 }
 
 #[test]

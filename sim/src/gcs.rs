@@ -307,3 +307,41 @@ impl Controller for Gcs {
         b"\n"
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::motion::AxisParams;
+    use crate::pty::TestClient;
+
+    const T: Duration = Duration::from_secs(2);
+
+    #[test]
+    fn motion_commands_are_silent_and_errors_wait_for_err_query() {
+        let axis = Arc::new(Axis::new(AxisParams {
+            max_speed_um_s: 500.0,
+            hard_min_um: 0.0,
+            hard_max_um: 100.0,
+            position_error_rms_um: 0.0,
+            ..AxisParams::default()
+        }));
+        let sim = GcsSim::spawn(axis.clone(), GcsSimOptions::default(), None).unwrap();
+        let mut c = TestClient::open(&sim.path());
+        c.send(b"MOV 1 10\nERR?\n");
+        assert_eq!(c.line(T).unwrap(), "5"); // servo off
+        c.send(b"SVO 1 1\nMOV 1 150\nERR?\n");
+        assert_eq!(c.line(T).unwrap(), "7"); // out of limits
+        c.send(b"ERR?\n");
+        assert_eq!(c.line(T).unwrap(), "0"); // read clears it
+        c.send(b"MOV 1 50\n\x05");
+        assert_eq!(c.line(T).unwrap(), "1"); // #5: moving
+        c.send(b"ONT? 1\n");
+        assert_eq!(c.line(T).unwrap(), "1=0");
+        c.send(&[0x18]); // #24: stop
+        c.send(b"ERR?\n");
+        assert_eq!(c.line(T).unwrap(), "10");
+        assert!(!axis.is_moving(Instant::now()));
+        c.send(b"POS? 2\nERR?\n");
+        assert_eq!(c.line(T).unwrap(), "15"); // no such axis: no reply, error 15
+    }
+}

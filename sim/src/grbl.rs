@@ -29,6 +29,9 @@ pub struct GrblSimOptions {
     pub alarm_on_boot: bool,
     /// Machine position the homing cycle assigns at the switch (µm).
     pub home_position_um: f64,
+    /// Opening the port resets the board (DTR wired to reset, as on an Arduino). When
+    /// false, opening is silent: no reset, no banner.
+    pub reset_on_open: bool,
 }
 
 impl Default for GrblSimOptions {
@@ -38,6 +41,7 @@ impl Default for GrblSimOptions {
             homing_enabled: true,
             alarm_on_boot: false,
             home_position_um: 0.0,
+            reset_on_open: true,
         }
     }
 }
@@ -342,13 +346,13 @@ impl Grbl {
         let (mut x, mut f, mut p) = (None, None, None);
         for (letter, value) in words {
             match letter {
-                'G' => match value {
-                    v if v == 0.0 => motion = Some(true),
-                    v if v == 1.0 => motion = Some(false),
-                    v if v == 4.0 => dwell = true,
-                    v if v == 90.0 => absolute = true,
-                    v if v == 91.0 => absolute = false,
-                    v if [17.0, 21.0, 54.0, 94.0].contains(&v) => {}
+                'G' => match (value.fract() == 0.0).then_some(value as i64) {
+                    Some(0) => motion = Some(true),
+                    Some(1) => motion = Some(false),
+                    Some(4) => dwell = true,
+                    Some(90) => absolute = true,
+                    Some(91) => absolute = false,
+                    Some(17 | 21 | 54 | 94) => {}
                     _ => return Err(20),
                 },
                 'X' => x = Some(value),
@@ -456,6 +460,9 @@ fn parse_words(text: &str) -> Result<Vec<(char, f64)>, u32> {
 
 impl Controller for Grbl {
     fn on_open(&mut self, now: Instant, _out: &mut Outbox) {
+        if !self.opts.reset_on_open {
+            return;
+        }
         // DTR resets the board: everything stops, and the banner comes after the boot delay.
         self.reset(now);
         self.critical = false;
@@ -543,31 +550,30 @@ impl Controller for Grbl {
         {
             self.state = State::Idle;
         }
+        let planner_empty =
+            self.current.is_none() && self.queue.is_empty() && self.state != State::Hold;
         match self.block {
-            Some(Block::Dwell { secs, since }) => {
-                if self.current.is_none() && self.queue.is_empty() && self.state != State::Hold {
-                    let since = since.unwrap_or(now);
-                    if now >= since + Duration::from_secs_f64(secs) {
-                        self.block = None;
-                        out.reply("ok\r\n");
-                    } else {
-                        self.block = Some(Block::Dwell {
-                            secs,
-                            since: Some(since),
-                        });
-                    }
-                }
-            }
-            Some(Block::Homing { ends }) => {
-                if now >= ends {
+            // The dwell starts once the planner has run dry; its `ok` comes after it.
+            Some(Block::Dwell { secs, since }) if planner_empty => {
+                let since = since.unwrap_or(now);
+                if now >= since + Duration::from_secs_f64(secs) {
                     self.block = None;
-                    self.axis.set_position(self.opts.home_position_um);
-                    self.plan_end_um = self.opts.home_position_um;
-                    self.state = State::Idle;
                     out.reply("ok\r\n");
+                } else {
+                    self.block = Some(Block::Dwell {
+                        secs,
+                        since: Some(since),
+                    });
                 }
             }
-            None => {}
+            Some(Block::Homing { ends }) if now >= ends => {
+                self.block = None;
+                self.axis.set_position(self.opts.home_position_um);
+                self.plan_end_um = self.opts.home_position_um;
+                self.state = State::Idle;
+                out.reply("ok\r\n");
+            }
+            _ => {}
         }
         while self.block.is_none() && !self.critical {
             let Some(line) = self.pending.pop_front() else {
@@ -593,6 +599,57 @@ impl Controller for Grbl {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::motion::AxisParams;
+    use crate::pty::TestClient;
+
+    const T: Duration = Duration::from_secs(2);
+
+    fn booted() -> (Arc<Axis>, GrblSim, TestClient) {
+        let axis = Arc::new(Axis::new(AxisParams::default()));
+        let sim = GrblSim::spawn(axis.clone(), GrblSimOptions::default(), None).unwrap();
+        let mut c = TestClient::open(&sim.path());
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), BANNER);
+        (axis, sim, c)
+    }
+
+    #[test]
+    fn dwell_is_answered_only_after_the_move_and_hold_resume_work() {
+        let (axis, _sim, mut c) = booted();
+        c.send(b"G91 G1 X4 F1200\n");
+        assert_eq!(c.line(T).unwrap(), "ok");
+        assert!(axis.is_moving(Instant::now()));
+        c.send(b"!?");
+        let r = c.line(T).unwrap();
+        assert!(r.starts_with("<Hold:0|MPos:"), "{r}");
+        assert!(!axis.is_moving(Instant::now()));
+        c.send(b"G4 P0\n");
+        // Held: the dwell does not complete.
+        assert_eq!(c.line(Duration::from_millis(100)), None);
+        c.send(b"~");
+        assert_eq!(c.line(T).unwrap(), "ok");
+        assert!(!axis.is_moving(Instant::now()));
+        c.send(b"?");
+        assert_eq!(c.line(T).unwrap(), "<Idle|MPos:4.000,0.000,0.000|FS:0,0>");
+    }
+
+    #[test]
+    fn reset_while_moving_alarms_and_unlock_clears_it() {
+        let (_axis, _sim, mut c) = booted();
+        c.send(b"G1 X4 F1200\n");
+        assert_eq!(c.line(T).unwrap(), "ok");
+        c.send(&[0x18]);
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), "ALARM:3");
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), BANNER);
+        c.send(b"G1 X1\n");
+        assert_eq!(c.line_where(T, |l| !l.starts_with('[')).unwrap(), "error:9");
+        c.send(b"$X\n");
+        assert_eq!(c.line_where(T, |l| !l.starts_with('[')).unwrap(), "ok");
+        // The reset also cleared the modal feed rate.
+        c.send(b"G1 X1\n");
+        assert_eq!(c.line(T).unwrap(), "error:22");
+        c.send(b"G1 X1 F600\n");
+        assert_eq!(c.line(T).unwrap(), "ok");
+    }
 
     #[test]
     fn words_are_split_and_bad_ones_get_grbl_codes() {

@@ -201,6 +201,78 @@ impl Drop for PtyLink {
     }
 }
 
+/// A raw client on a slave path for the emulators' own tests: write bytes, read lines
+/// with a deadline. (rigd's drivers use `serialport`; this is deliberately separate.)
+#[cfg(test)]
+pub(crate) struct TestClient {
+    file: std::fs::File,
+    buf: Vec<u8>,
+}
+
+#[cfg(test)]
+impl TestClient {
+    pub(crate) fn open(path: &Path) -> TestClient {
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(path)
+            .expect("open slave");
+        TestClient {
+            file,
+            buf: Vec::new(),
+        }
+    }
+
+    pub(crate) fn send(&mut self, bytes: &[u8]) {
+        use std::io::Write;
+        self.file.write_all(bytes).expect("write");
+    }
+
+    /// The next line without its terminator, or None after `timeout`.
+    pub(crate) fn line(&mut self, timeout: Duration) -> Option<String> {
+        use std::io::Read;
+        let end = std::time::Instant::now() + timeout;
+        loop {
+            if let Some(i) = self.buf.iter().position(|&b| b == b'\n') {
+                let l: Vec<u8> = self.buf.drain(..=i).collect();
+                return Some(String::from_utf8_lossy(&l).trim_end().to_string());
+            }
+            let left = end.saturating_duration_since(std::time::Instant::now());
+            if left.is_zero() {
+                return None;
+            }
+            let mut pfd = libc::pollfd {
+                fd: std::os::fd::AsRawFd::as_raw_fd(&self.file),
+                events: libc::POLLIN,
+                revents: 0,
+            };
+            // SAFETY: one valid pollfd.
+            let n = unsafe { libc::poll(&mut pfd, 1, left.as_millis().max(1) as i32) };
+            if n > 0 {
+                let mut tmp = [0u8; 256];
+                let k = self.file.read(&mut tmp).expect("read");
+                self.buf.extend_from_slice(&tmp[..k]);
+            }
+        }
+    }
+
+    /// Skip lines until one satisfies `f`.
+    pub(crate) fn line_where(
+        &mut self,
+        timeout: Duration,
+        f: impl Fn(&str) -> bool,
+    ) -> Option<String> {
+        let end = std::time::Instant::now() + timeout;
+        loop {
+            let left = end.saturating_duration_since(std::time::Instant::now());
+            let l = self.line(left)?;
+            if f(&l) {
+                return Some(l);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

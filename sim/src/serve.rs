@@ -132,12 +132,12 @@ fn fate(faults: &Faults) -> ReplyFate {
     st.replies_seen += 1;
     let n = st.replies_seen;
     let p = &mut st.plan;
-    let mut drop = p.drop_every > 0 && n % p.drop_every as u64 == 0;
+    let mut drop = n.checked_rem(u64::from(p.drop_every)) == Some(0);
     if p.drop_replies > 0 {
         p.drop_replies -= 1;
         drop = true;
     }
-    let mut garbage = p.garbage_every > 0 && n % p.garbage_every as u64 == 0;
+    let mut garbage = n.checked_rem(u64::from(p.garbage_every)) == Some(0);
     if p.garbage_replies > 0 {
         p.garbage_replies -= 1;
         garbage = true;

@@ -349,7 +349,7 @@ impl GcsStage {
         Ok(())
     }
 
-    fn from_um(&mut self) -> Result<f64, HwError> {
+    fn start_um(&mut self) -> Result<f64, HwError> {
         match self.target_um {
             Some(t) => Ok(t),
             None => self.query_position(),
@@ -365,7 +365,7 @@ impl Stage for GcsStage {
     fn move_rel(&mut self, delta_um: f64) -> Result<(), HwError> {
         self.guard(|s| {
             s.ensure_connected()?;
-            let from = s.from_um()?;
+            let from = s.start_um()?;
             let target = s.opts.limits.check_rel(&s.name, from, delta_um)?;
             let cmd = format!("MVR {} {:.6}", s.opts.axis, delta_um / s.opts.um_per_unit);
             s.move_cmd(target, cmd)
@@ -392,7 +392,8 @@ impl Stage for GcsStage {
                 }
                 polls += 1;
                 // A servo fault never reaches the target: look for it now and then.
-                if polls % 8 == 0 {
+                if polls == 8 {
+                    polls = 0;
                     s.check_error("waiting for on-target", false)?;
                 }
                 if dl.expired() {

@@ -188,7 +188,7 @@ fn parse_report(t: &str) -> Option<GrblReport> {
         "Idle" => GrblState::Idle,
         "Run" => GrblState::Run,
         "Hold" => GrblState::Hold {
-            complete: sub.map_or(true, |s| s == "0"),
+            complete: matches!(sub, None | Some("0")),
         },
         "Jog" => GrblState::Jog,
         "Alarm" => GrblState::Alarm,
@@ -576,7 +576,7 @@ impl GrblStage {
     }
 
     /// Where moves start from: the last target, or the controller's position.
-    fn from_um(&mut self) -> Result<f64, HwError> {
+    fn start_um(&mut self) -> Result<f64, HwError> {
         match self.target_um {
             Some(t) => Ok(t),
             None => {
@@ -629,7 +629,7 @@ impl Stage for GrblStage {
     fn move_rel(&mut self, delta_um: f64) -> Result<(), HwError> {
         self.guard(|s| {
             s.ensure_connected()?;
-            let from = s.from_um()?;
+            let from = s.start_um()?;
             let target = s.opts.limits.check_rel(&s.name, from, delta_um)?;
             let g = format!("G91 G1 X{:.5} F{:.1}", delta_um / 1000.0, s.feed_mm_min());
             s.move_to(target, g)

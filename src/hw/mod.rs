@@ -117,3 +117,4 @@ pub mod grbl_codes;
 pub mod limits;
 pub mod serial;
 pub mod sim_stage;
+pub mod stage_config;

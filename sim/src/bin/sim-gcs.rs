@@ -38,6 +38,9 @@ struct Args {
     drop_every: u32,
     #[arg(long, default_value_t = 0)]
     garbage_every: u32,
+    /// Deliver every reply this many ms late (0 = on time).
+    #[arg(long, default_value_t = 0)]
+    late_ms: u64,
     /// Make the first move fail halfway (motion error -1024, servo off).
     #[arg(long)]
     alarm_mid_move: bool,
@@ -59,6 +62,8 @@ fn main() -> anyhow::Result<()> {
         drop_every: a.drop_every,
         garbage_every: a.garbage_every,
         alarm_mid_move: a.alarm_mid_move,
+        late_replies: if a.late_ms > 0 { u32::MAX } else { 0 },
+        late_by: Duration::from_millis(a.late_ms),
         ..FaultPlan::default()
     });
     println!("{}", sim.path().display());

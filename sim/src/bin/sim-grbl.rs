@@ -24,6 +24,9 @@ struct Args {
     /// Start (and stay after reset) in Alarm until '$H' or '$X', as with homing enabled.
     #[arg(long)]
     alarm_on_boot: bool,
+    /// Opening the port does not reset the board (no banner until a soft reset).
+    #[arg(long)]
+    no_reset_on_open: bool,
     #[arg(long, default_value_t = 20_000.0)]
     max_speed_um_s: f64,
     #[arg(long, default_value_t = 500_000.0)]
@@ -40,6 +43,9 @@ struct Args {
     /// A garbage line before every Nth reply (0 = never).
     #[arg(long, default_value_t = 0)]
     garbage_every: u32,
+    /// Deliver every reply this many ms late (0 = on time).
+    #[arg(long, default_value_t = 0)]
+    late_ms: u64,
     /// Interrupt the first move halfway with ALARM:1.
     #[arg(long)]
     alarm_mid_move: bool,
@@ -61,6 +67,7 @@ fn main() -> anyhow::Result<()> {
     let opts = GrblSimOptions {
         boot_delay: Duration::from_millis(a.boot_ms),
         alarm_on_boot: a.alarm_on_boot,
+        reset_on_open: !a.no_reset_on_open,
         ..GrblSimOptions::default()
     };
     let sim = GrblSim::spawn(axis, opts, a.link.as_deref()).context("opening a pty")?;
@@ -68,6 +75,8 @@ fn main() -> anyhow::Result<()> {
         drop_every: a.drop_every,
         garbage_every: a.garbage_every,
         alarm_mid_move: a.alarm_mid_move,
+        late_replies: if a.late_ms > 0 { u32::MAX } else { 0 },
+        late_by: Duration::from_millis(a.late_ms),
         ..FaultPlan::default()
     });
     println!("{}", sim.path().display());
