@@ -108,12 +108,13 @@ pub trait Camera: Send {
     fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError>;
 }
 
-pub mod pixfmt;
-#[cfg(feature = "v4l2")]
-pub mod v4l2;
 pub mod gcs;
 pub mod grbl;
 pub mod grbl_codes;
 pub mod limits;
+pub mod open;
+pub mod pixfmt;
 pub mod serial;
 pub mod sim_stage;
+#[cfg(feature = "v4l2")]
+pub mod v4l2;
