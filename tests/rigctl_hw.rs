@@ -179,3 +179,27 @@ fn bad_config_and_running_daemon_are_refused() {
     assert!(!ok);
     assert!(stderr.contains("rigd is running"), "{stderr}");
 }
+
+#[test]
+fn piezo_moves_over_gcs() {
+    use rigd::sim::gcs::{GcsSim, GcsSimOptions};
+    let piezo = Arc::new(Axis::new(rigd::sim::rig::default_piezo()));
+    let sim = GcsSim::spawn(Arc::clone(&piezo), GcsSimOptions::default(), None).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = write_config(
+        dir.path(),
+        &format!(
+            "[piezo]\ndriver = \"gcs\"\nport = \"{}\"\nsoft_min_um = 0.0\nsoft_max_um = 100.0\nmax_step_um = 100.0\n",
+            sim.path().display()
+        ),
+    );
+    let (ok, stdout, stderr) = rigctl(&cfg, &["--piezo", "move-abs", "42.5"]);
+    assert!(ok, "stdout: {stdout}\nstderr: {stderr}");
+    assert!(stdout.starts_with("piezo: "), "{stdout}");
+    // The flexure's closed loop is good to ~0.01 µm.
+    assert!((piezo.position_at(Instant::now()) - 42.5).abs() < 0.1);
+    // No [axis] section: the axis commands say so.
+    let (ok, _, stderr) = rigctl(&cfg, &["position"]);
+    assert!(!ok);
+    assert!(stderr.contains("no [axis] section"), "{stderr}");
+}
