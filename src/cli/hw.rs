@@ -217,8 +217,8 @@ fn probe(cfg: &Config) -> anyhow::Result<()> {
                     let mut s = open_stage(name, c)?;
                     let st = s.status()?;
                     Ok(format!(
-                        "{:?} driver on {}: {:?} at {:.3} µm",
-                        c.driver,
+                        "{} driver on {}: {:?} at {:.3} µm",
+                        format!("{:?}", c.driver).to_lowercase(),
                         c.port.as_deref().unwrap_or("-"),
                         st.state,
                         st.position_um

@@ -475,7 +475,13 @@ impl V4l2Camera {
         stream.set_timeout(left.max(Duration::from_millis(1)));
         let (buf, meta) = match stream.next() {
             Ok(x) => x,
-            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => return Err(self.timeout_err()),
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {
+                // The v4l stream re-queues its last buffer index on the next call, and after a
+                // timed-out dequeue that buffer is still queued (QBUF would fail with EINVAL):
+                // restart streaming on the next grab instead.
+                self.stream = None;
+                return Err(self.timeout_err());
+            }
             Err(e) if e.raw_os_error() == Some(libc::ENODEV) => {
                 self.stream = None;
                 return Err(HwError::PortGone {
