@@ -181,7 +181,11 @@ impl CameraModel {
             ));
         }
         if !(1..=256).contains(&self.motion_samples) {
-            return Err(bad("motion_samples", self.motion_samples, "must be 1..=256"));
+            return Err(bad(
+                "motion_samples",
+                self.motion_samples,
+                "must be 1..=256",
+            ));
         }
         if !(1..=64).contains(&self.buffer_frames) {
             return Err(bad("buffer_frames", self.buffer_frames, "must be 1..=64"));
@@ -215,6 +219,10 @@ mod tests {
             mjpeg_quality: Some(0),
             ..Default::default()
         };
-        assert!(c.validate().unwrap_err().to_string().contains("mjpeg_quality"));
+        assert!(c
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("mjpeg_quality"));
     }
 }

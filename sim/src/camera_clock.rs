@@ -127,7 +127,10 @@ impl Shared {
     fn deliver(&self, e: Exposure) -> SimFrame {
         let image = self.renderer.render(e.sequence, &e.los_um);
         let n = e.los_um.len() as f64;
-        let mean = e.los_um.iter().fold([0.0, 0.0], |a, p| [a[0] + p[0], a[1] + p[1]]);
+        let mean = e
+            .los_um
+            .iter()
+            .fold([0.0, 0.0], |a, p| [a[0] + p[0], a[1] + p[1]]);
         SimFrame {
             image,
             sequence: e.sequence,

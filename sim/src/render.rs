@@ -9,9 +9,8 @@
 use crate::board::{Board, ClutterShape, Shape};
 use crate::camera::CameraModel;
 use image::RgbImage;
-use rand::SeedableRng;
+use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
 /// Where the camera looks: the board point (µm) seen at the top-left corner of pixel (0, 0)
@@ -177,6 +176,9 @@ impl EdgeTable {
 }
 
 /// Ink coverage (0..1) of pixel (u, v), area-integrated.
+///
+/// Shapes whose edge is farther than the blur's reach from the pixel contribute a constant
+/// (all ink or none); only the others are evaluated on the sub-sample grid.
 fn pixel_coverage(
     ink: &Ink,
     near: &[usize],
@@ -186,20 +188,28 @@ fn pixel_coverage(
     cam: &CameraModel,
     edge: &EdgeTable,
 ) -> f64 {
+    const MAX_ACTIVE: usize = 8;
     let sigma = cam.psf_sigma_px.max(1e-3);
     // Beyond this distance from an edge the blurred, pixel-integrated profile is flat.
     let band = 5.0 * sigma + 0.75;
-    let mut needs_sub = false;
     let mut flat = 0.0;
+    let mut disks = [0usize; MAX_ACTIVE];
+    let mut n_disks = 0;
+    let mut rects = [0usize; MAX_ACTIVE];
+    let mut n_rects = 0;
+    let mut overflow = false;
     for &i in near {
         let d = &ink.disks[i];
         let rho = (u - d.centre[0]).hypot(v - d.centre[1]);
         let dist = rho - d.radius_px;
         if dist.abs() < band {
-            needs_sub = true;
-            break;
-        }
-        if dist < 0.0 {
+            if n_disks == MAX_ACTIVE {
+                overflow = true;
+                break;
+            }
+            disks[n_disks] = i;
+            n_disks += 1;
+        } else if dist < 0.0 {
             flat += d.sign;
         }
     }
@@ -209,31 +219,60 @@ fn pixel_coverage(
         let dy = (v - r.centre[1]).abs() - r.half[1];
         if dx.abs() < band || dy.abs() < band {
             if dx < band && dy < band {
-                needs_sub = true;
+                if n_rects == MAX_ACTIVE {
+                    overflow = true;
+                    break;
+                }
+                rects[n_rects] = i;
+                n_rects += 1;
             }
         } else if dx < 0.0 && dy < 0.0 {
             flat += 1.0;
         }
     }
-    if !needs_sub {
+    // Many shapes crowding one pixel: evaluate them all on the grid (slow, exact).
+    let (disks, rects, flat): (&[usize], &[usize], f64) = if overflow {
+        (near, near_rects, 0.0)
+    } else {
+        (&disks[..n_disks], &rects[..n_rects], flat)
+    };
+    if disks.is_empty() && rects.is_empty() {
         return flat.clamp(0.0, 1.0);
     }
-    let n = cam.supersample.max(1);
+    // Close to an edge the profile bends within the pixel: the full sub-grid. Farther out
+    // (but still inside the blur's reach) it is smooth and a 3x3 midpoint rule is exact to
+    // ~1e-4 of the ink contrast.
+    let close = 2.0 * sigma + 0.1;
+    let near_edge = overflow
+        || disks.iter().any(|&i| {
+            let d = &ink.disks[i];
+            ((u - d.centre[0]).hypot(v - d.centre[1]) - d.radius_px).abs() < close
+        })
+        || rects.iter().any(|&i| {
+            let r = &ink.rects[i];
+            ((u - r.centre[0]).abs() - r.half[0]).abs() < close
+                || ((v - r.centre[1]).abs() - r.half[1]).abs() < close
+        });
+    let n = if near_edge {
+        cam.supersample.max(1)
+    } else {
+        cam.supersample.clamp(1, 3)
+    };
     let step = 1.0 / n as f64;
     let mut sum = 0.0;
     for j in 0..n {
         let y = v - 0.5 + (j as f64 + 0.5) * step;
         for i in 0..n {
             let x = u - 0.5 + (i as f64 + 0.5) * step;
-            let mut c = 0.0;
-            for &di in near {
+            let mut c = flat;
+            for &di in disks {
                 let d = &ink.disks[di];
                 let dx = x - d.centre[0];
                 let dy = y - d.centre[1];
                 let rho = (dx * dx + dy * dy).sqrt();
                 c += d.sign * edge.at(rho - d.radius_px);
             }
-            for &ri in near_rects {
+            for &ri in rects {
                 let r = &ink.rects[ri];
                 let ex = edge.at((x - r.centre[0]).abs() - r.half[0]);
                 let ey = edge.at((y - r.centre[1]).abs() - r.half[1]);
@@ -272,13 +311,18 @@ fn render_rows(
     for col in 0..w {
         let u = (x0 + col) as f64;
         near_x.clear();
-        near_x.extend(near.iter().copied().filter(|&i| {
-            (u - ink.disks[i].centre[0]).abs() <= ink.disks[i].radius_px + margin
-        }));
+        near_x.extend(
+            near.iter()
+                .copied()
+                .filter(|&i| (u - ink.disks[i].centre[0]).abs() <= ink.disks[i].radius_px + margin),
+        );
         near_rx.clear();
-        near_rx.extend(near_rects.iter().copied().filter(|&i| {
-            (u - ink.rects[i].centre[0]).abs() <= ink.rects[i].half[0] + margin
-        }));
+        near_rx.extend(
+            near_rects
+                .iter()
+                .copied()
+                .filter(|&i| (u - ink.rects[i].centre[0]).abs() <= ink.rects[i].half[0] + margin),
+        );
         let cov = if near_x.is_empty() && near_rx.is_empty() {
             0.0
         } else {
@@ -329,18 +373,49 @@ pub fn add_noise(expected: &[f32], width: u32, cam: &CameraModel, seed: u64) -> 
     out
 }
 
+/// Standard normal deviates by inverse CDF at 65536 equiprobable points: 16 random bits
+/// give one deviate (tails cut at 4.3σ, variance 0.9997), 4x faster than a ziggurat and,
+/// once quantised to 8 bits, indistinguishable from it.
+fn normal_table() -> &'static [f32] {
+    static TABLE: std::sync::OnceLock<Vec<f32>> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        (0..65536)
+            .map(|i| {
+                let p = (i as f64 + 0.5) / 65536.0;
+                // Φ⁻¹(p) = -√2 · erfc⁻¹(2p), by Newton on erfc from a good start.
+                let mut z = if p < 0.5 { -1.0 } else { 1.0 };
+                for _ in 0..60 {
+                    let f = 0.5 * libm::erfc(-z / std::f64::consts::SQRT_2) - p;
+                    let pdf = (-0.5 * z * z).exp() / (2.0 * std::f64::consts::PI).sqrt();
+                    let step = f / pdf.max(1e-300);
+                    z -= step.clamp(-1.0, 1.0);
+                    if step.abs() < 1e-13 {
+                        break;
+                    }
+                }
+                z as f32
+            })
+            .collect()
+    })
+}
+
 /// One row of noisy 8-bit samples from expected DN scaled by `light`.
 #[inline]
 fn noise_row(dst: &mut [u8], src: &[f32], light: f32, cam: &CameraModel, seed: u64, row: u64) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(row);
+    let table = normal_table();
     let inv_gain = (1.0 / cam.gain_e_per_dn) as f32;
     let read_var = (cam.read_noise_dn * cam.read_noise_dn) as f32;
-    for (d, &s) in dst.iter_mut().zip(src) {
-        let s = s * light;
-        let var = s.max(0.0) * inv_gain + read_var;
-        let z: f32 = StandardNormal.sample(&mut rng);
-        *d = (s + var.sqrt() * z).round().clamp(0.0, 255.0) as u8;
+    for (d4, s4) in dst.chunks_mut(4).zip(src.chunks(4)) {
+        let bits = rng.next_u64();
+        for (k, (d, &s)) in d4.iter_mut().zip(s4).enumerate() {
+            let z = table[((bits >> (16 * k)) & 0xffff) as usize];
+            let s = s * light;
+            let var = s.max(0.0) * inv_gain + read_var;
+            // Round half up by truncation after the clamp: `f32::round` is a libm call here.
+            *d = ((s + var.sqrt() * z).clamp(0.0, 255.0) + 0.5) as u8;
+        }
     }
 }
 
@@ -520,15 +595,13 @@ impl SceneRenderer {
         let patches = self.patches(views);
         let row_len = self.cam.width as usize * 3;
         let mut out = vec![0u8; row_len * self.cam.height as usize];
-        out.par_chunks_mut(row_len)
-            .enumerate()
-            .for_each_init(
-                || vec![0f32; row_len],
-                |line, (v, dst)| {
-                    self.compose_row(&patches, v as u32, line);
-                    noise_row(dst, line, light as f32, &self.cam, seed, v as u64);
-                },
-            );
+        out.par_chunks_mut(row_len).enumerate().for_each_init(
+            || vec![0f32; row_len],
+            |line, (v, dst)| {
+                self.compose_row(&patches, v as u32, line);
+                noise_row(dst, line, light as f32, &self.cam, seed, v as u64);
+            },
+        );
         out
     }
 }
@@ -630,5 +703,20 @@ mod tests {
         for ((x, y), m) in ea.iter().zip(&eb).zip(&eab) {
             assert!(((x + y) / 2.0 - m).abs() < 1e-3);
         }
+    }
+
+    #[test]
+    fn normal_table_is_a_standard_normal() {
+        let t = normal_table();
+        let n = t.len() as f64;
+        let mean = t.iter().map(|&z| z as f64).sum::<f64>() / n;
+        let var = t.iter().map(|&z| (z as f64).powi(2)).sum::<f64>() / n;
+        assert!(
+            mean.abs() < 1e-6 && (var - 1.0).abs() < 1e-3,
+            "{mean} {var}"
+        );
+        // The median deviate, the 84th percentile near +1σ.
+        assert!(t[32768].abs() < 1e-4);
+        assert!((t[(0.841_344_7 * n) as usize] - 1.0).abs() < 1e-3);
     }
 }

@@ -178,7 +178,10 @@ impl Xl80Params {
         }
         let n = self.beam_dir[0].hypot(self.beam_dir[1]);
         if !((n - 1.0).abs() < 1e-6) {
-            return bad("beam_dir", format!("{:?} is not a unit vector", self.beam_dir));
+            return bad(
+                "beam_dir",
+                format!("{:?} is not a unit vector", self.beam_dir),
+            );
         }
         if ![',', ';', '\t'].contains(&self.csv.separator) {
             return bad(
@@ -219,7 +222,10 @@ impl Xl80Params {
 
 /// `dd/mm/yyyy HH:MM:SS` in UTC, as CARTO writes dates.
 pub fn format_date(t: SystemTime) -> String {
-    let secs = t.duration_since(UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0) as i64;
+    let secs = t
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0) as i64;
     let (days, sod) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
     // Civil date from days since 1970-01-01 (H. Hinnant's algorithm).
     let z = days + 719_468;
@@ -264,12 +270,7 @@ impl Xl80 {
     }
 
     /// Readings at the sample rate from `start` for `count` samples of `source`.
-    pub fn capture(
-        &mut self,
-        source: &dyn TruePosition,
-        start: Instant,
-        count: usize,
-    ) -> Vec<f64> {
+    pub fn capture(&mut self, source: &dyn TruePosition, start: Instant, count: usize) -> Vec<f64> {
         let period = self.params.period();
         (0..count)
             .map(|i| self.read_um(source.true_position_um(start + period.mul_f64(i as f64))))

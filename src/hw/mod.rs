@@ -5,6 +5,8 @@
 //! The traits are synchronous on purpose: serial and V4L2 I/O are blocking calls with
 //! deadlines, and the daemon runs them on a dedicated blocking thread per job.
 
+pub mod sim_camera;
+
 use std::time::{Duration, SystemTime};
 
 pub use image::RgbImage;
@@ -106,6 +108,13 @@ pub trait Camera: Send {
     fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError>;
 }
 
+pub mod gcs;
+pub mod grbl;
+pub mod grbl_codes;
+pub mod limits;
+pub mod open;
 pub mod pixfmt;
+pub mod serial;
+pub mod sim_stage;
 #[cfg(feature = "v4l2")]
 pub mod v4l2;

@@ -196,10 +196,8 @@ impl RtxParser {
                         ),
                     },
                     // The nominal rate, until (or unless) the actual one is given.
-                    "sample rate" => {
-                        if self.log.sample_rate_hz.is_none() {
-                            self.log.sample_rate_hz = parse_number(v).filter(|hz| *hz > 0.0);
-                        }
+                    "sample rate" if self.log.sample_rate_hz.is_none() => {
+                        self.log.sample_rate_hz = parse_number(v).filter(|hz| *hz > 0.0);
                     }
                     "sample no" => self.declared_samples = parse_number(v).map(|n| n as usize),
                     "date" => self.log.start = parse_datetime(v),

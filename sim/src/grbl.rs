@@ -1,0 +1,606 @@
+//! A GRBL 1.1 controller on a pseudo-terminal, driving a simulated [`Axis`] (its X axis).
+//!
+//! What it does, as GRBL does: the banner on open (a DTR reset) and after a soft reset;
+//! one `ok` / `error:N` per line; realtime `?` `!` `~` and 0x18 picked out of the stream;
+//! motion queued in a planner so `ok` comes back before the move is done, while `G4 P0`
+//! answers only once the planner is empty; `$H` homing, `$X` unlock, `$J=` jogging; a move
+//! past the axis' hard limits runs into the limit switch and raises `ALARM:1`, after which
+//! only a soft reset is accepted. Units are mm in G-code; the axis is in µm.
+//!
+//! This parser is the emulator's own: rigd's driver (src/hw/grbl.rs) shares none of it.
+
+use crate::motion::Axis;
+use crate::serve::{serve, Controller, Faults, Outbox, Served};
+use std::collections::VecDeque;
+use std::io;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+pub const BANNER: &str = "Grbl 1.1h ['$' for help]";
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct GrblSimOptions {
+    /// Time from the port opening to the banner (a real Arduino bootloader: ~1.5 s).
+    pub boot_delay: Duration,
+    /// `$22=1`: homing cycle enabled.
+    pub homing_enabled: bool,
+    /// Boot (and soft reset) into Alarm until `$H` or `$X`, as GRBL does with homing enabled.
+    pub alarm_on_boot: bool,
+    /// Machine position the homing cycle assigns at the switch (µm).
+    pub home_position_um: f64,
+}
+
+impl Default for GrblSimOptions {
+    fn default() -> Self {
+        GrblSimOptions {
+            boot_delay: Duration::from_millis(20),
+            homing_enabled: true,
+            alarm_on_boot: false,
+            home_position_um: 0.0,
+        }
+    }
+}
+
+/// A running GRBL emulator.
+pub struct GrblSim {
+    served: Served,
+}
+
+impl GrblSim {
+    /// Serve a GRBL controller for `axis` on a new pty; `link`, if given, is a stable symlink
+    /// to it that survives the port vanishing and coming back.
+    pub fn spawn(
+        axis: Arc<Axis>,
+        opts: GrblSimOptions,
+        link: Option<&Path>,
+    ) -> io::Result<GrblSim> {
+        let faults = Faults::default();
+        let ctrl = Grbl::new(axis, opts, faults.clone());
+        let served = serve(ctrl, faults, link, "sim-grbl")?;
+        Ok(GrblSim { served })
+    }
+    pub fn path(&self) -> std::path::PathBuf {
+        self.served.path()
+    }
+    pub fn faults(&self) -> &Faults {
+        self.served.faults()
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum State {
+    Idle,
+    Run,
+    Jog,
+    Hold,
+    Home,
+    Alarm,
+}
+
+impl State {
+    fn report_name(self) -> &'static str {
+        match self {
+            State::Idle => "Idle",
+            State::Run => "Run",
+            State::Jog => "Jog",
+            State::Hold => "Hold:0",
+            State::Home => "Home",
+            State::Alarm => "Alarm",
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Planned {
+    target_um: f64,
+    feed_mm_min: f64,
+    jog: bool,
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Block {
+    /// `G4 P<s>`: waits for the planner to empty, then dwells.
+    Dwell { secs: f64, since: Option<Instant> },
+    /// `$H`: the homing cycle runs until `ends`.
+    Homing { ends: Instant },
+}
+
+struct Grbl {
+    axis: Arc<Axis>,
+    opts: GrblSimOptions,
+    faults: Faults,
+    /// Banner due at this instant (board booting): input is ignored until then.
+    booting_until: Option<Instant>,
+    line: Vec<u8>,
+    pending: VecDeque<Vec<u8>>,
+    state: State,
+    /// After a hard limit: nothing but a soft reset is accepted.
+    critical: bool,
+    absolute: bool,
+    feed_mm_min: Option<f64>,
+    rapid: bool,
+    /// Where the last planned move ends (the parser's position), µm.
+    plan_end_um: f64,
+    queue: VecDeque<Planned>,
+    current: Option<(Planned, Instant)>,
+    block: Option<Block>,
+    /// An alarm due at an instant (a move into the limit switch, or an injected fault).
+    alarm_at: Option<(Instant, u32)>,
+}
+
+impl Grbl {
+    fn new(axis: Arc<Axis>, opts: GrblSimOptions, faults: Faults) -> Grbl {
+        let here = axis.reported_um(Instant::now());
+        Grbl {
+            axis,
+            opts,
+            faults,
+            booting_until: None,
+            line: Vec::new(),
+            pending: VecDeque::new(),
+            state: State::Idle,
+            critical: false,
+            absolute: true,
+            feed_mm_min: None,
+            rapid: true,
+            plan_end_um: here,
+            queue: VecDeque::new(),
+            current: None,
+            block: None,
+            alarm_at: None,
+        }
+    }
+
+    fn moving(&self) -> bool {
+        self.current.is_some()
+            || matches!(self.state, State::Run | State::Jog | State::Home)
+            || self.axis.is_moving(Instant::now())
+    }
+
+    /// Everything a reset (power-on or 0x18) clears.
+    fn reset(&mut self, now: Instant) {
+        self.axis.stop();
+        self.line.clear();
+        self.pending.clear();
+        self.queue.clear();
+        self.current = None;
+        self.block = None;
+        self.alarm_at = None;
+        self.absolute = true;
+        self.rapid = true;
+        self.feed_mm_min = None;
+        self.plan_end_um = self.axis.reported_um(now);
+    }
+
+    fn banner(&mut self, out: &mut Outbox) {
+        out.push(format!("\r\n{BANNER}\r\n"));
+        if self.state == State::Alarm {
+            out.push("[MSG:'$H'|'$X' to unlock]\r\n");
+        }
+    }
+
+    fn soft_reset(&mut self, now: Instant, out: &mut Outbox) {
+        let was_moving = self.moving() && self.state != State::Hold;
+        self.reset(now);
+        if was_moving {
+            out.push("ALARM:3\r\n");
+            self.state = State::Alarm;
+        } else if self.critical || self.state == State::Alarm {
+            // An alarm survives the reset: '$H' or '$X' clears it.
+            self.state = State::Alarm;
+        } else {
+            self.state = State::Idle;
+        }
+        self.critical = false;
+        self.banner(out);
+    }
+
+    fn status(&self, now: Instant) -> String {
+        let x_mm = self.axis.reported_um(now) / 1000.0;
+        let feed = match (&self.current, self.state) {
+            (Some((p, _)), State::Run | State::Jog) => p.feed_mm_min,
+            _ => 0.0,
+        };
+        format!(
+            "<{}|MPos:{x_mm:.3},0.000,0.000|FS:{feed:.0},0>\r\n",
+            self.state.report_name()
+        )
+    }
+
+    fn raise_alarm(&mut self, code: u32, now: Instant, out: &mut Outbox) {
+        self.axis.stop();
+        self.queue.clear();
+        self.current = None;
+        self.block = None;
+        self.pending.clear();
+        self.alarm_at = None;
+        self.plan_end_um = self.axis.reported_um(now);
+        self.state = State::Alarm;
+        self.critical = true;
+        out.push(format!("ALARM:{code}\r\n"));
+        out.push("[MSG:Reset to continue]\r\n");
+    }
+
+    /// Start the next planned move if the axis is free.
+    fn start_next(&mut self, now: Instant) {
+        if self.current.is_some() || self.state == State::Hold {
+            return;
+        }
+        let Some(p) = self.queue.pop_front() else {
+            return;
+        };
+        let params = self.axis.params();
+        let (lo, hi) = (params.hard_min_um, params.hard_max_um);
+        // Past the hard limits the carriage runs into the switch.
+        let reach = p.target_um.clamp(lo, hi);
+        let dur = self.axis.command_move(reach).unwrap_or(Duration::ZERO);
+        if reach != p.target_um {
+            self.alarm_at = Some((now + dur, 1));
+        } else if self.faults.take_alarm_mid_move() {
+            self.alarm_at = Some((now + dur / 2, 1));
+        }
+        self.current = Some((p, now + dur));
+        self.state = if p.jog { State::Jog } else { State::Run };
+    }
+
+    fn run_line(&mut self, raw: &[u8], now: Instant, out: &mut Outbox) {
+        let text: String = String::from_utf8_lossy(raw)
+            .chars()
+            .filter(|c| !c.is_whitespace())
+            .collect::<String>()
+            .to_ascii_uppercase();
+        let res = if let Some(sys) = text.strip_prefix('$') {
+            self.system(sys, now, out)
+        } else if text.is_empty() {
+            Ok(Reply::Ok)
+        } else if self.state == State::Alarm {
+            Err(9)
+        } else {
+            self.gcode(&text, false)
+        };
+        match res {
+            Ok(Reply::Ok) => out.reply("ok\r\n"),
+            Ok(Reply::Later) => {}
+            Err(code) => out.reply(format!("error:{code}\r\n")),
+        }
+    }
+
+    fn system(&mut self, cmd: &str, now: Instant, out: &mut Outbox) -> Result<Reply, u32> {
+        match cmd {
+            "" => {
+                out.reply(
+                    "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]\r\n",
+                );
+                Ok(Reply::Ok)
+            }
+            "X" => {
+                if self.state == State::Alarm {
+                    out.push("[MSG:Caution: Unlocked]\r\n");
+                    self.state = State::Idle;
+                }
+                Ok(Reply::Ok)
+            }
+            "H" => {
+                if !self.opts.homing_enabled {
+                    return Err(5);
+                }
+                if !matches!(self.state, State::Idle | State::Alarm) {
+                    return Err(8);
+                }
+                let home = self.opts.home_position_um;
+                // Seek the switch, then a short pull-off: modelled as one move plus 50 ms.
+                let dur = self.axis.command_move(home).unwrap_or(Duration::ZERO);
+                self.state = State::Home;
+                self.block = Some(Block::Homing {
+                    ends: now + dur + Duration::from_millis(50),
+                });
+                Ok(Reply::Later)
+            }
+            "I" => {
+                out.reply("[VER:1.1h.20190825:]\r\n[OPT:V,15,128]\r\n");
+                Ok(Reply::Ok)
+            }
+            "G" => {
+                let mode = if self.absolute { "G90" } else { "G91" };
+                let motion = if self.rapid { "G0" } else { "G1" };
+                let f = self.feed_mm_min.unwrap_or(0.0);
+                out.reply(format!(
+                    "[GC:{motion} G54 G17 G21 {mode} G94 M5 M9 T0 F{f:.0} S0]\r\n"
+                ));
+                Ok(Reply::Ok)
+            }
+            "$" => {
+                let p = self.axis.params();
+                out.reply(format!(
+                    "$22={}\r\n$110={:.3}\r\n$120={:.3}\r\n$130={:.3}\r\n",
+                    u8::from(self.opts.homing_enabled),
+                    p.max_speed_um_s * 60.0 / 1000.0,
+                    p.accel_um_s2 / 1000.0,
+                    (p.hard_max_um - p.hard_min_um) / 1000.0
+                ));
+                Ok(Reply::Ok)
+            }
+            _ => {
+                if let Some(jog) = cmd.strip_prefix("J=") {
+                    if !matches!(self.state, State::Idle | State::Jog) {
+                        return Err(8);
+                    }
+                    return self.gcode(jog, true);
+                }
+                Err(3)
+            }
+        }
+    }
+
+    /// One G-code block (whitespace removed, upper case).
+    fn gcode(&mut self, text: &str, jog: bool) -> Result<Reply, u32> {
+        let words = parse_words(text)?;
+        let mut absolute = self.absolute;
+        let mut motion: Option<bool> = None; // Some(true) = rapid G0
+        let mut dwell = false;
+        let (mut x, mut f, mut p) = (None, None, None);
+        for (letter, value) in words {
+            match letter {
+                'G' => match value {
+                    v if v == 0.0 => motion = Some(true),
+                    v if v == 1.0 => motion = Some(false),
+                    v if v == 4.0 => dwell = true,
+                    v if v == 90.0 => absolute = true,
+                    v if v == 91.0 => absolute = false,
+                    v if [17.0, 21.0, 54.0, 94.0].contains(&v) => {}
+                    _ => return Err(20),
+                },
+                'X' => x = Some(value),
+                'Y' | 'Z' => {} // a single-axis rig: accepted, nothing moves
+                'F' => f = Some(value),
+                'P' => p = Some(value),
+                'N' => {}
+                _ => return Err(20),
+            }
+        }
+        if jog {
+            // Jogs carry their own mode and feed and leave the parser's modes alone.
+            let Some(f) = f else { return Err(22) };
+            let Some(x) = x else { return Ok(Reply::Ok) };
+            if dwell || motion.is_some() {
+                return Err(16);
+            }
+            let target = if absolute {
+                x * 1000.0
+            } else {
+                self.plan_end_um + x * 1000.0
+            };
+            self.plan(target, f, true);
+            return Ok(Reply::Ok);
+        }
+        self.absolute = absolute;
+        if let Some(f) = f {
+            if f < 0.0 {
+                return Err(4);
+            }
+            self.feed_mm_min = Some(f);
+        }
+        if dwell {
+            let secs = p.ok_or(28u32)?;
+            if secs < 0.0 {
+                return Err(4);
+            }
+            self.block = Some(Block::Dwell { secs, since: None });
+            return Ok(Reply::Later);
+        }
+        if let Some(m) = motion {
+            self.rapid = m;
+        }
+        if let Some(x) = x {
+            let feed = if self.rapid {
+                self.axis.params().max_speed_um_s * 60.0 / 1000.0
+            } else {
+                self.feed_mm_min.filter(|f| *f > 0.0).ok_or(22u32)?
+            };
+            let target = if self.absolute {
+                x * 1000.0
+            } else {
+                self.plan_end_um + x * 1000.0
+            };
+            self.plan(target, feed, false);
+        }
+        Ok(Reply::Ok)
+    }
+
+    fn plan(&mut self, target_um: f64, feed_mm_min: f64, jog: bool) {
+        self.queue.push_back(Planned {
+            target_um,
+            feed_mm_min,
+            jog,
+        });
+        self.plan_end_um = target_um;
+        if self.state == State::Idle {
+            self.state = if jog { State::Jog } else { State::Run };
+        }
+    }
+}
+
+enum Reply {
+    Ok,
+    /// The `ok` comes when the command completes (dwell, homing).
+    Later,
+}
+
+/// Split a block into (letter, value) words: GRBL's error 1 for a missing letter, 2 for a
+/// bad number.
+fn parse_words(text: &str) -> Result<Vec<(char, f64)>, u32> {
+    let mut words = Vec::new();
+    let mut chars = text.chars().peekable();
+    while let Some(c) = chars.next() {
+        if !c.is_ascii_alphabetic() {
+            return Err(1);
+        }
+        let mut num = String::new();
+        while let Some(&d) = chars.peek() {
+            if d.is_ascii_digit() || d == '.' || d == '-' || d == '+' {
+                num.push(d);
+                chars.next();
+            } else {
+                break;
+            }
+        }
+        let v: f64 = num.parse().map_err(|_| 2u32)?;
+        if !v.is_finite() {
+            return Err(2);
+        }
+        words.push((c, v));
+    }
+    Ok(words)
+}
+
+impl Controller for Grbl {
+    fn on_open(&mut self, now: Instant, _out: &mut Outbox) {
+        // DTR resets the board: everything stops, and the banner comes after the boot delay.
+        self.reset(now);
+        self.critical = false;
+        self.state = if self.opts.alarm_on_boot {
+            State::Alarm
+        } else {
+            State::Idle
+        };
+        self.booting_until = Some(now + self.opts.boot_delay);
+    }
+
+    fn on_close(&mut self) {
+        self.booting_until = None;
+    }
+
+    fn on_bytes(&mut self, bytes: &[u8], now: Instant, out: &mut Outbox) {
+        if self.booting_until.is_some() {
+            return; // the bootloader swallows it
+        }
+        for &b in bytes {
+            match b {
+                b'?' => out.reply(self.status(now)),
+                b'!' => {
+                    if matches!(self.state, State::Run | State::Jog) {
+                        // Hold: stop where we are; the rest of the move waits for `~`.
+                        self.axis.stop();
+                        if let Some((p, _)) = self.current.take() {
+                            self.queue.push_front(p);
+                        }
+                        self.alarm_at = None;
+                        self.state = State::Hold;
+                    }
+                }
+                b'~' => {
+                    if self.state == State::Hold {
+                        self.state = State::Run;
+                        self.start_next(now);
+                        if self.current.is_none() {
+                            self.state = State::Idle;
+                        }
+                    }
+                }
+                0x18 => self.soft_reset(now, out),
+                b'\r' => {}
+                b'\n' => {
+                    let line = std::mem::take(&mut self.line);
+                    if !self.critical {
+                        self.pending.push_back(line);
+                    }
+                }
+                0x80..=0xff => {} // overrides and other realtime commands: ignored
+                _ => {
+                    if self.line.len() < 80 {
+                        self.line.push(b);
+                    }
+                }
+            }
+        }
+    }
+
+    fn tick(&mut self, now: Instant, out: &mut Outbox) -> Option<Instant> {
+        if let Some(t) = self.booting_until {
+            if now < t {
+                return Some(t);
+            }
+            self.booting_until = None;
+            self.banner(out);
+        }
+        if let Some((t, code)) = self.alarm_at {
+            if now >= t {
+                self.raise_alarm(code, now, out);
+            }
+        }
+        if let Some((_, ends)) = self.current {
+            if now >= ends && self.alarm_at.is_none() {
+                self.current = None;
+            } else if self.alarm_at.is_none() && self.faults.take_alarm_mid_move() {
+                self.alarm_at = Some((now + (ends - now) / 2, 1));
+            }
+        }
+        self.start_next(now);
+        if self.current.is_none()
+            && self.queue.is_empty()
+            && matches!(self.state, State::Run | State::Jog)
+        {
+            self.state = State::Idle;
+        }
+        match self.block {
+            Some(Block::Dwell { secs, since }) => {
+                if self.current.is_none() && self.queue.is_empty() && self.state != State::Hold {
+                    let since = since.unwrap_or(now);
+                    if now >= since + Duration::from_secs_f64(secs) {
+                        self.block = None;
+                        out.reply("ok\r\n");
+                    } else {
+                        self.block = Some(Block::Dwell {
+                            secs,
+                            since: Some(since),
+                        });
+                    }
+                }
+            }
+            Some(Block::Homing { ends }) => {
+                if now >= ends {
+                    self.block = None;
+                    self.axis.set_position(self.opts.home_position_um);
+                    self.plan_end_um = self.opts.home_position_um;
+                    self.state = State::Idle;
+                    out.reply("ok\r\n");
+                }
+            }
+            None => {}
+        }
+        while self.block.is_none() && !self.critical {
+            let Some(line) = self.pending.pop_front() else {
+                break;
+            };
+            self.run_line(&line, now, out);
+            // The planner starts a move as soon as it is queued.
+            self.start_next(now);
+        }
+        // Tick soon while anything is in flight.
+        let busy = self.current.is_some()
+            || !self.queue.is_empty()
+            || self.block.is_some()
+            || self.alarm_at.is_some();
+        busy.then(|| now + Duration::from_millis(1))
+    }
+
+    fn line_end(&self) -> &'static [u8] {
+        b"\r\n"
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn words_are_split_and_bad_ones_get_grbl_codes() {
+        assert_eq!(
+            parse_words("G91G1X0.05F600").unwrap(),
+            vec![('G', 91.0), ('G', 1.0), ('X', 0.05), ('F', 600.0)]
+        );
+        assert_eq!(parse_words("91"), Err(1));
+        assert_eq!(parse_words("X1.2.3"), Err(2));
+    }
+}

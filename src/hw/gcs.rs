@@ -1,0 +1,482 @@
+//! Physik Instrumente GCS driver for a piezo flexure stage (E-709, E-727, … one axis), in µm.
+//!
+//! GCS rules it follows (PI's GCS manuals):
+//! - Motion and setup commands (`SVO`, `MOV`, `MVR`, `STP`, `HLT`) send no reply; a failure
+//!   only sets the controller's error code, so every motion command is followed by `ERR?`
+//!   (which also clears it). Queries answer `axis=value` lines, LF-terminated.
+//! - The servo (closed loop) must be on to move: `SVO <axis> 1` at connect.
+//! - A move is finished when `ONT? <axis>` says 1: the closed loop has settled in its
+//!   on-target window, which is later than the end of the motion profile.
+//! - Stop is `HLT <axis>` (decelerate) which sets error 10 "stopped by command": expected.
+//! - Every read has a deadline; a vanished port drops the connection and the next call
+//!   reopens it (or `reconnect()`).
+//!
+//! A piezo has no reference switch: `home()` moves to the configured `home_um`.
+
+use super::limits::TravelLimits;
+use super::serial::{Deadline, SerialLines};
+use super::{HwError, MotionState, Stage, StageStatus};
+use serde::{Deserialize, Serialize};
+use std::time::Duration;
+
+/// `[piezo] driver = "gcs"` settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GcsOptions {
+    pub port: String,
+    #[serde(default = "defaults::baud")]
+    pub baud: u32,
+    /// GCS axis identifier.
+    #[serde(default = "defaults::axis")]
+    pub axis: String,
+    /// µm per GCS position unit (PI piezo controllers are normally set up in µm: 1).
+    #[serde(default = "defaults::um_per_unit")]
+    pub um_per_unit: f64,
+    #[serde(default = "defaults::reply_timeout_ms")]
+    pub reply_timeout_ms: u64,
+    /// Switch the servo on when connecting.
+    #[serde(default = "defaults::yes")]
+    pub servo_on_connect: bool,
+    /// Where `home()` moves, µm.
+    #[serde(default)]
+    pub home_um: f64,
+    pub limits: TravelLimits,
+}
+
+mod defaults {
+    pub fn baud() -> u32 {
+        115_200
+    }
+    pub fn axis() -> String {
+        "1".into()
+    }
+    pub fn um_per_unit() -> f64 {
+        1.0
+    }
+    pub fn reply_timeout_ms() -> u64 {
+        500
+    }
+    pub fn yes() -> bool {
+        true
+    }
+}
+
+impl GcsOptions {
+    pub fn new(port: impl Into<String>, limits: TravelLimits) -> GcsOptions {
+        GcsOptions {
+            port: port.into(),
+            baud: defaults::baud(),
+            axis: defaults::axis(),
+            um_per_unit: defaults::um_per_unit(),
+            reply_timeout_ms: defaults::reply_timeout_ms(),
+            servo_on_connect: true,
+            home_um: 0.0,
+            limits,
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        self.limits.validate()?;
+        if !(self.um_per_unit.is_finite() && self.um_per_unit > 0.0) {
+            return Err(format!(
+                "um_per_unit must be positive, not {}",
+                self.um_per_unit
+            ));
+        }
+        if self.axis.is_empty() || self.axis.contains(char::is_whitespace) {
+            return Err(format!("axis {:?} is not a GCS axis identifier", self.axis));
+        }
+        if self.port.is_empty() {
+            return Err("port is empty".into());
+        }
+        Ok(())
+    }
+}
+
+/// The meaning of the GCS error codes a piezo controller commonly returns.
+pub fn gcs_error_text(code: i32) -> &'static str {
+    match code {
+        0 => "No error",
+        1 => "Parameter syntax error",
+        2 => "Unknown command",
+        3 => "Command length out of limits or command buffer overrun",
+        5 => "Unallowable move attempted on unreferenced axis, or move attempted with servo off",
+        7 => "Position out of limits",
+        8 => "Velocity out of limits",
+        10 => "Controller was stopped by command",
+        15 => "Invalid axis identifier",
+        17 => "Parameter out of range",
+        -1024 => "Motion error: position error too large, servo is switched off automatically",
+        _ => "see the controller's GCS manual for this code",
+    }
+}
+
+/// The value in an `<axis>=<value>` reply line, if it is for `axis`.
+fn axis_field<'a>(line: &'a str, axis: &str) -> Option<&'a str> {
+    let (id, v) = line.split_once('=')?;
+    (id.trim() == axis).then_some(v.trim())
+}
+
+/// Error 10 after our own STP/HLT is the controller confirming the stop.
+const STOPPED_BY_COMMAND: i32 = 10;
+const DRAIN_QUIET: Duration = Duration::from_millis(20);
+const POLL: Duration = Duration::from_millis(1);
+
+/// A PI GCS piezo axis.
+pub struct GcsStage {
+    name: String,
+    opts: GcsOptions,
+    link: Option<SerialLines>,
+    target_um: Option<f64>,
+    idn: Option<String>,
+    stale: bool,
+    garbage_lines: u64,
+}
+
+impl std::fmt::Debug for GcsStage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GcsStage")
+            .field("name", &self.name)
+            .field("port", &self.opts.port)
+            .field("connected", &self.link.is_some())
+            .finish()
+    }
+}
+
+impl GcsStage {
+    /// A driver that connects on first use.
+    pub fn new(name: impl Into<String>, opts: GcsOptions) -> Result<GcsStage, HwError> {
+        let name = name.into();
+        opts.validate().map_err(|message| HwError::Other {
+            device: name.clone(),
+            message: format!("bad gcs options: {message}"),
+        })?;
+        Ok(GcsStage {
+            name,
+            opts,
+            link: None,
+            target_um: None,
+            idn: None,
+            stale: false,
+            garbage_lines: 0,
+        })
+    }
+
+    /// A driver connected now (identified, error cleared, servo on).
+    pub fn connect(name: impl Into<String>, opts: GcsOptions) -> Result<GcsStage, HwError> {
+        let mut s = GcsStage::new(name, opts)?;
+        s.reconnect()?;
+        Ok(s)
+    }
+
+    pub fn reconnect(&mut self) -> Result<(), HwError> {
+        self.link = None;
+        self.guard(|s| s.ensure_connected())
+    }
+
+    pub fn is_connected(&self) -> bool {
+        self.link.is_some()
+    }
+
+    /// The controller's `*IDN?` answer, once connected.
+    pub fn idn(&self) -> Option<&str> {
+        self.idn.as_deref()
+    }
+
+    pub fn garbage_lines(&self) -> u64 {
+        self.garbage_lines
+    }
+
+    /// Whether the closed loop reports on target.
+    pub fn on_target(&mut self) -> Result<bool, HwError> {
+        self.guard(|s| {
+            s.ensure_connected()?;
+            s.query_on_target()
+        })
+    }
+
+    fn guard<T>(&mut self, f: impl FnOnce(&mut Self) -> Result<T, HwError>) -> Result<T, HwError> {
+        let r = f(self);
+        match &r {
+            Err(HwError::PortGone { message, .. }) => {
+                tracing::warn!(device = %self.name, %message, "port gone; will reopen on next use");
+                self.link = None;
+                self.target_um = None;
+            }
+            Err(HwError::Timeout { .. } | HwError::Protocol { .. }) => self.stale = true,
+            _ => {}
+        }
+        r
+    }
+
+    fn deadline(&self) -> Deadline {
+        Deadline::after(Duration::from_millis(self.opts.reply_timeout_ms))
+    }
+
+    fn port(&mut self) -> Result<&mut SerialLines, HwError> {
+        self.link.as_mut().ok_or_else(|| HwError::PortGone {
+            device: self.name.clone(),
+            message: "not connected".into(),
+        })
+    }
+
+    fn ensure_connected(&mut self) -> Result<(), HwError> {
+        if self.link.is_some() {
+            return Ok(());
+        }
+        let r = self.open_and_setup();
+        if r.is_err() {
+            self.link = None;
+        }
+        r
+    }
+
+    fn open_and_setup(&mut self) -> Result<(), HwError> {
+        self.link = Some(SerialLines::open(
+            &self.name,
+            &self.opts.port,
+            self.opts.baud,
+        )?);
+        self.target_um = None;
+        // Whatever an earlier session left in the buffers is not ours.
+        self.stale = true;
+        let idn = self.query_line("*IDN?", |l| (!l.is_empty()).then(|| l.to_string()))?;
+        tracing::info!(device = %self.name, idn = %idn, "gcs controller connected");
+        self.idn = Some(idn);
+        let old = self.query_error()?;
+        if old != 0 {
+            tracing::info!(device = %self.name, code = old, "cleared an old controller error");
+        }
+        if self.opts.servo_on_connect {
+            let cmd = format!("SVO {} 1", self.opts.axis);
+            self.send(&cmd)?;
+            self.check_error(&cmd, false)?;
+        }
+        Ok(())
+    }
+
+    fn drain_if_stale(&mut self) -> Result<(), HwError> {
+        if self.stale {
+            self.port()?.drain(DRAIN_QUIET)?;
+            self.stale = false;
+        }
+        Ok(())
+    }
+
+    /// Send a command that has no reply.
+    fn send(&mut self, cmd: &str) -> Result<(), HwError> {
+        self.drain_if_stale()?;
+        let mut b = cmd.as_bytes().to_vec();
+        b.push(b'\n');
+        self.port()?.write(&b)
+    }
+
+    /// Send bytes, then read lines until `parse` accepts one (others are line noise).
+    fn ask<T>(
+        &mut self,
+        bytes: &[u8],
+        what: &str,
+        parse: impl Fn(&str) -> Option<T>,
+    ) -> Result<T, HwError> {
+        self.drain_if_stale()?;
+        self.port()?.write(bytes)?;
+        let dl = self.deadline();
+        loop {
+            let raw = self.port()?.read_line(dl, &format!("reply to {what}"))?;
+            let text = std::str::from_utf8(&raw).map(str::trim);
+            match text.ok().and_then(&parse) {
+                Some(v) => return Ok(v),
+                None => {
+                    self.garbage_lines += 1;
+                    tracing::warn!(device = %self.name, line = %String::from_utf8_lossy(&raw),
+                        waiting_for = what, "ignoring unexpected line");
+                }
+            }
+        }
+    }
+
+    fn query_line<T>(
+        &mut self,
+        cmd: &str,
+        parse: impl Fn(&str) -> Option<T>,
+    ) -> Result<T, HwError> {
+        let mut b = cmd.as_bytes().to_vec();
+        b.push(b'\n');
+        self.ask(&b, cmd, parse)
+    }
+
+    fn query_error(&mut self) -> Result<i32, HwError> {
+        self.query_line("ERR?", |l| l.parse::<i32>().ok())
+    }
+
+    /// `ERR?` after a command; a nonzero code becomes a typed error.
+    fn check_error(&mut self, after: &str, stop_expected: bool) -> Result<(), HwError> {
+        match self.query_error()? {
+            0 => Ok(()),
+            STOPPED_BY_COMMAND if stop_expected => Ok(()),
+            code => Err(HwError::Controller {
+                device: self.name.clone(),
+                code,
+                message: format!("{} (after {after:?})", gcs_error_text(code)),
+            }),
+        }
+    }
+
+    fn query_on_target(&mut self) -> Result<bool, HwError> {
+        let cmd = format!("ONT? {}", self.opts.axis);
+        let axis = self.opts.axis.clone();
+        self.query_line(&cmd, |l| match axis_field(l, &axis)? {
+            "1" => Some(true),
+            "0" => Some(false),
+            _ => None,
+        })
+    }
+
+    fn query_position(&mut self) -> Result<f64, HwError> {
+        let cmd = format!("POS? {}", self.opts.axis);
+        let axis = self.opts.axis.clone();
+        let units = self.query_line(&cmd, |l| {
+            let v: f64 = axis_field(l, &axis)?.parse().ok()?;
+            v.is_finite().then_some(v)
+        })?;
+        Ok(units * self.opts.um_per_unit)
+    }
+
+    fn move_cmd(&mut self, target_um: f64, cmd: String) -> Result<(), HwError> {
+        self.send(&cmd)?;
+        self.check_error(&cmd, false)?;
+        self.target_um = Some(target_um);
+        Ok(())
+    }
+
+    fn from_um(&mut self) -> Result<f64, HwError> {
+        match self.target_um {
+            Some(t) => Ok(t),
+            None => self.query_position(),
+        }
+    }
+}
+
+impl Stage for GcsStage {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn move_rel(&mut self, delta_um: f64) -> Result<(), HwError> {
+        self.guard(|s| {
+            s.ensure_connected()?;
+            let from = s.from_um()?;
+            let target = s.opts.limits.check_rel(&s.name, from, delta_um)?;
+            let cmd = format!("MVR {} {:.6}", s.opts.axis, delta_um / s.opts.um_per_unit);
+            s.move_cmd(target, cmd)
+        })
+    }
+
+    fn move_abs(&mut self, target_um: f64) -> Result<(), HwError> {
+        self.guard(|s| {
+            s.opts.limits.check_abs(&s.name, target_um)?;
+            s.ensure_connected()?;
+            let cmd = format!("MOV {} {:.6}", s.opts.axis, target_um / s.opts.um_per_unit);
+            s.move_cmd(target_um, cmd)
+        })
+    }
+
+    fn wait_settled(&mut self, timeout: Duration) -> Result<f64, HwError> {
+        let dl = Deadline::after(timeout);
+        self.guard(|s| {
+            s.ensure_connected()?;
+            let mut polls = 0u32;
+            loop {
+                if s.query_on_target()? {
+                    return s.query_position();
+                }
+                polls += 1;
+                // A servo fault never reaches the target: look for it now and then.
+                if polls % 8 == 0 {
+                    s.check_error("waiting for on-target", false)?;
+                }
+                if dl.expired() {
+                    s.check_error("waiting for on-target", false)?;
+                    return Err(HwError::Timeout {
+                        device: s.name.clone(),
+                        timeout_ms: dl.budget.as_millis() as u64,
+                        waiting_for: "on target (ONT? = 1)".into(),
+                    });
+                }
+                std::thread::sleep(POLL);
+            }
+        })
+    }
+
+    fn position_um(&mut self) -> Result<f64, HwError> {
+        self.guard(|s| {
+            s.ensure_connected()?;
+            s.query_position()
+        })
+    }
+
+    fn stop(&mut self) -> Result<(), HwError> {
+        self.guard(|s| {
+            s.ensure_connected()?;
+            let cmd = format!("HLT {}", s.opts.axis);
+            s.send(&cmd)?;
+            s.check_error(&cmd, true)?;
+            s.target_um = Some(s.query_position()?);
+            Ok(())
+        })
+    }
+
+    fn home(&mut self) -> Result<(), HwError> {
+        let home = self.opts.home_um;
+        self.move_abs(home)?;
+        let settle = Duration::from_millis(self.opts.reply_timeout_ms.max(1_000));
+        self.wait_settled(settle).map(|_| ())
+    }
+
+    fn status(&mut self) -> Result<StageStatus, HwError> {
+        self.guard(|s| {
+            s.ensure_connected()?;
+            // #5: motion status, a hex bit mask, bit 0 = first axis moving.
+            let mask = s.ask(&[0x05], "#5", |l| u32::from_str_radix(l, 16).ok())?;
+            let svo = format!("SVO? {}", s.opts.axis);
+            let axis = s.opts.axis.clone();
+            let servo = s.query_line(&svo, |l| axis_field(l, &axis).map(|v| v == "1"))?;
+            let position_um = s.query_position()?;
+            let state = if mask & 1 != 0 {
+                MotionState::Moving
+            } else if !servo && s.opts.servo_on_connect {
+                // The loop opened by itself (motion error): not usable until servo on again.
+                MotionState::Alarm
+            } else {
+                MotionState::Idle
+            };
+            Ok(StageStatus { state, position_um })
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn options_parse_from_toml_with_defaults() {
+        let o: GcsOptions = toml::from_str(
+            "port = \"/dev/ttyUSB1\"\n[limits]\nmin_um = 0\nmax_um = 100\nmax_step_um = 20\n",
+        )
+        .unwrap();
+        assert_eq!(o.axis, "1");
+        assert_eq!(o.um_per_unit, 1.0);
+        assert!(o.servo_on_connect);
+        let mut bad = o.clone();
+        bad.axis = "1 2".into();
+        assert!(GcsStage::new("piezo", bad).is_err());
+    }
+
+    #[test]
+    fn error_texts_name_the_usual_codes() {
+        assert!(gcs_error_text(7).contains("out of limits"));
+        assert!(gcs_error_text(5).contains("servo off"));
+        assert!(gcs_error_text(-1024).contains("servo is switched off"));
+    }
+}

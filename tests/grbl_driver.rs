@@ -1,0 +1,362 @@
+//! rigd's GRBL driver against the GRBL emulator, over a real pseudo-terminal through the
+//! real `serialport` code path. The emulator's parser lives in sim/, the driver's in
+//! src/hw/: they share nothing.
+
+use rigd::hw::grbl::{GrblOptions, GrblStage, OnAlarm};
+use rigd::hw::grbl_codes::GrblAlarm;
+use rigd::hw::limits::TravelLimits;
+use rigd::hw::{HwError, MotionState, Stage};
+use rigd::sim::grbl::{GrblSim, GrblSimOptions};
+use rigd::sim::motion::{Axis, AxisParams};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+const SETTLE: Duration = Duration::from_secs(3);
+/// The axis' positioning error is 2 µm RMS: 5 sigma.
+const TRUE_POSITION_TOL_UM: f64 = 10.0;
+
+struct Rig {
+    _dir: tempfile::TempDir,
+    axis: Arc<Axis>,
+    sim: GrblSim,
+    opts: GrblOptions,
+}
+
+fn rig_with(sim_opts: GrblSimOptions) -> Rig {
+    let dir = tempfile::tempdir().unwrap();
+    let axis = Arc::new(Axis::new(AxisParams::default()));
+    let link = dir.path().join("grbl");
+    let sim = GrblSim::spawn(axis.clone(), sim_opts, Some(&link)).unwrap();
+    let limits = TravelLimits::new(-1_000.0, 20_000.0, 5_000.0).unwrap();
+    let mut opts = GrblOptions::new(link.to_str().unwrap(), limits);
+    opts.banner_timeout_ms = 500;
+    opts.reply_timeout_ms = 200;
+    opts.home_timeout_ms = 3_000;
+    Rig {
+        _dir: dir,
+        axis,
+        sim,
+        opts,
+    }
+}
+
+fn rig() -> Rig {
+    rig_with(GrblSimOptions::default())
+}
+
+fn true_um(axis: &Axis) -> f64 {
+    axis.position_at(Instant::now())
+}
+
+#[test]
+fn connect_waits_for_the_banner_and_reports_idle() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    assert_eq!(s.banners_seen(), 1);
+    let st = s.status().unwrap();
+    assert_eq!(st.state, MotionState::Idle);
+    assert_eq!(st.position_um, 0.0);
+}
+
+#[test]
+fn a_board_that_does_not_reset_on_open_gets_a_soft_reset() {
+    // A boot delay longer than the banner timeout: the first wait times out, the driver
+    // sends 0x18 and the reset banner arrives.
+    let r = rig_with(GrblSimOptions {
+        boot_delay: Duration::from_millis(400),
+        ..GrblSimOptions::default()
+    });
+    let mut opts = r.opts.clone();
+    opts.banner_timeout_ms = 600;
+    let mut s = GrblStage::connect("axis", opts).unwrap();
+    assert!(s.banners_seen() >= 1);
+    assert_eq!(s.status().unwrap().state, MotionState::Idle);
+}
+
+#[test]
+fn relative_and_absolute_moves_end_within_the_positioning_error() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    for _ in 0..3 {
+        s.move_rel(50.0).unwrap();
+        s.wait_settled(SETTLE).unwrap();
+    }
+    let p = s.position_um().unwrap();
+    assert!((p - 150.0).abs() < 1.0, "reported {p}");
+    assert!((true_um(&r.axis) - 150.0).abs() < TRUE_POSITION_TOL_UM);
+    s.move_abs(2_000.0).unwrap();
+    let p = s.wait_settled(SETTLE).unwrap();
+    assert!((p - 2_000.0).abs() < 1.0, "reported {p}");
+    assert!((true_um(&r.axis) - 2_000.0).abs() < TRUE_POSITION_TOL_UM);
+    s.move_rel(-500.0).unwrap();
+    let p = s.wait_settled(SETTLE).unwrap();
+    assert!((p - 1_500.0).abs() < 1.0, "reported {p}");
+}
+
+#[test]
+fn ok_is_not_done_but_wait_settled_is() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    // 4 mm at 20 mm/s: ~0.2 s of motion, far longer than an `ok`.
+    s.move_rel(4_000.0).unwrap();
+    assert!(
+        r.axis.is_moving(Instant::now()),
+        "ok came back before motion ended"
+    );
+    assert_eq!(s.status().unwrap().state, MotionState::Moving);
+    s.wait_settled(SETTLE).unwrap();
+    assert!(!r.axis.is_moving(Instant::now()));
+    assert_eq!(s.status().unwrap().state, MotionState::Idle);
+}
+
+#[test]
+fn stop_mid_move_halts_short_and_leaves_the_axis_usable() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    s.move_rel(5_000.0).unwrap();
+    std::thread::sleep(Duration::from_millis(60));
+    s.stop().unwrap();
+    let here = s.position_um().unwrap();
+    assert!(here > 100.0 && here < 4_900.0, "stopped at {here}");
+    assert!(!r.axis.is_moving(Instant::now()));
+    assert_eq!(s.status().unwrap().state, MotionState::Idle);
+    s.move_rel(100.0).unwrap();
+    let p = s.wait_settled(SETTLE).unwrap();
+    assert!((p - (here + 100.0)).abs() < 1.5, "{p} vs {here}+100");
+}
+
+#[test]
+fn home_sets_the_origin() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    s.move_abs(1_000.0).unwrap();
+    s.wait_settled(SETTLE).unwrap();
+    s.home().unwrap();
+    assert_eq!(s.position_um().unwrap(), 0.0);
+    assert!(true_um(&r.axis).abs() < 1e-9);
+}
+
+#[test]
+fn a_controller_locked_at_boot_follows_the_alarm_policy() {
+    let locked = GrblSimOptions {
+        alarm_on_boot: true,
+        ..GrblSimOptions::default()
+    };
+    // fail: the move is refused with the alarm, and nothing moves.
+    let r = rig_with(locked.clone());
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    assert_eq!(s.status().unwrap().state, MotionState::Alarm);
+    let e = s.move_rel(50.0).unwrap_err();
+    assert!(matches!(e, HwError::Alarm { .. }), "{e}");
+    assert!(!r.axis.is_moving(Instant::now()));
+    // home clears it.
+    s.home().unwrap();
+    s.move_rel(50.0).unwrap();
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+
+    // unlock: `$X` then the move.
+    let r = rig_with(locked.clone());
+    let mut opts = r.opts.clone();
+    opts.on_alarm = OnAlarm::Unlock;
+    let mut s = GrblStage::connect("axis", opts).unwrap();
+    s.move_rel(50.0).unwrap();
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+
+    // home_on_connect: ready at once.
+    let r = rig_with(locked);
+    let mut opts = r.opts.clone();
+    opts.home_on_connect = true;
+    let mut s = GrblStage::connect("axis", opts).unwrap();
+    assert_eq!(s.status().unwrap().state, MotionState::Idle);
+}
+
+#[test]
+fn soft_limits_and_max_step_are_refused_before_anything_is_sent() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    let e = s.move_abs(25_000.0).unwrap_err();
+    assert!(matches!(e, HwError::Limit { .. }), "{e}");
+    let e = s.move_rel(5_001.0).unwrap_err();
+    assert!(e.to_string().contains("maximum step"), "{e}");
+    let e = s.move_rel(-1_500.0).unwrap_err();
+    assert!(e.to_string().contains("soft travel limits"), "{e}");
+    assert!(!r.axis.is_moving(Instant::now()));
+    assert_eq!(s.position_um().unwrap(), 0.0);
+}
+
+#[test]
+fn controller_errors_are_typed_with_grbl_text() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    match s.send_line("G20").unwrap_err() {
+        HwError::Controller { code, message, .. } => {
+            assert_eq!(code, 20);
+            assert!(message.contains("Unsupported command"), "{message}");
+        }
+        e => panic!("expected a controller error, got {e}"),
+    }
+    // A line without a feed rate: GRBL's error 22.
+    let e = s.send_line("G1 X1").unwrap_err();
+    assert!(matches!(e, HwError::Controller { code: 22, .. }), "{e}");
+    // The driver is still in step afterwards.
+    s.move_rel(50.0).unwrap();
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+}
+
+#[test]
+fn a_move_into_the_hard_limit_raises_alarm_1() {
+    let r = rig();
+    let mut opts = r.opts.clone();
+    // Soft limits wider than the machine: the hard limit (-5 mm) is what stops it.
+    opts.limits = TravelLimits::new(-10_000.0, 20_000.0, 10_000.0).unwrap();
+    let mut s = GrblStage::connect("axis", opts).unwrap();
+    s.move_abs(-6_000.0).unwrap();
+    match s.wait_settled(SETTLE).unwrap_err() {
+        HwError::Alarm { code, message, .. } => {
+            assert_eq!(code, 1);
+            assert!(message.starts_with("Hard limit"), "{message}");
+        }
+        e => panic!("expected ALARM:1, got {e}"),
+    }
+    assert_eq!(s.alarm(), Some(GrblAlarm::HardLimit));
+}
+
+#[test]
+fn fault_alarm_mid_move_then_recovery_by_policy() {
+    let r = rig();
+    let mut opts = r.opts.clone();
+    opts.on_alarm = OnAlarm::Unlock;
+    let mut s = GrblStage::connect("axis", opts).unwrap();
+    r.sim.faults().update(|f| f.alarm_mid_move = true);
+    s.move_rel(4_000.0).unwrap();
+    let e = s.wait_settled(SETTLE).unwrap_err();
+    assert!(matches!(e, HwError::Alarm { code: 1, .. }), "{e}");
+    let stopped = true_um(&r.axis);
+    assert!(stopped > 100.0 && stopped < 3_900.0, "stopped at {stopped}");
+    // unlock policy: soft reset (GRBL demands it after ALARM:1), $X, move on.
+    s.move_rel(100.0).unwrap();
+    let p = s.wait_settled(SETTLE).unwrap();
+    assert!((p - stopped - 100.0).abs() < 5.0, "{p} vs {stopped}+100");
+}
+
+#[test]
+fn fault_alarm_mid_move_with_fail_policy_refuses_until_homed() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    r.sim.faults().update(|f| f.alarm_mid_move = true);
+    s.move_rel(4_000.0).unwrap();
+    assert!(matches!(
+        s.wait_settled(SETTLE),
+        Err(HwError::Alarm { code: 1, .. })
+    ));
+    assert!(matches!(
+        s.move_rel(50.0),
+        Err(HwError::Alarm { code: 1, .. })
+    ));
+    s.home().unwrap();
+    s.move_rel(50.0).unwrap();
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+}
+
+#[test]
+fn fault_no_reply_times_out_then_the_driver_resyncs() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    r.sim.faults().update(|f| f.drop_replies = 1);
+    let t = Instant::now();
+    let e = s.move_rel(50.0).unwrap_err();
+    match &e {
+        HwError::Timeout {
+            timeout_ms,
+            waiting_for,
+            ..
+        } => {
+            assert_eq!(*timeout_ms, 200);
+            assert!(waiting_for.contains("G91 G1"), "{waiting_for}");
+        }
+        _ => panic!("expected a timeout, got {e}"),
+    }
+    assert!(t.elapsed() < Duration::from_millis(600));
+    // The line was executed, only its `ok` was lost: the next sync still works.
+    let p = s.wait_settled(SETTLE).unwrap();
+    assert_eq!(p, 50.0);
+    s.move_rel(50.0).unwrap();
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 100.0);
+}
+
+#[test]
+fn fault_late_reply_is_not_taken_for_the_next_one() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    // Later than the 200 ms reply deadline: a timeout, then the stale `ok` must be drained
+    // rather than answer the next command.
+    r.sim.faults().update(|f| {
+        f.late_replies = 1;
+        f.late_by = Duration::from_millis(250);
+    });
+    assert!(matches!(s.move_rel(50.0), Err(HwError::Timeout { .. })));
+    std::thread::sleep(Duration::from_millis(100));
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+    // Late but within the deadline: just slow.
+    r.sim.faults().update(|f| {
+        f.late_replies = 1;
+        f.late_by = Duration::from_millis(50);
+    });
+    s.move_rel(50.0).unwrap();
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 100.0);
+}
+
+#[test]
+fn fault_garbage_lines_are_skipped_and_counted() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    r.sim.faults().update(|f| f.garbage_replies = 4);
+    s.move_rel(50.0).unwrap();
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+    assert!(s.garbage_lines() >= 3, "counted {}", s.garbage_lines());
+}
+
+#[test]
+fn fault_port_gone_is_reported_then_reopened_on_next_use() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    s.move_rel(50.0).unwrap();
+    s.wait_settled(SETTLE).unwrap();
+    r.sim.faults().vanish();
+    std::thread::sleep(Duration::from_millis(30));
+    let e = s.position_um().unwrap_err();
+    assert!(matches!(e, HwError::PortGone { .. }), "{e}");
+    assert!(!s.is_connected());
+    // Still gone: reopening fails cleanly.
+    assert!(matches!(s.position_um(), Err(HwError::PortGone { .. })));
+    r.sim.faults().restore();
+    std::thread::sleep(Duration::from_millis(30));
+    // Lazy reopen: banner again, position kept by the controller.
+    let p = s.position_um().unwrap();
+    assert!(s.is_connected());
+    assert_eq!(p, 50.0);
+    s.move_rel(50.0).unwrap();
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 100.0);
+}
+
+/// Time per 50 µm step through the full GRBL sync (move, G4 P0, `?`), with the default sim
+/// axis (20 mm/s, 0.5 m/s²). A study, not a timed test: `cargo test --test grbl_driver --
+/// --ignored --nocapture`; the figure is in docs/stages.md.
+#[test]
+#[ignore]
+fn study_time_per_50um_step() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    let n = 50;
+    let t = Instant::now();
+    for _ in 0..n {
+        s.move_rel(50.0).unwrap();
+        s.wait_settled(SETTLE).unwrap();
+    }
+    let per = t.elapsed() / n;
+    let motion = Duration::from_secs_f64(2.0 * (50.0f64 / 500_000.0).sqrt());
+    println!(
+        "GRBL: {per:?} per 50 µm step ({motion:?} of it is motion), {n} steps, final {} µm",
+        s.position_um().unwrap()
+    );
+}
