@@ -476,9 +476,9 @@ impl V4l2Camera {
         let (buf, meta) = match stream.next() {
             Ok(x) => x,
             Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {
-                // The v4l stream re-queues its last buffer index on the next call, and after a
-                // timed-out dequeue that buffer is still queued (QBUF would fail with EINVAL):
-                // restart streaming on the next grab instead.
+                // v4l's Stream re-queues its last buffer before each dequeue; after a timeout
+                // that buffer is still queued and the next call fails with EINVAL (seen on
+                // vivid). Restart the stream on the next grab instead.
                 self.stream = None;
                 return Err(self.timeout_err());
             }
