@@ -203,3 +203,49 @@ fn piezo_moves_over_gcs() {
     assert!(!ok);
     assert!(stderr.contains("no [axis] section"), "{stderr}");
 }
+
+#[test]
+fn sim_rig_camera_sees_the_axis_move() {
+    use rigd::hw::{Camera, Stage};
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = write_config(
+        dir.path(),
+        &format!("[axis]\ndriver = \"sim\"\nsoft_min_um = 0.0\nsoft_max_um = 100000.0\nmax_step_um = 100000.0\n{SIM_CAMERA}"),
+    );
+    let cfg = rigd::config::Config::load(cfg).unwrap();
+    let mut hw = rigd::hw::open::open_sim_rig(&cfg).unwrap();
+    assert_eq!(hw.camera.size(), (160, 96));
+    let t = Duration::from_secs(5);
+    // Mean x of the red-ink pixels: the targets' position in the frame.
+    let red_x = |img: &image::RgbImage| {
+        let xs: Vec<f64> = img
+            .enumerate_pixels()
+            .filter(|(_, _, p)| p[0] > p[1].saturating_add(60))
+            .map(|(x, _, _)| f64::from(x))
+            .collect();
+        assert!(xs.len() > 20, "targets in view");
+        xs.iter().sum::<f64>() / xs.len() as f64
+    };
+    let a = hw
+        .camera
+        .grab_fresh(std::time::SystemTime::now(), t)
+        .unwrap();
+    let b = hw
+        .camera
+        .grab_fresh(std::time::SystemTime::now(), t)
+        .unwrap();
+    // 10 px at 6000 µm/px.
+    hw.axis.move_rel(60_000.0).unwrap();
+    hw.axis.wait_settled(t).unwrap();
+    let c = hw
+        .camera
+        .grab_fresh(std::time::SystemTime::now(), t)
+        .unwrap();
+    let still = red_x(&b.image) - red_x(&a.image);
+    let moved = red_x(&c.image) - red_x(&b.image);
+    // Targets can enter or leave the 160 px view, so only roughly 10 px.
+    assert!(still.abs() < 0.5, "still frames moved {still:.2} px");
+    assert!((6.0..14.0).contains(&moved.abs()), "moved {moved:.2} px");
+    // Soft limits come from [axis].
+    assert!(hw.axis.move_abs(200_000.0).is_err());
+}

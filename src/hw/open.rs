@@ -100,3 +100,58 @@ fn open_v4l2(cfg: &CameraConfig) -> Result<Box<dyn Camera>, HwError> {
         message: "this rigd was built without V4L2 support: rebuild with `cargo build --release --features v4l2` (needs libclang-dev)".into(),
     })
 }
+
+/// The whole simulated rig from a config, for `rigd --sim`: one `SimRig` whose camera watches
+/// the same axis and piezo the stages move (opening them separately with `open_stage` and
+/// `open_camera` gives independent simulations, fine for bring-up, not for jobs).
+pub struct SimHardware {
+    pub axis: SimStage,
+    pub piezo: SimStage,
+    pub camera: SimCamera,
+    /// The rig itself (its XL-80 log can be started with `rig.start_xl80_log`).
+    pub rig: rigd_sim::SimRig,
+}
+
+/// Build [`SimHardware`]: kinematics from `[axis.sim]`/`[piezo.sim]`, the camera model from
+/// `[camera.sim]` (or the sim defaults at `[camera]` width x height), the board from
+/// `[board]`, soft limits from the sections (the hard limits when a section is absent).
+pub fn open_sim_rig(cfg: &crate::config::Config) -> Result<SimHardware, HwError> {
+    let mut rc = rigd_sim::SimRigConfig {
+        board_file: cfg.board.as_ref().map(|b| b.path.clone()),
+        ..Default::default()
+    };
+    if let Some(a) = cfg.axis.as_ref().and_then(|a| a.sim.clone()) {
+        rc.axis = a;
+    }
+    if let Some(p) = cfg.piezo.as_ref().and_then(|p| p.sim.clone()) {
+        rc.piezo = p;
+    }
+    if let Some(c) = &cfg.camera {
+        match &c.sim {
+            Some(m) => rc.camera = m.clone(),
+            None => {
+                rc.camera.width = c.width;
+                rc.camera.height = c.height;
+            }
+        }
+    }
+    let limits = |sec: &Option<StageConfig>, p: &rigd_sim::motion::AxisParams| match sec {
+        Some(s) => s.limits(),
+        None => super::limits::TravelLimits {
+            min_um: p.hard_min_um,
+            max_um: p.hard_max_um,
+            max_step_um: p.hard_max_um - p.hard_min_um,
+        },
+    };
+    let (axis_limits, piezo_limits) = (limits(&cfg.axis, &rc.axis), limits(&cfg.piezo, &rc.piezo));
+    let rig = rigd_sim::SimRig::start(rc).map_err(|e| HwError::Other {
+        device: "sim-rig".into(),
+        message: e.to_string(),
+    })?;
+    Ok(SimHardware {
+        axis: SimStage::new("axis", Arc::clone(&rig.axis), axis_limits),
+        piezo: SimStage::new("piezo", Arc::clone(&rig.piezo), piezo_limits),
+        camera: SimCamera::new(Arc::clone(&rig.camera)),
+        rig,
+    })
+}
