@@ -226,6 +226,10 @@ pub struct Xl80Config {
     /// The log file the interferometer software writes (relative to the config file).
     pub path: PathBuf,
     pub format: Xl80Format,
+    /// Unit of `.rtx` samples when the file's header names none (CARTO files do not):
+    /// "mm" (default), "um"/"µm", "nm", "m", "in".
+    #[serde(default = "default_rtx_unit")]
+    pub rtx_unit: String,
     /// How often a growing log is polled during a job.
     #[serde(default = "default_poll_ms")]
     pub poll_ms: u64,
@@ -234,6 +238,9 @@ pub struct Xl80Config {
     pub plateau_tol_um: f64,
 }
 
+fn default_rtx_unit() -> String {
+    "mm".to_string()
+}
 fn default_poll_ms() -> u64 {
     200
 }
@@ -336,6 +343,12 @@ impl Config {
             }
         }
         if let Some(x) = &self.xl80 {
+            if crate::xl80::length_unit_um(&x.rtx_unit).is_none() {
+                return Err(self.invalid(
+                    "xl80.rtx_unit",
+                    format!("unknown unit {:?} (mm, um, nm, m, in)", x.rtx_unit),
+                ));
+            }
             if !(x.plateau_tol_um.is_finite() && x.plateau_tol_um > 0.0) {
                 return Err(self.invalid("xl80.plateau_tol_um", "must be a positive number"));
             }
@@ -437,6 +450,23 @@ impl Config {
         self.xl80
             .as_ref()
             .ok_or_else(|| self.missing("xl80", purpose))
+    }
+}
+
+impl Xl80Config {
+    /// µm per RTX sample unit (validated at load).
+    pub fn rtx_um_per_unit(&self) -> f64 {
+        crate::xl80::length_unit_um(&self.rtx_unit).unwrap_or(1000.0)
+    }
+
+    /// Read the whole configured log.
+    pub fn read(&self) -> Result<crate::xl80::Xl80Log, crate::xl80::Xl80Error> {
+        crate::xl80::read_with(&self.path, self.format, self.rtx_um_per_unit())
+    }
+
+    /// A follower for the configured log (during a job).
+    pub fn follower(&self) -> crate::xl80::Follower {
+        crate::xl80::Follower::new(&self.path, self.format).with_rtx_unit_um(self.rtx_um_per_unit())
     }
 }
 

@@ -157,6 +157,8 @@ fn wrong_values_name_the_key() {
     assert!(e.contains("key `camera.width`"), "{e}");
     let e = err("[xl80]\npath = \"x.csv\"\nformat = \"xls\"\n");
     assert!(e.contains("xls") && e.contains("rtx"), "{e}");
+    let e = err("[xl80]\npath = \"x.rtx\"\nformat = \"rtx\"\nrtx_unit = \"furlong\"\n");
+    assert!(e.contains("key `xl80.rtx_unit`"), "{e}");
     let e = err("[pipeline]\nk = 0\n");
     assert!(e.contains("key `pipeline.k`"), "{e}");
     let e = err("[pipeline]\nestimator = \"magic\"\n");

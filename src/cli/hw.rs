@@ -175,7 +175,7 @@ fn fmt_time(t: SystemTime) -> String {
 
 fn xl80(cfg: &Config) -> anyhow::Result<()> {
     let x = cfg.xl80("read the interferometer log")?;
-    let log = crate::xl80::read(&x.path, x.format)?;
+    let log = x.read()?;
     println!("{}: {}", x.path.display(), log.summary());
     let m = &log.meta;
     let show = |k: &str, v: Option<String>| {
@@ -253,7 +253,7 @@ fn probe(cfg: &Config) -> anyhow::Result<()> {
         ),
         Some(x) => report(
             "xl80",
-            crate::xl80::read(&x.path, x.format)
+            x.read()
                 .map(|l| format!("{}: {}", x.path.display(), l.summary()))
                 .map_err(Into::into),
         ),
