@@ -5,6 +5,9 @@
 //! the file and the missing section. Unknown keys are errors (a typo must not silently fall
 //! back to a default on a metrology rig), and every error names the file and the key.
 
+use crate::hw::gcs::GcsOptions;
+use crate::hw::grbl::{GrblOptions, OnAlarm};
+use crate::hw::limits::TravelLimits;
 use crate::hw::pixfmt::PixelFormat;
 use crate::pipeline::ProcessOptions;
 use serde::{Deserialize, Serialize};
@@ -65,20 +68,6 @@ pub enum StageDriver {
     Sim,
 }
 
-/// What the controller does about an alarm found at open (GRBL starts in alarm after a reset
-/// when homing is enabled).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum AlarmPolicy {
-    /// Refuse to move and report the alarm (the safe default).
-    #[default]
-    Fail,
-    /// Clear it with `$X` (position is then unknown to the controller: only for bring-up).
-    Unlock,
-    /// Run the homing cycle.
-    Home,
-}
-
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StageConfig {
@@ -99,21 +88,36 @@ pub struct StageConfig {
     /// Deadline for a move to finish and settle.
     #[serde(default = "default_move_timeout_ms")]
     pub move_timeout_ms: u64,
-    /// Deadline for the controller to come up after the port is opened (GRBL resets on open).
+    /// GRBL: deadline for the banner after the port is opened (opening resets the board).
     #[serde(default = "default_open_timeout_ms")]
     pub open_timeout_ms: u64,
+    /// GRBL: deadline for the homing cycle.
+    #[serde(default = "default_home_timeout_ms")]
+    pub home_timeout_ms: u64,
     /// Extra wait after the controller reports the move done, before a frame counts as fresh.
     #[serde(default)]
     pub settle_ms: u64,
-    /// GRBL: what to do about an alarm at open.
+    /// GRBL: what to do when the controller is in alarm and a move is asked for.
     #[serde(default)]
-    pub on_alarm: AlarmPolicy,
-    /// GRBL: feed rate for moves, mm/min.
-    #[serde(default = "default_feed_mm_min")]
-    pub feed_mm_min: f64,
+    pub on_alarm: OnAlarm,
+    /// GRBL: run the homing cycle (`$H`) right after connecting.
+    #[serde(default)]
+    pub home_on_connect: bool,
+    /// GRBL: feed rate of moves, µm/s.
+    #[serde(default = "default_feed_um_s")]
+    pub feed_um_s: f64,
     /// GCS: the axis identifier on the controller.
     #[serde(default = "default_gcs_axis")]
     pub gcs_axis: String,
+    /// GCS: µm per controller position unit (PI piezo controllers: normally 1).
+    #[serde(default = "default_um_per_unit")]
+    pub um_per_unit: f64,
+    /// GCS: switch the servo on when connecting.
+    #[serde(default = "default_true")]
+    pub servo_on_connect: bool,
+    /// Where `home` moves (GCS; the sim stage), µm.
+    #[serde(default)]
+    pub home_um: f64,
     /// sim: kinematics of the simulated axis (defaults when absent).
     #[serde(default)]
     pub sim: Option<rigd_sim::motion::AxisParams>,
@@ -129,10 +133,19 @@ fn default_move_timeout_ms() -> u64 {
     30_000
 }
 fn default_open_timeout_ms() -> u64 {
-    3_000
+    2_500
 }
-fn default_feed_mm_min() -> f64 {
-    600.0
+fn default_home_timeout_ms() -> u64 {
+    60_000
+}
+fn default_feed_um_s() -> f64 {
+    10_000.0
+}
+fn default_um_per_unit() -> f64 {
+    1.0
+}
+fn default_true() -> bool {
+    true
 }
 fn default_gcs_axis() -> String {
     "1".to_string()
@@ -213,6 +226,10 @@ pub struct Xl80Config {
     /// The log file the interferometer software writes (relative to the config file).
     pub path: PathBuf,
     pub format: Xl80Format,
+    /// Unit of `.rtx` samples when the file's header names none (CARTO files do not):
+    /// "mm" (default), "um"/"µm", "nm", "m", "in".
+    #[serde(default = "default_rtx_unit")]
+    pub rtx_unit: String,
     /// How often a growing log is polled during a job.
     #[serde(default = "default_poll_ms")]
     pub poll_ms: u64,
@@ -221,6 +238,9 @@ pub struct Xl80Config {
     pub plateau_tol_um: f64,
 }
 
+fn default_rtx_unit() -> String {
+    "mm".to_string()
+}
 fn default_poll_ms() -> u64 {
     200
 }
@@ -323,6 +343,12 @@ impl Config {
             }
         }
         if let Some(x) = &self.xl80 {
+            if crate::xl80::length_unit_um(&x.rtx_unit).is_none() {
+                return Err(self.invalid(
+                    "xl80.rtx_unit",
+                    format!("unknown unit {:?} (mm, um, nm, m, in)", x.rtx_unit),
+                ));
+            }
             if !(x.plateau_tol_um.is_finite() && x.plateau_tol_um > 0.0) {
                 return Err(self.invalid("xl80.plateau_tol_um", "must be a positive number"));
             }
@@ -350,7 +376,8 @@ impl Config {
             ("soft_min_um", s.soft_min_um),
             ("soft_max_um", s.soft_max_um),
             ("max_step_um", s.max_step_um),
-            ("feed_mm_min", s.feed_mm_min),
+            ("feed_um_s", s.feed_um_s),
+            ("um_per_unit", s.um_per_unit),
         ] {
             if !v.is_finite() {
                 return Err(self.invalid(&key(k), format!("{v} is not a finite number")));
@@ -368,13 +395,25 @@ impl Config {
         if s.max_step_um <= 0.0 {
             return Err(self.invalid(&key("max_step_um"), "must be positive"));
         }
-        if s.feed_mm_min <= 0.0 {
-            return Err(self.invalid(&key("feed_mm_min"), "must be positive"));
+        if s.feed_um_s <= 0.0 {
+            return Err(self.invalid(&key("feed_um_s"), "must be positive"));
+        }
+        if s.um_per_unit <= 0.0 {
+            return Err(self.invalid(&key("um_per_unit"), "must be positive"));
+        }
+        if s.driver == StageDriver::Gcs
+            && (s.gcs_axis.is_empty() || s.gcs_axis.contains(char::is_whitespace))
+        {
+            return Err(self.invalid(
+                &key("gcs_axis"),
+                format!("{:?} is not a GCS axis identifier", s.gcs_axis),
+            ));
         }
         for (k, v) in [
             ("reply_timeout_ms", s.reply_timeout_ms),
             ("move_timeout_ms", s.move_timeout_ms),
             ("open_timeout_ms", s.open_timeout_ms),
+            ("home_timeout_ms", s.home_timeout_ms),
         ] {
             if v == 0 {
                 return Err(self.invalid(&key(k), "must be positive"));
@@ -414,36 +453,69 @@ impl Config {
     }
 }
 
+impl Xl80Config {
+    /// µm per RTX sample unit (validated at load).
+    pub fn rtx_um_per_unit(&self) -> f64 {
+        crate::xl80::length_unit_um(&self.rtx_unit).unwrap_or(1000.0)
+    }
+
+    /// Read the whole configured log.
+    pub fn read(&self) -> Result<crate::xl80::Xl80Log, crate::xl80::Xl80Error> {
+        crate::xl80::read_with(&self.path, self.format, self.rtx_um_per_unit())
+    }
+
+    /// A follower for the configured log (during a job).
+    pub fn follower(&self) -> crate::xl80::Follower {
+        crate::xl80::Follower::new(&self.path, self.format).with_rtx_unit_um(self.rtx_um_per_unit())
+    }
+}
+
 impl StageConfig {
-    /// The soft-limit and maximum-step check every driver runs before it moves:
-    /// `from_um` is the current position, `target_um` the requested one.
-    pub fn check_move(
-        &self,
-        device: &str,
-        from_um: f64,
-        target_um: f64,
-    ) -> Result<(), crate::hw::HwError> {
-        let refuse = |reason: String| crate::hw::HwError::Limit {
-            device: device.to_string(),
-            target_um,
-            reason,
-        };
-        if !target_um.is_finite() {
-            return Err(refuse("target is not a finite number".into()));
+    /// Soft travel limits and maximum step, as the drivers check them.
+    pub fn limits(&self) -> TravelLimits {
+        TravelLimits {
+            min_um: self.soft_min_um,
+            max_um: self.soft_max_um,
+            max_step_um: self.max_step_um,
         }
-        if target_um < self.soft_min_um || target_um > self.soft_max_um {
-            return Err(refuse(format!(
-                "outside the soft limits [{}, {}] µm",
-                self.soft_min_um, self.soft_max_um
-            )));
+    }
+
+    /// The GRBL driver's options from this section.
+    pub fn grbl_options(&self) -> GrblOptions {
+        GrblOptions {
+            port: self.port.clone().unwrap_or_default(),
+            baud: self.baud,
+            feed_um_s: self.feed_um_s,
+            banner_timeout_ms: self.open_timeout_ms,
+            reply_timeout_ms: self.reply_timeout_ms,
+            home_timeout_ms: self.home_timeout_ms,
+            on_alarm: self.on_alarm,
+            home_on_connect: self.home_on_connect,
+            limits: self.limits(),
         }
-        let step = (target_um - from_um).abs();
-        if step > self.max_step_um {
-            return Err(refuse(format!(
-                "a {step} µm step is more than max_step_um = {} µm",
-                self.max_step_um
-            )));
+    }
+
+    /// The PI GCS driver's options from this section.
+    pub fn gcs_options(&self) -> GcsOptions {
+        GcsOptions {
+            port: self.port.clone().unwrap_or_default(),
+            baud: self.baud,
+            axis: self.gcs_axis.clone(),
+            um_per_unit: self.um_per_unit,
+            reply_timeout_ms: self.reply_timeout_ms,
+            servo_on_connect: self.servo_on_connect,
+            home_um: self.home_um,
+            limits: self.limits(),
         }
-        Ok(())
+    }
+
+    /// Deadline for a move to finish and settle.
+    pub fn move_timeout(&self) -> std::time::Duration {
+        std::time::Duration::from_millis(self.move_timeout_ms)
+    }
+
+    /// The settle wait after a move.
+    pub fn settle(&self) -> std::time::Duration {
+        std::time::Duration::from_millis(self.settle_ms)
     }
 }

@@ -1,7 +1,8 @@
 //! The rig config: the documented example loads and holds what it documents, and bad files
 //! fail with errors that name the file and the key.
 
-use rigd::config::{AlarmPolicy, CameraDriver, Config, ConfigError, StageDriver, Xl80Format};
+use rigd::config::{CameraDriver, Config, ConfigError, StageDriver, Xl80Format};
+use rigd::hw::grbl::OnAlarm;
 use rigd::hw::pixfmt::PixelFormat;
 use rigd::pipeline::Estimator;
 use std::path::{Path, PathBuf};
@@ -28,7 +29,7 @@ fn documented_example_loads() {
     assert_eq!(axis.port.as_deref(), Some("/dev/ttyUSB0"));
     assert_eq!(axis.baud, 115_200);
     assert_eq!(axis.soft_max_um, 250_000.0);
-    assert_eq!(axis.on_alarm, AlarmPolicy::Fail);
+    assert_eq!(axis.on_alarm, OnAlarm::Fail);
     let piezo = cfg.piezo("test").unwrap();
     assert_eq!(piezo.driver, StageDriver::Gcs);
     assert_eq!(piezo.gcs_axis, "1");
@@ -156,6 +157,8 @@ fn wrong_values_name_the_key() {
     assert!(e.contains("key `camera.width`"), "{e}");
     let e = err("[xl80]\npath = \"x.csv\"\nformat = \"xls\"\n");
     assert!(e.contains("xls") && e.contains("rtx"), "{e}");
+    let e = err("[xl80]\npath = \"x.rtx\"\nformat = \"rtx\"\nrtx_unit = \"furlong\"\n");
+    assert!(e.contains("key `xl80.rtx_unit`"), "{e}");
     let e = err("[pipeline]\nk = 0\n");
     assert!(e.contains("key `pipeline.k`"), "{e}");
     let e = err("[pipeline]\nestimator = \"magic\"\n");
@@ -186,14 +189,25 @@ fn relative_paths_follow_the_file() {
 }
 
 #[test]
-fn soft_limits_and_max_step_are_checked() {
-    let cfg = parse(AXIS).unwrap();
-    let a = cfg.axis.unwrap();
-    a.check_move("axis", 0.0, 100.0).unwrap();
-    let e = a.check_move("axis", 0.0, 1000.5).unwrap_err().to_string();
-    assert!(e.contains("soft limits"), "{e}");
-    let e = a.check_move("axis", 500.0, 650.0).unwrap_err().to_string();
-    assert!(e.contains("max_step_um"), "{e}");
-    assert!(a.check_move("axis", 0.0, f64::NAN).is_err());
-    assert!(a.check_move("axis", 0.0, -0.1).is_err());
+fn stage_sections_map_to_the_driver_options() {
+    let cfg = Config::load(example()).unwrap();
+    let g = cfg.axis("test").unwrap().grbl_options();
+    g.validate().unwrap();
+    assert_eq!(g.port, "/dev/ttyUSB0");
+    assert_eq!(g.banner_timeout_ms, 2_500);
+    assert_eq!(g.feed_um_s, 10_000.0);
+    assert_eq!(
+        (g.limits.min_um, g.limits.max_um, g.limits.max_step_um),
+        (0.0, 250_000.0, 50_000.0)
+    );
+    let p = cfg.piezo("test").unwrap().gcs_options();
+    p.validate().unwrap();
+    assert_eq!(p.axis, "1");
+    assert_eq!(p.limits.max_um, 100.0);
+    assert!(p.servo_on_connect);
+    // The limits refuse what the config says they refuse.
+    let l = cfg.axis("test").unwrap().limits();
+    l.check_abs("axis", 100.0).unwrap();
+    assert!(l.check_abs("axis", 250_000.5).is_err());
+    assert!(l.check_rel("axis", 0.0, 50_001.0).is_err());
 }

@@ -142,17 +142,21 @@ fn timeout_is_reported_and_stop_restart_works() {
     };
     let _g = lock();
     let mut cam = V4l2Camera::open(&options(&dev)).unwrap();
+    assert_eq!(cam.frame_timeout(), Duration::from_secs(3));
     let a = cam.grab(Duration::from_secs(3)).unwrap();
     cam.stop();
     // A freshly started stream has no frame within 1 ms.
     match cam.grab(Duration::from_millis(1)) {
-        Err(HwError::Timeout { .. }) => {}
+        // The error names the caller's timeout, not the configured one.
+        Err(HwError::Timeout { timeout_ms: 1, .. }) => {}
         other => panic!("expected a timeout, got {other:?}"),
     }
     // Not before 10 s from now: nothing within the deadline either.
     let later = SystemTime::now() + Duration::from_secs(10);
     match cam.grab_fresh(later, Duration::from_millis(200)) {
-        Err(HwError::Timeout { .. }) => {}
+        Err(HwError::Timeout {
+            timeout_ms: 200, ..
+        }) => {}
         other => panic!("expected a timeout, got {other:?}"),
     }
     cam.stop();

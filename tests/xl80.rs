@@ -357,3 +357,43 @@ fn synthesized_rtx_reversed_beam() {
     };
     synthesized_job(rigd::sim::xl80::LogFormat::Rtx, p);
 }
+
+#[test]
+fn rtx_sample_unit_from_config() {
+    // The sim writes µm samples when told to; the file does not say so, the config does.
+    let p = rigd::sim::xl80::Xl80Params {
+        rtx_unit: rigd::sim::xl80::LengthUnit::Um,
+        ..Default::default()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("um.rtx");
+    let readings = [0.0, 12.5, -3.25, 100.0];
+    rigd::sim::xl80::write_log(
+        &path,
+        rigd::sim::xl80::LogFormat::Rtx,
+        &p,
+        std::time::SystemTime::now(),
+        &readings,
+    )
+    .unwrap();
+    let cfg = rigd::config::Config::from_toml_str(
+        &format!(
+            "[xl80]\npath = \"{}\"\nformat = \"rtx\"\nrtx_unit = \"um\"\n",
+            path.display()
+        ),
+        Path::new("/etc/rigd/rigd.toml"),
+    )
+    .unwrap();
+    let x = cfg.xl80("test").unwrap();
+    let log = x.read().unwrap();
+    let got: Vec<f64> = log.readings.iter().map(|r| r.position_um).collect();
+    assert_eq!(got, readings);
+    let mut f = x.follower();
+    assert_eq!(f.poll().unwrap().len(), 4);
+    assert_eq!(f.log().readings, log.readings);
+    // Read as the default (mm), the same file is 1000x off: the unit matters.
+    assert_eq!(
+        xl80::read(&path, Xl80Format::Rtx).unwrap().readings[1].position_um,
+        12_500.0
+    );
+}

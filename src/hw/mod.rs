@@ -5,7 +5,18 @@
 //! The traits are synchronous on purpose: serial and V4L2 I/O are blocking calls with
 //! deadlines, and the daemon runs them on a dedicated blocking thread per job.
 
+pub mod gcs;
+pub mod grbl;
+pub mod grbl_codes;
+pub mod limits;
+pub mod open;
+pub mod pixfmt;
+pub mod serial;
 pub mod sim_camera;
+pub mod sim_stage;
+pub mod stage_config;
+#[cfg(feature = "v4l2")]
+pub mod v4l2;
 
 use std::time::{Duration, SystemTime};
 
@@ -107,14 +118,3 @@ pub trait Camera: Send {
     /// This is the fresh-frame rule after a move has settled.
     fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError>;
 }
-
-pub mod pixfmt;
-#[cfg(feature = "v4l2")]
-pub mod v4l2;
-pub mod gcs;
-pub mod grbl;
-pub mod grbl_codes;
-pub mod limits;
-pub mod serial;
-pub mod sim_stage;
-pub mod stage_config;

@@ -179,7 +179,7 @@ pub fn yuyv_to_rgb(
     height: u32,
     stride: usize,
 ) -> Result<RgbImage, PixfmtError> {
-    if width % 2 != 0 {
+    if width & 1 != 0 {
         return Err(PixfmtError::OddWidth(width));
     }
     let stride = check_len(PixelFormat::Yuyv, data, width, height, stride)?;
@@ -273,8 +273,8 @@ mod tests {
             .flat_map(|pair| {
                 let a = rgb_to_ycbcr([pair[0], pair[1], pair[2]]);
                 let b = rgb_to_ycbcr([pair[3], pair[4], pair[5]]);
-                let cb = ((u16::from(a[1]) + u16::from(b[1]) + 1) / 2) as u8;
-                let cr = ((u16::from(a[2]) + u16::from(b[2]) + 1) / 2) as u8;
+                let cb = (u16::from(a[1]) + u16::from(b[1])).div_ceil(2) as u8;
+                let cr = (u16::from(a[2]) + u16::from(b[2])).div_ceil(2) as u8;
                 [a[0], cb, b[0], cr]
             })
             .collect()

@@ -37,6 +37,9 @@ mod cid {
     pub const EXPOSURE_ABSOLUTE: u32 = 0x009a_0902;
 }
 
+/// Longest single wait (the v4l crate's poll timeout is an i32 of milliseconds).
+const MAX_WAIT: Duration = Duration::from_secs(3600);
+
 /// What the camera was asked for.
 #[derive(Debug, Clone, PartialEq)]
 pub struct V4l2Options {
@@ -368,6 +371,11 @@ impl V4l2Camera {
     pub fn controls(&self) -> &ControlReport {
         &self.controls
     }
+    /// The configured per-frame deadline (`[camera] frame_timeout_ms`), for callers to pass
+    /// to `grab`/`grab_fresh`.
+    pub fn frame_timeout(&self) -> Duration {
+        self.timeout
+    }
 
     /// Set one control if the device has it; read it back.
     fn set(&self, report: &mut ControlReport, name: &str, id: u32, value: i64) {
@@ -461,6 +469,7 @@ impl V4l2Camera {
     fn next_frame(
         &mut self,
         deadline: Instant,
+        timeout: Duration,
         keep: impl Fn(SystemTime) -> bool,
     ) -> Result<Option<Frame>, HwError> {
         self.start()?;
@@ -469,7 +478,7 @@ impl V4l2Camera {
         let stream = self.stream.as_mut().expect("started");
         let left = deadline.saturating_duration_since(Instant::now());
         if left.is_zero() {
-            return Err(self.timeout_err());
+            return Err(self.timeout_err(timeout));
         }
         // poll(2) takes whole milliseconds; never 0 (that would not wait at all).
         stream.set_timeout(left.max(Duration::from_millis(1)));
@@ -480,7 +489,7 @@ impl V4l2Camera {
                 // that buffer is still queued and the next call fails with EINVAL (seen on
                 // vivid). Restart the stream on the next grab instead.
                 self.stream = None;
-                return Err(self.timeout_err());
+                return Err(self.timeout_err(timeout));
             }
             Err(e) if e.raw_os_error() == Some(libc::ENODEV) => {
                 self.stream = None;
@@ -519,10 +528,11 @@ impl V4l2Camera {
         }))
     }
 
-    fn timeout_err(&self) -> HwError {
+    /// The error names the caller's timeout (not the configured default).
+    fn timeout_err(&self, timeout: Duration) -> HwError {
         HwError::Timeout {
             device: self.label.clone(),
-            timeout_ms: self.timeout.as_millis() as u64,
+            timeout_ms: timeout.as_millis() as u64,
             waiting_for: "a frame".into(),
         }
     }
@@ -538,18 +548,20 @@ impl Camera for V4l2Camera {
     }
 
     fn grab(&mut self, timeout: Duration) -> Result<Frame, HwError> {
+        let timeout = timeout.min(MAX_WAIT);
         let deadline = Instant::now() + timeout;
         loop {
-            if let Some(f) = self.next_frame(deadline, |_| true)? {
+            if let Some(f) = self.next_frame(deadline, timeout, |_| true)? {
                 return Ok(f);
             }
         }
     }
 
     fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError> {
+        let timeout = timeout.min(MAX_WAIT);
         let deadline = Instant::now() + timeout;
         loop {
-            if let Some(f) = self.next_frame(deadline, |t| t >= not_before)? {
+            if let Some(f) = self.next_frame(deadline, timeout, |t| t >= not_before)? {
                 return Ok(f);
             }
         }

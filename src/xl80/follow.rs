@@ -17,10 +17,10 @@ enum Parser {
 }
 
 impl Parser {
-    fn new(format: Xl80Format) -> Self {
+    fn new(format: Xl80Format, rtx_um_per_unit: f64) -> Self {
         match format {
             Xl80Format::Csv => Parser::Csv(CsvParser::new()),
-            Xl80Format::Rtx => Parser::Rtx(RtxParser::new()),
+            Xl80Format::Rtx => Parser::Rtx(RtxParser::new().with_default_unit_um(rtx_um_per_unit)),
         }
     }
     fn feed(&mut self, b: &[u8]) -> usize {
@@ -43,6 +43,7 @@ pub struct Follower {
     offset: u64,
     parser: Parser,
     restarts: usize,
+    rtx_um_per_unit: f64,
 }
 
 impl Follower {
@@ -52,9 +53,17 @@ impl Follower {
             path: path.as_ref().to_path_buf(),
             format,
             offset: 0,
-            parser: Parser::new(format),
+            parser: Parser::new(format, 1000.0),
             restarts: 0,
+            rtx_um_per_unit: 1000.0,
         }
+    }
+
+    /// The unit of RTX samples when the header names none, µm per unit (default mm: 1000).
+    pub fn with_rtx_unit_um(mut self, um_per_unit: f64) -> Self {
+        self.rtx_um_per_unit = um_per_unit;
+        self.parser = Parser::new(self.format, um_per_unit);
+        self
     }
 
     pub fn path(&self) -> &Path {
@@ -90,7 +99,7 @@ impl Follower {
                 self.offset
             );
             self.offset = 0;
-            self.parser = Parser::new(self.format);
+            self.parser = Parser::new(self.format, self.rtx_um_per_unit);
             self.restarts += 1;
         }
         if len == self.offset {

@@ -158,8 +158,18 @@ impl Xl80Log {
     }
 }
 
-/// Read a whole log file in the given format.
+/// Read a whole log file in the given format (RTX samples in mm unless the header says).
 pub fn read(path: impl AsRef<Path>, format: Xl80Format) -> Result<Xl80Log, Xl80Error> {
+    read_with(path, format, 1000.0)
+}
+
+/// [`read`] with the unit of RTX samples when the header names none, in µm per unit
+/// (`[xl80] rtx_unit`: 1000 for mm, 1 for µm).
+pub fn read_with(
+    path: impl AsRef<Path>,
+    format: Xl80Format,
+    rtx_um_per_unit: f64,
+) -> Result<Xl80Log, Xl80Error> {
     let path = path.as_ref();
     let bytes = std::fs::read(path).map_err(|source| Xl80Error::Io {
         path: path.to_path_buf(),
@@ -172,7 +182,7 @@ pub fn read(path: impl AsRef<Path>, format: Xl80Format) -> Result<Xl80Log, Xl80E
             p.finish()
         }
         Xl80Format::Rtx => {
-            let mut p = rtx::RtxParser::new();
+            let mut p = rtx::RtxParser::new().with_default_unit_um(rtx_um_per_unit);
             p.feed(&bytes);
             p.finish()
         }

@@ -60,6 +60,12 @@ impl RtxParser {
         }
     }
 
+    /// The unit of samples when the header names none (CARTO files do not): µm per unit.
+    pub fn with_default_unit_um(mut self, um_per_unit: f64) -> Self {
+        self.um_per_unit = um_per_unit;
+        self
+    }
+
     pub fn log(&self) -> &Xl80Log {
         &self.log
     }
@@ -196,10 +202,8 @@ impl RtxParser {
                         ),
                     },
                     // The nominal rate, until (or unless) the actual one is given.
-                    "sample rate" => {
-                        if self.log.sample_rate_hz.is_none() {
-                            self.log.sample_rate_hz = parse_number(v).filter(|hz| *hz > 0.0);
-                        }
+                    "sample rate" if self.log.sample_rate_hz.is_none() => {
+                        self.log.sample_rate_hz = parse_number(v).filter(|hz| *hz > 0.0);
                     }
                     "sample no" => self.declared_samples = parse_number(v).map(|n| n as usize),
                     "date" => self.log.start = parse_datetime(v),
@@ -308,6 +312,18 @@ mod tests {
         assert!((log.readings[2].position_um - 100.0).abs() < 1e-9);
         assert_eq!(log.readings[2].t_s, Some(2.0 / 250.0));
         assert_eq!(log.garbled.count, 0);
+    }
+
+    #[test]
+    fn default_unit_applies_without_a_units_key() {
+        let bytes = rtx(&[("Axis", "X")], &[1.5], true);
+        let mut p = RtxParser::new().with_default_unit_um(1.0);
+        p.feed(&bytes);
+        assert_eq!(p.finish().unwrap().readings[0].position_um, 1.5);
+        let bytes = rtx(&[("Units", "mm")], &[1.5], true);
+        let mut p = RtxParser::new().with_default_unit_um(1.0);
+        p.feed(&bytes);
+        assert_eq!(p.finish().unwrap().readings[0].position_um, 1500.0);
     }
 
     #[test]
