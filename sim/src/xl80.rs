@@ -164,20 +164,20 @@ pub enum Xl80Error {
 impl Xl80Params {
     pub fn validate(&self) -> Result<(), Xl80Error> {
         let bad = |field, message: String| Err(Xl80Error::Param { field, message });
-        if !(self.sample_rate_hz.is_finite()
-            && self.sample_rate_hz > 0.0
-            && self.sample_rate_hz <= 50_000.0)
+        if !self.sample_rate_hz.is_finite()
+            || self.sample_rate_hz <= 0.0
+            || self.sample_rate_hz > 50_000.0
         {
             return bad(
                 "sample_rate_hz",
                 format!("{} is not in (0, 50000]", self.sample_rate_hz),
             );
         }
-        if !(self.noise_rms_um.is_finite() && self.noise_rms_um >= 0.0) {
+        if !self.noise_rms_um.is_finite() || self.noise_rms_um < 0.0 {
             return bad("noise_rms_um", format!("{} is not >= 0", self.noise_rms_um));
         }
         let n = self.beam_dir[0].hypot(self.beam_dir[1]);
-        if !((n - 1.0).abs() < 1e-6) {
+        if !n.is_finite() || (n - 1.0).abs() >= 1e-6 {
             return bad(
                 "beam_dir",
                 format!("{:?} is not a unit vector", self.beam_dir),
