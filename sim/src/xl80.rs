@@ -512,6 +512,7 @@ impl LiveLog {
                 let flush_every = ((0.1 / period.as_secs_f64()).ceil() as usize).max(1);
                 let mut w = BufWriter::new(file);
                 let mut n = 0usize;
+                let mut since_flush = 0usize;
                 loop {
                     let t = started_at + period.mul_f64(n as f64);
                     let now = Instant::now();
@@ -529,8 +530,10 @@ impl LiveLog {
                         LogFormat::Rtx => write_rtx_sample(&mut w, &xl.params, r),
                     }
                     .map_err(&io)?;
-                    if n % flush_every == 0 {
+                    since_flush += 1;
+                    if since_flush >= flush_every {
                         w.flush().map_err(&io)?;
+                        since_flush = 0;
                     }
                 }
                 if format == LogFormat::Rtx {
