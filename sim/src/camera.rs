@@ -150,7 +150,7 @@ impl CameraModel {
         if !(0.0..1.0).contains(&self.vignetting) {
             return Err(bad("vignetting", self.vignetting, "must be in [0, 1)"));
         }
-        if !(self.light_gradient.abs() < 2.0) {
+        if !self.light_gradient.is_finite() || self.light_gradient.abs() >= 2.0 {
             return Err(bad(
                 "light_gradient",
                 self.light_gradient,

@@ -1,8 +1,8 @@
 //! A camera on a frame clock, buffered like V4L2.
 //!
-//! Frame `i` is exposed from `epoch + i·period` for `exposure_ms`. A light clock thread wakes
-//! at the end of each exposure, samples the line of sight (`TruePosition`) at
-//! `motion_samples` instants spread over the exposure window, and queues that record in a
+//! Frame `i` is exposed from `epoch + i·period` for `exposure_ms`. A light clock thread
+//! samples the line of sight (`TruePosition`) as each of `motion_samples` instants spread
+//! over the exposure passes, and at the end of the exposure queues that record in a
 //! small ring (`buffer_frames`); when the ring is full the oldest frame is dropped, as a
 //! V4L2 driver recycles buffers nobody dequeued. Pixels are rendered only when a frame is
 //! dequeued, so an idle camera costs nothing, and frame `i` depends only on the seed, `i`
@@ -75,46 +75,56 @@ impl Shared {
         self.queue.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// The sampling instants of frame `seq`'s exposure (midpoints of equal sub-windows).
-    fn exposure_of(&self, seq: u64) -> Exposure {
-        let start = self.epoch + self.period.mul_f64(seq as f64);
-        let n = self.samples.max(1);
-        let los_um = (0..n)
-            .map(|k| {
-                let t = start + self.exposure.mul_f64((k as f64 + 0.5) / n as f64);
-                self.source.true_position_um(t)
-            })
-            .collect();
-        Exposure {
-            sequence: seq,
-            start,
-            los_um,
-        }
+    fn frame_start(&self, seq: u64) -> Instant {
+        self.epoch + self.period.mul_f64(seq as f64)
+    }
+
+    /// Sampling instant `k` of an exposure starting at `start` (midpoints of equal
+    /// sub-windows).
+    fn sample_instant(&self, start: Instant, k: usize) -> Instant {
+        let n = self.samples.max(1) as f64;
+        start + self.exposure.mul_f64((k as f64 + 0.5) / n)
     }
 
     fn run_clock(&self) {
+        let n = self.samples.max(1) as usize;
         let mut seq = 0u64;
+        let mut los: Vec<[f64; 2]> = Vec::with_capacity(n);
         let mut q = self.lock();
         loop {
             if q.stopped {
                 return;
             }
-            let end = self.epoch + self.period.mul_f64(seq as f64) + self.exposure;
+            let start = self.frame_start(seq);
+            // Next event: the next sampling instant, or the end of the exposure.
+            let due = if los.len() < n {
+                self.sample_instant(start, los.len())
+            } else {
+                start + self.exposure
+            };
             let now = Instant::now();
-            if now < end {
+            if now < due {
                 q = self
                     .ready
-                    .wait_timeout(q, end - now)
+                    .wait_timeout(q, due - now)
                     .unwrap_or_else(|e| e.into_inner())
                     .0;
                 continue;
             }
-            // The exposure is over: sample where the scene was during it (the instants are
-            // in the past by at most our wake-up latency).
-            drop(q);
-            let exp = self.exposure_of(seq);
-            q = self.lock();
-            q.pending.push_back(exp);
+            if los.len() < n {
+                // Sampled as the instant passes (late by our wake-up latency at most), so a
+                // move commanded later does not change what this frame saw.
+                drop(q);
+                los.push(self.source.true_position_um(due));
+                q = self.lock();
+                continue;
+            }
+            let los_um = std::mem::replace(&mut los, Vec::with_capacity(n));
+            q.pending.push_back(Exposure {
+                sequence: seq,
+                start,
+                los_um,
+            });
             while q.pending.len() > self.capacity {
                 q.pending.pop_front();
                 q.dropped += 1;

@@ -164,20 +164,20 @@ pub enum Xl80Error {
 impl Xl80Params {
     pub fn validate(&self) -> Result<(), Xl80Error> {
         let bad = |field, message: String| Err(Xl80Error::Param { field, message });
-        if !(self.sample_rate_hz.is_finite()
-            && self.sample_rate_hz > 0.0
-            && self.sample_rate_hz <= 50_000.0)
+        if !self.sample_rate_hz.is_finite()
+            || self.sample_rate_hz <= 0.0
+            || self.sample_rate_hz > 50_000.0
         {
             return bad(
                 "sample_rate_hz",
                 format!("{} is not in (0, 50000]", self.sample_rate_hz),
             );
         }
-        if !(self.noise_rms_um.is_finite() && self.noise_rms_um >= 0.0) {
+        if !self.noise_rms_um.is_finite() || self.noise_rms_um < 0.0 {
             return bad("noise_rms_um", format!("{} is not >= 0", self.noise_rms_um));
         }
         let n = self.beam_dir[0].hypot(self.beam_dir[1]);
-        if !((n - 1.0).abs() < 1e-6) {
+        if !n.is_finite() || (n - 1.0).abs() >= 1e-6 {
             return bad(
                 "beam_dir",
                 format!("{:?} is not a unit vector", self.beam_dir),
@@ -512,6 +512,7 @@ impl LiveLog {
                 let flush_every = ((0.1 / period.as_secs_f64()).ceil() as usize).max(1);
                 let mut w = BufWriter::new(file);
                 let mut n = 0usize;
+                let mut since_flush = 0usize;
                 loop {
                     let t = started_at + period.mul_f64(n as f64);
                     let now = Instant::now();
@@ -529,8 +530,10 @@ impl LiveLog {
                         LogFormat::Rtx => write_rtx_sample(&mut w, &xl.params, r),
                     }
                     .map_err(&io)?;
-                    if n % flush_every == 0 {
+                    since_flush += 1;
+                    if since_flush >= flush_every {
                         w.flush().map_err(&io)?;
+                        since_flush = 0;
                     }
                 }
                 if format == LogFormat::Rtx {
