@@ -385,3 +385,43 @@ fn study_accuracy_of_every_target() {
         );
     }
 }
+
+/// The path a reconstruction takes: a detection on the camera frame, scaled to a k-times
+/// finer grid, measured there with `px_per_camera_px = k`.
+#[test]
+fn a_scaled_guess_measures_a_finer_grid() {
+    let board = Board::paper();
+    let cam = CameraModel::default();
+    let k = 3.0;
+    let fine = CameraModel {
+        scale_um_per_px: cam.scale_um_per_px / k,
+        psf_sigma_px: cam.psf_sigma_px * k,
+        width: cam.width * 3,
+        height: cam.height * 3,
+        supersample: 3,
+        ..cam.clone()
+    };
+    let view = View::at([0.41 * 774.0, 0.27 * 774.0]);
+    let (img, _, off) = target_frame(&board, &cam, 3, &view, 21);
+    let det = detect(&img, &DetectConfig::default());
+    let c = &det.targets[0];
+    // The coarse frame's origin in the full frame, to place the fine window.
+    let t = &board.targets[3];
+    let centre = view.board_to_image(&cam, t.centre_um);
+    let x0 = (centre[0] - 32.0).floor();
+    let y0 = (centre[1] - 32.0).floor();
+    let full = c.translated([x0, y0]).scaled(k);
+    let (fx0, fy0) = ((k * (x0 + 0.5) - 0.5) as u32, (k * (y0 + 0.5) - 0.5) as u32);
+    let n = (65.0 * k) as u32;
+    let exp = expected_rgb(&board, &fine, &view, [fx0, fy0, n, n], 1.0);
+    let fimg = RgbImage::from_raw(n, n, add_noise(&exp, n, &fine, 22)).unwrap();
+    let plane = Plane::from_channel(&fimg, 1);
+    let guess = full.translated([-(fx0 as f64), -(fy0 as f64)]);
+    let e = estimate(&plane, &guess, Estimator::Fit, k).unwrap();
+    let rim_um = e.outer_radius_px / k * cam.scale_um_per_px;
+    assert!((rim_um - 17000.0).abs() < 300.0, "rim {rim_um} µm");
+    for a in 0..2 {
+        let err_um = (e.offset_px()[a] / k - off[a]) * cam.scale_um_per_px;
+        assert!(err_um.abs() < 8.0, "axis {a}: {err_um:.2} µm");
+    }
+}

@@ -142,11 +142,12 @@ impl Component {
         if ri2 > (0.25 * ro).powi(2) {
             Form::Ring(ri2.sqrt(), ro)
         } else {
-            // A filled disk has Ri² ≈ 0; a square has Ri ≈ 0.2 Ro and fails the box test
-            // only when it is rotated, so also demand the disk's area from the box.
+            // A filled disk has Ri² ≈ 0, but so has a square (Ri ≈ 0.2 Ro): demand the
+            // area of the circle the bounding box holds (a square fills 4/π of it), with half
+            // a pixel of slack around the circumference.
             let r_box = (w + h) / 4.0;
-            if (self.area - PI * r_box * r_box).abs() > tol * PI * r_box * r_box + 2.0 * PI * r_box
-            {
+            let circle = PI * r_box * r_box;
+            if (self.area - circle).abs() > 0.75 * tol * circle + 0.5 * PI * r_box {
                 return Form::Other;
             }
             Form::Disk((self.area / PI).sqrt())
@@ -414,4 +415,77 @@ pub fn measurement_channel(img: &RgbImage, det: &Detection) -> usize {
     (0..3)
         .max_by(|&a, &b| contrast[a].total_cmp(&contrast[b]))
         .unwrap_or(1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cand() -> Candidate {
+        Candidate {
+            outer_centre_px: [10.0, 20.0],
+            inner_centre_px: [11.0, 20.0],
+            outer_radii_px: [16.0, 22.0],
+            inner_radii_px: [0.0, 7.0],
+            roi: Roi {
+                x: 0,
+                y: 0,
+                w: 5,
+                h: 5,
+            },
+        }
+    }
+
+    #[test]
+    fn translated_and_scaled_keep_the_pixel_centre_convention() {
+        let c = cand().translated([-4.0, 2.0]);
+        assert_eq!(c.outer_centre_px, [6.0, 22.0]);
+        assert_eq!(c.inner_centre_px, [7.0, 22.0]);
+        // Pixel 0's centre on a 10x grid is fine pixel 4.5; its left edge stays at -0.5.
+        let s = Candidate {
+            outer_centre_px: [0.0, -0.5],
+            ..cand()
+        }
+        .scaled(10.0);
+        assert_eq!(s.outer_centre_px, [4.5, -0.5]);
+        assert_eq!(s.outer_radii_px, [160.0, 220.0]);
+        assert_eq!(s.inner_radii_px, [0.0, 70.0]);
+    }
+
+    /// Draw a binary shape and classify its one component.
+    fn form_of(inside: impl Fn(f64, f64) -> bool) -> Form {
+        let (w, h) = (80, 80);
+        let mask: Vec<u8> = (0..w * h)
+            .map(|i| inside((i % w) as f64 - 40.0, (i / w) as f64 - 40.0) as u8)
+            .collect();
+        let mut labels = Vec::new();
+        let comps = components(&mask, w, h, &mut labels);
+        assert_eq!(comps.len(), 1);
+        comps[0].form(DetectConfig::default().shape_tolerance)
+    }
+
+    #[test]
+    fn moments_tell_rings_disks_and_clutter_apart() {
+        let r = |x: f64, y: f64| x.hypot(y);
+        match form_of(|x, y| r(x, y) >= 16.0 && r(x, y) < 22.0) {
+            Form::Ring(hole, rim) => {
+                assert!(
+                    (hole - 16.0).abs() < 1.0 && (rim - 22.0).abs() < 1.0,
+                    "{hole} {rim}"
+                )
+            }
+            f => panic!("ring taken for {f:?}"),
+        }
+        match form_of(|x, y| r(x, y) < 8.0) {
+            Form::Disk(rad) => assert!((rad - 8.0).abs() < 0.5, "{rad}"),
+            f => panic!("disk taken for {f:?}"),
+        }
+        assert_eq!(form_of(|x, y| x.abs() < 25.0 && y.abs() < 4.0), Form::Other);
+        assert_eq!(form_of(|x, y| x.abs() < 8.0 && y.abs() < 8.0), Form::Other);
+        // An ellipse is not round.
+        assert_eq!(
+            form_of(|x, y| (x / 20.0).hypot(y / 12.0) < 1.0),
+            Form::Other
+        );
+    }
 }
