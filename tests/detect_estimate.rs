@@ -420,8 +420,8 @@ fn a_scaled_guess_measures_a_finer_grid() {
     let e = estimate(&plane, &guess, Estimator::Fit, k).unwrap();
     let rim_um = e.outer_radius_px / k * cam.scale_um_per_px;
     assert!((rim_um - 17000.0).abs() < 300.0, "rim {rim_um} µm");
-    for a in 0..2 {
-        let err_um = (e.offset_px()[a] / k - off[a]) * cam.scale_um_per_px;
+    for (a, (&got, &want)) in e.offset_px().iter().zip(&off).enumerate() {
+        let err_um = (got / k - want) * cam.scale_um_per_px;
         assert!(err_um.abs() < 8.0, "axis {a}: {err_um:.2} µm");
     }
 }

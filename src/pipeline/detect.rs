@@ -155,34 +155,49 @@ impl Component {
     }
 }
 
-/// Ink mask, one byte per pixel (1 = ink).
-fn ink_mask(img: &RgbImage, cfg: &DetectConfig) -> Vec<u8> {
+/// Ink mask, one byte per pixel (1 = ink), and whether each row has any ink.
+fn ink_mask(img: &RgbImage, cfg: &DetectConfig) -> (Vec<u8>, Vec<bool>) {
     let w = img.width() as usize;
+    let h = img.height() as usize;
     let thr = (cfg.min_redness * 256.0).round() as i32;
     let min_r = cfg.min_red_dn as i32;
-    let mut mask = vec![0u8; w * img.height() as usize];
+    let mut mask = vec![0u8; w * h];
+    let mut rows = vec![false; h];
     if w == 0 {
-        return mask;
+        return (mask, rows);
     }
     mask.par_chunks_mut(w)
         .zip(img.as_raw().par_chunks(w * 3))
-        .for_each(|(m, row)| {
+        .zip(rows.par_iter_mut())
+        .with_min_len(16)
+        .for_each(|((m, row), any)| {
+            let mut n = 0u32;
             for (o, p) in m.iter_mut().zip(row.chunks_exact(3)) {
                 let (r, g, b) = (p[0] as i32, p[1] as i32, p[2] as i32);
-                let red = 256 * (r - g.max(b));
-                *o = (r >= min_r && red >= thr * r) as u8;
+                let ink = (r >= min_r) & (256 * (r - g.max(b)) >= thr * r);
+                *o = ink as u8;
+                n += ink as u32;
             }
+            *any = n > 0;
         });
-    mask
+    (mask, rows)
 }
 
 /// 8-connected components of the mask; `labels` gets 1-based component indices (0 = paper).
-fn components(mask: &[u8], w: usize, h: usize, labels: &mut Vec<u32>) -> Vec<Component> {
+fn components(
+    mask: &[u8],
+    rows: &[bool],
+    w: usize,
+    h: usize,
+    labels: &mut Vec<u32>,
+) -> Vec<Component> {
     labels.clear();
     labels.resize(w * h, 0);
     let mut comps = Vec::new();
     let mut stack: Vec<(u32, u32)> = Vec::new();
-    for start in 0..w * h {
+    // Only rows with ink can start a component (most rows of a frame have none).
+    let starts = (0..h).filter(|&y| rows[y]).flat_map(|y| y * w..(y + 1) * w);
+    for start in starts {
         if mask[start] == 0 || labels[start] != 0 {
             continue;
         }
@@ -241,9 +256,9 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
     if w == 0 || h == 0 {
         return det;
     }
-    let mask = ink_mask(img, cfg);
+    let (mask, rows) = ink_mask(img, cfg);
     let mut labels = Vec::new();
-    let comps = components(&mask, w, h, &mut labels);
+    let comps = components(&mask, &rows, w, h, &mut labels);
     let tol = cfg.shape_tolerance;
     let min_area = PI * cfg.min_outer_radius_px.powi(2) * 0.3;
 
@@ -459,7 +474,7 @@ mod tests {
             .map(|i| inside((i % w) as f64 - 40.0, (i / w) as f64 - 40.0) as u8)
             .collect();
         let mut labels = Vec::new();
-        let comps = components(&mask, w, h, &mut labels);
+        let comps = components(&mask, &vec![true; h], w, h, &mut labels);
         assert_eq!(comps.len(), 1);
         comps[0].form(DetectConfig::default().shape_tolerance)
     }
