@@ -280,8 +280,8 @@ pub(super) fn estimate(
             .map(|&i| delta[i].abs())
             .fold(0.0, f64::max);
         let step_geometry = (0..=S).map(|i| delta[i].abs()).fold(0.0, f64::max);
-        if lambda <= 1e-2 && step_geometry < 2e-3 * k && sane(&q).is_none() {
-            // A Gauss–Newton step this small lands within ~1e-6 px of the minimum: take it
+        if lambda <= 1e-2 && step_geometry < 1e-2 * k && sane(&q).is_none() {
+            // A Gauss–Newton step this small lands within ~1e-4 px (0.1 µm) of the minimum: take it
             // without paying for another pass (the curvature and residual variance for the
             // covariance change by far less than their own uncertainty).
             p = q;
