@@ -83,6 +83,8 @@ struct Problem<'a> {
     plane: &'a Plane,
     win: &'a Window,
     np: usize,
+    /// Pixel stride in x and y.
+    step: usize,
     /// Window centre and half size for the background plane's X, Y.
     mid: [f64; 2],
     inv_half: f64,
@@ -100,10 +102,16 @@ impl Problem<'_> {
         let ring_inner = self.np == MAXP;
         let s = p[S];
         let reach2 = self.win.reach * self.win.reach;
-        for y in self.win.y0..self.win.y1 {
+        for y in (self.win.y0..self.win.y1).step_by(self.step) {
             let fy = y as f64;
             let row = &self.plane.data[y * self.plane.width..(y + 1) * self.plane.width];
-            for (x, &v) in row.iter().enumerate().take(self.win.x1).skip(self.win.x0) {
+            let xs = row
+                .iter()
+                .enumerate()
+                .take(self.win.x1)
+                .skip(self.win.x0)
+                .step_by(self.step);
+            for (x, &v) in xs {
                 let fx = x as f64;
                 let (rx, ry) = (fx - self.reach_centre[0], fy - self.reach_centre[1]);
                 if rx * rx + ry * ry > reach2 {
@@ -189,7 +197,11 @@ pub(super) fn estimate(
     g: &Candidate,
     k: f64,
 ) -> Result<CentreEstimate, EstimateError> {
-    let (paper, ink) = win.levels(plane);
+    // On a k-times finer grid (a reconstruction) neighbouring pixels are interpolated from
+    // the same camera pixels: every ⌊k/3⌋-th one in x and y (still 3 per camera pixel, more
+    // than 3 per blur width) carries nearly all the information at a ninth of the cost.
+    let step = ((k / 3.0).floor() as usize).max(1);
+    let (paper, ink) = win.levels(plane, step);
     if paper - ink < 4.0 || paper <= 0.0 {
         return Err(EstimateError::NoInk {
             x: g.outer_centre_px[0],
@@ -216,6 +228,7 @@ pub(super) fn estimate(
         plane,
         win,
         np,
+        step,
         mid: [
             0.5 * (win.x0 + win.x1 - 1) as f64,
             0.5 * (win.y0 + win.y1 - 1) as f64,
