@@ -84,6 +84,13 @@ fn finds_the_twelve_paper_targets_under_vignetting_gradient_and_noise() {
     assert!(det.skipped.is_empty(), "{:?}", det.skipped);
     // Red ink on white paper: green has the contrast.
     assert_eq!(measurement_channel(&img, &det), 1);
+    // A dim frame (70 % light) with the board rolled by 1°.
+    let rolled = View {
+        camera_um: [0.11 * 774.0, 0.64 * 774.0],
+        roll_rad: 1f64.to_radians(),
+    };
+    let img = render_frame(&board, &cam, &rolled, 0.7, 15);
+    assert_finds_all(&board, &cam, &rolled, &img, 0.3);
 }
 
 #[test]
