@@ -391,10 +391,13 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
 fn ring_mean(img: &RgbImage, roi: Roi, c: [f64; 2], r0: f64, r1: f64) -> Option<[f64; 3]> {
     let mut s = [0.0; 3];
     let mut n = 0.0;
+    let (r0sq, r1sq) = (r0 * r0.abs(), r1 * r1);
     for y in roi.y..(roi.y + roi.h).min(img.height()) {
+        let dy = y as f64 - c[1];
         for x in roi.x..(roi.x + roi.w).min(img.width()) {
-            let r = (x as f64 - c[0]).hypot(y as f64 - c[1]);
-            if r >= r0 && r <= r1 {
+            let dx = x as f64 - c[0];
+            let r2 = dx * dx + dy * dy;
+            if r2 >= r0sq && r2 <= r1sq {
                 let p = img.get_pixel(x, y).0;
                 for k in 0..3 {
                     s[k] += p[k] as f64;
