@@ -325,3 +325,63 @@ fn bad_input_gives_errors_that_name_the_problem() {
     );
     assert!(det.targets.is_empty() && det.skipped.is_empty());
 }
+
+/// The figures in docs/method.md: every target of the paper's board, raw and after an
+/// MJPEG-like JPEG round trip. `cargo test --release --test detect_estimate -- --ignored
+/// --nocapture study`.
+#[test]
+#[ignore = "a study (minutes): its figures are in docs/method.md"]
+fn study_accuracy_of_every_target() {
+    let board = Board::paper();
+    let cam = CameraModel::default();
+    let s = cam.scale_um_per_px;
+    let frames = 100;
+    println!("| target | CRB x, y (µm) | fit bias x, y | fit std x, y | fit σ reported | fit std, JPEG q70 | paper bias x, y | paper std x, y |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for idx in 0..board.targets.len() {
+        let bound = crb(&board, &cam, idx);
+        // [fit, fit after JPEG, paper] errors, and the fit's reported variance.
+        let mut errs: [Vec<[f64; 2]>; 3] = Default::default();
+        let mut rep = 0.0;
+        for i in 0..frames {
+            let p = subpixel(i + 1000 * idx);
+            let view = View::at([p[0] * s, p[1] * s]);
+            let (img, _, off) = target_frame(&board, &cam, idx, &view, 5000 + i as u64);
+            let jpeg = jpeg_round_trip(&img, 70);
+            for (slot, (im, est)) in [
+                (&img, Estimator::Fit),
+                (&jpeg, Estimator::Fit),
+                (&img, Estimator::Paper),
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                let det = detect(im, &DetectConfig::default());
+                assert_eq!(det.targets.len(), 1);
+                let plane = Plane::from_channel(im, measurement_channel(im, &det));
+                let e = estimate(&plane, &det.targets[0], est, 1.0).unwrap();
+                let o = e.offset_px();
+                errs[slot].push([(o[0] - off[0]) * s, (o[1] - off[1]) * s]);
+                if slot == 0 {
+                    let c = e.offset_cov_px2.unwrap();
+                    rep += (c[0][0] + c[1][1]) / 2.0 * s * s;
+                }
+            }
+        }
+        let ms = |e: &[[f64; 2]]| {
+            let n = e.len() as f64;
+            let m = [0, 1].map(|k| e.iter().map(|v| v[k]).sum::<f64>() / n);
+            let sd = [0, 1]
+                .map(|k| (e.iter().map(|v| (v[k] - m[k]).powi(2)).sum::<f64>() / (n - 1.0)).sqrt());
+            (m, sd)
+        };
+        let (fb, fs) = ms(&errs[0]);
+        let (_, js) = ms(&errs[1]);
+        let (pb, ps) = ms(&errs[2]);
+        println!(
+            "| {} | {:.2}, {:.2} | {:+.2}, {:+.2} | {:.2}, {:.2} | {:.2} | {:.2}, {:.2} | {:+.0}, {:+.0} | {:.0}, {:.0} |",
+            board.targets[idx].name,
+            bound[0], bound[1], fb[0], fb[1], fs[0], fs[1], (rep / frames as f64).sqrt(), js[0], js[1], pb[0], pb[1], ps[0], ps[1]
+        );
+    }
+}

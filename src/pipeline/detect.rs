@@ -60,6 +60,31 @@ pub struct Candidate {
     pub roi: Roi,
 }
 
+impl Candidate {
+    /// The same target in coordinates shifted by `d` (e.g. `-roi origin` for a crop).
+    pub fn translated(&self, d: [f64; 2]) -> Candidate {
+        let mv = |p: [f64; 2]| [p[0] + d[0], p[1] + d[1]];
+        Candidate {
+            outer_centre_px: mv(self.outer_centre_px),
+            inner_centre_px: mv(self.inner_centre_px),
+            ..self.clone()
+        }
+    }
+
+    /// The same target on a `k`-times finer grid whose pixel centres at integers keep the
+    /// image convention: coarse x maps to fine `k·(x + ½) − ½`. The ROI is left as is.
+    pub fn scaled(&self, k: f64) -> Candidate {
+        let sc = |p: [f64; 2]| [k * (p[0] + 0.5) - 0.5, k * (p[1] + 0.5) - 0.5];
+        Candidate {
+            outer_centre_px: sc(self.outer_centre_px),
+            inner_centre_px: sc(self.inner_centre_px),
+            outer_radii_px: self.outer_radii_px.map(|r| r * k),
+            inner_radii_px: self.inner_radii_px.map(|r| r * k),
+            roi: self.roi,
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Detection {
     pub targets: Vec<Candidate>,
@@ -262,15 +287,15 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
                     && d.bbox[2] < c.bbox[2]
                     && d.bbox[3] < c.bbox[3]
             })
-            .filter_map(|j| {
+            .filter(|&j| {
                 let reach = match forms[j] {
                     Form::Disk(r) => r,
                     Form::Ring(_, r) => r,
-                    Form::Other => return None,
+                    Form::Other => return false,
                 };
                 let d = &comps[j];
                 let off = (d.centroid[0] - c.centroid[0]).hypot(d.centroid[1] - c.centroid[1]);
-                (off + reach <= hole + 1.5).then_some(j)
+                off + reach <= hole + 1.5
             })
             .max_by(|&a, &b| comps[a].area.total_cmp(&comps[b].area));
         let centre = c.centroid;
