@@ -84,6 +84,13 @@ fn finds_the_twelve_paper_targets_under_vignetting_gradient_and_noise() {
     assert!(det.skipped.is_empty(), "{:?}", det.skipped);
     // Red ink on white paper: green has the contrast.
     assert_eq!(measurement_channel(&img, &det), 1);
+    // A dim frame (70 % light) with the board rolled by 1°.
+    let rolled = View {
+        camera_um: [0.11 * 774.0, 0.64 * 774.0],
+        roll_rad: 1f64.to_radians(),
+    };
+    let img = render_frame(&board, &cam, &rolled, 0.7, 15);
+    assert_finds_all(&board, &cam, &rolled, &img, 0.3);
 }
 
 #[test]
@@ -383,5 +390,52 @@ fn study_accuracy_of_every_target() {
             board.targets[idx].name,
             bound[0], bound[1], fb[0], fb[1], fs[0], fs[1], (rep / frames as f64).sqrt(), js[0], js[1], pb[0], pb[1], ps[0], ps[1]
         );
+    }
+}
+
+/// The path a reconstruction takes: a detection on the camera frame, scaled to a k-times
+/// finer grid, measured there with `px_per_camera_px = k`.
+#[test]
+fn a_scaled_guess_measures_a_finer_grid() {
+    // k = 6 also exercises the fit's pixel stride on fine grids.
+    for k in [3.0, 6.0] {
+        scaled_guess_on_finer_grid(k);
+    }
+}
+
+fn scaled_guess_on_finer_grid(k: f64) {
+    let board = Board::paper();
+    let cam = CameraModel::default();
+    let fine = CameraModel {
+        scale_um_per_px: cam.scale_um_per_px / k,
+        psf_sigma_px: cam.psf_sigma_px * k,
+        width: cam.width * k as u32,
+        height: cam.height * k as u32,
+        supersample: 3,
+        ..cam.clone()
+    };
+    let view = View::at([0.41 * 774.0, 0.27 * 774.0]);
+    let (img, _, off) = target_frame(&board, &cam, 3, &view, 21);
+    let det = detect(&img, &DetectConfig::default());
+    let c = &det.targets[0];
+    // The coarse frame's origin in the full frame, to place the fine window.
+    let t = &board.targets[3];
+    let centre = view.board_to_image(&cam, t.centre_um);
+    let x0 = (centre[0] - 32.0).floor();
+    let y0 = (centre[1] - 32.0).floor();
+    let full = c.translated([x0, y0]).scaled(k);
+    let (fx0, fy0) = ((k * (x0 + 0.5) - 0.5) as u32, (k * (y0 + 0.5) - 0.5) as u32);
+    let n = (65.0 * k) as u32;
+    let exp = expected_rgb(&board, &fine, &view, [fx0, fy0, n, n], 1.0);
+    let fimg = RgbImage::from_raw(n, n, add_noise(&exp, n, &fine, 22)).unwrap();
+    let plane = Plane::from_channel(&fimg, 1);
+    let guess = full.translated([-(fx0 as f64), -(fy0 as f64)]);
+    let e = estimate(&plane, &guess, Estimator::Fit, k).unwrap();
+    let rim_um = e.outer_radius_px / k * cam.scale_um_per_px;
+    assert!((rim_um - 17000.0).abs() < 300.0, "rim {rim_um} µm");
+    for (a, (&got, &want)) in e.offset_px().iter().zip(&off).enumerate() {
+        let err_um = (got / k - want) * cam.scale_um_per_px;
+        eprintln!("k = {k}, axis {a}: offset error {err_um:+.2} µm");
+        assert!(err_um.abs() < 8.0, "k = {k}, axis {a}: {err_um:.2} µm");
     }
 }

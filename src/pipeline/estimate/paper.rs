@@ -46,7 +46,7 @@ pub(super) fn estimate(
     win: &Window,
     g: &Candidate,
 ) -> Result<CentreEstimate, EstimateError> {
-    let (paper, ink) = win.levels(plane);
+    let (paper, ink) = win.levels(plane, 1);
     let no_ink = |what: &str| EstimateError::NoInk {
         x: g.outer_centre_px[0],
         y: g.outer_centre_px[1],
