@@ -7,8 +7,10 @@
 //! - `whole_frame/interp_k10_20` and `whole_frame/splat_k10_20`: the whole-frame k = 10
 //!   reconstruction of 20 frames.
 //!
-//! Peak memory: `RIGD_PEAK_RSS=1 cargo bench --bench pipeline` runs the whole-frame
-//! reconstruction once in this fresh process and prints its time and VmHWM instead.
+//! Peak memory: `RIGD_PEAK_RSS=interp cargo bench --bench pipeline` (or `=splat`) runs the
+//! whole-frame reconstruction once in this fresh process and prints its time and VmHWM.
+//! `RIGD_WRITE_FOLDER=DIR cargo bench --bench pipeline` writes the job's folder (for
+//! benches/opencv_baseline.py) and exits.
 
 use criterion::{criterion_group, Criterion};
 use rigd::pipeline::reconstruct::{self, View};
@@ -62,16 +64,20 @@ fn bench_frames(c: &mut Criterion) {
     g.finish();
 }
 
-fn bench_job(c: &mut Criterion) {
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::create_dir_all(dir.path().join("frames")).unwrap();
+/// Write the benchmark's folder: 20 frames of the paper's board at 50 µm steps.
+fn write_folder(dir: &std::path::Path) {
+    std::fs::create_dir_all(dir.join("frames")).unwrap();
     let mut steps = String::from("index,position_um\n");
     for (i, f) in frames(20).iter().enumerate() {
-        f.save(dir.path().join(format!("frames/{i:04}.png")))
-            .unwrap();
+        f.save(dir.join(format!("frames/{i:04}.png"))).unwrap();
         steps.push_str(&format!("{i},{}\n", STEP_UM * i as f64));
     }
-    std::fs::write(dir.path().join("steps.csv"), steps).unwrap();
+    std::fs::write(dir.join("steps.csv"), steps).unwrap();
+}
+
+fn bench_job(c: &mut Criterion) {
+    let dir = tempfile::tempdir().unwrap();
+    write_folder(dir.path());
     let mut g = c.benchmark_group("job");
     g.sample_size(10);
     for est in [Estimator::Paper, Estimator::Fit] {
@@ -130,7 +136,8 @@ fn peak_rss_mb() -> f64 {
         .unwrap_or(f64::NAN)
 }
 
-fn peak_memory() {
+/// One whole-frame reconstruction in this fresh process: its time and the peak RSS.
+fn peak_memory(method: &str) {
     let p = planes(20);
     let before = peak_rss_mb();
     let views: Vec<View> = p
@@ -138,29 +145,30 @@ fn peak_memory() {
         .map(|p| View::new(&p.data, p.width, p.height))
         .collect();
     let s = shifts(20, 10);
-    for (name, splat) in [("interp", false), ("splat", true)] {
-        let t = Instant::now();
-        let fine = if splat {
-            reconstruct::splat(&views, &s, 10)
-        } else {
-            reconstruct::interp(&views, &s, 10)
-        };
-        let el = t.elapsed().as_secs_f64();
-        println!(
-            "whole-frame {name} k=10, 20 frames 1280x720 -> {}x{}: {el:.3} s, peak RSS {:.0} MB (frames loaded: {before:.0} MB)",
-            fine.width,
-            fine.height,
-            peak_rss_mb()
-        );
-        drop(fine);
-    }
+    let t = Instant::now();
+    let fine = if method == "splat" {
+        reconstruct::splat(&views, &s, 10)
+    } else {
+        reconstruct::interp(&views, &s, 10)
+    };
+    let el = t.elapsed().as_secs_f64();
+    println!(
+        "whole-frame {method} k=10, 20 frames 1280x720 -> {}x{}: {el:.3} s, peak RSS {:.0} MB (before: {before:.0} MB)",
+        fine.width,
+        fine.height,
+        peak_rss_mb()
+    );
 }
 
 criterion_group!(benches, bench_frames, bench_job, bench_whole_frame);
 
 fn main() {
-    if std::env::var_os("RIGD_PEAK_RSS").is_some() {
-        peak_memory();
+    if let Ok(m) = std::env::var("RIGD_PEAK_RSS") {
+        peak_memory(&m);
+        return;
+    }
+    if let Some(dir) = std::env::var_os("RIGD_WRITE_FOLDER") {
+        write_folder(std::path::Path::new(&dir));
         return;
     }
     benches();

@@ -110,12 +110,24 @@ pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
     };
     let dir = folder::open(&args.dir, args.frames)?;
     let mut pipeline = Pipeline::new(args.options(), board)?;
-    for (path, &pos) in dir.frames.iter().zip(&dir.positions_um) {
-        let frame = folder::load_frame(path)?;
-        let rep = pipeline
-            .push(&frame, pos)
-            .with_context(|| path.display().to_string())?;
-        tracing::debug!(?rep, "frame");
+    // PNG decoding is most of a frame's cost: decode a batch of frames in parallel, then
+    // push them in order (errors are still reported for the first bad frame in order).
+    let batch = rayon::current_num_threads().max(1) * 2;
+    let items: Vec<_> = dir.frames.iter().zip(&dir.positions_um).collect();
+    for chunk in items.chunks(batch) {
+        let decoded: Vec<_> = {
+            use rayon::prelude::*;
+            chunk
+                .par_iter()
+                .map(|(path, _)| folder::load_frame(path))
+                .collect()
+        };
+        for ((path, &pos), frame) in chunk.iter().zip(decoded) {
+            let rep = pipeline
+                .push(&frame?, pos)
+                .with_context(|| path.display().to_string())?;
+            tracing::debug!(?rep, "frame");
+        }
     }
     let done = pipeline
         .finish()

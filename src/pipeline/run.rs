@@ -3,8 +3,8 @@
 //! Frame 0 is searched for targets ([`detect`]); later frames are not: each target is
 //! measured where the previous frame's displacement predicts it, on a small window of the
 //! measurement channel, which keeps a frame to a few milliseconds while the axis moves.
-//! Every frame's measurement channel is kept (one f32 plane per frame) for the
-//! reconstructions, which run in `finish` once the displacements are known.
+//! When a reconstruction is asked for, every frame's measurement channel is kept (one f32
+//! plane per frame) for `finish`, which runs once the displacements are known.
 
 use super::detect::{self, Candidate, DetectConfig};
 use super::estimate::{estimate, CentreEstimate};
@@ -99,7 +99,12 @@ impl Pipeline {
 
     /// Frames pushed so far.
     pub fn frames(&self) -> usize {
-        self.planes.len()
+        self.positions_um.len()
+    }
+
+    /// Whether `finish` reconstructs, and so needs every frame's plane.
+    fn keeps_planes(&self) -> bool {
+        self.opts.combine != Combine::Mean || self.opts.whole_frame
     }
 
     pub fn push(
@@ -108,7 +113,7 @@ impl Pipeline {
         position_um: f64,
     ) -> Result<FrameReport, PipelineError> {
         let t0 = Instant::now();
-        let index = self.planes.len();
+        let index = self.positions_um.len();
         if !position_um.is_finite() {
             return Err(PipelineError::Other(format!(
                 "frame {index}: position {position_um} µm is not a number"
@@ -159,7 +164,9 @@ impl Pipeline {
                 .collect();
             register::image_shift_px(&pairs).ok_or(PipelineError::NoTarget { index })?
         };
-        self.planes.push(plane);
+        if self.keeps_planes() {
+            self.planes.push(plane);
+        }
         self.positions_um.push(position_um);
         self.per_frame.push(est);
         self.image_shifts_px.push(shift);
@@ -172,7 +179,7 @@ impl Pipeline {
     }
 
     pub fn finish(self) -> Result<Finished, PipelineError> {
-        let n = self.planes.len();
+        let n = self.positions_um.len();
         let (width, height) = self.size.ok_or(PipelineError::NoFrames)?;
         let opts = &self.opts;
         let shifts_px: Vec<[f64; 2]> = match opts.registration {
@@ -308,7 +315,7 @@ impl Pipeline {
                 let sigma = e
                     .offset_cov_px2
                     .map(|c| [c[0][0].max(0.0).sqrt(), c[1][1].max(0.0).sqrt()]);
-                (e, sigma, self.planes.len(), Some(fine))
+                (e, sigma, self.positions_um.len(), Some(fine))
             }
         };
         let off = est.offset_px();
