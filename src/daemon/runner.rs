@@ -71,7 +71,13 @@ pub fn run_job(ctx: &JobContext<'_>, rig: &mut Rig, session: &mut SessionWriter)
         let (runs, images) = processor
             .join()
             .unwrap_or_else(|_| (Vec::new(), Vec::new()));
-        let study = (ctx.spec.process && !runs.is_empty()).then(|| summarize(&runs));
+        let names: Vec<&str> = info
+            .board
+            .iter()
+            .flat_map(|b| b.targets.iter().map(|t| t.name.as_str()))
+            .collect();
+        let study = (ctx.spec.process && !runs.is_empty())
+            .then(|| summarize(&runs, &names, info.scale_um_per_px));
         JobOutput {
             outcome,
             result: serde_json::json!({ "runs": runs, "study": study }),
