@@ -354,14 +354,14 @@ fn rss_kb() -> u64 {
         .unwrap()
 }
 
-/// A short soak: 300 one-frame jobs, each on its own connection (the long version:
+/// A short soak: 200 one-frame jobs, each on its own connection (the long version:
 /// `SOAK_JOBS=3000 cargo test --test daemon_jobs soak -- --nocapture`).
 #[test]
 fn soak_short_jobs_leak_neither_files_nor_memory() {
     let n: usize = std::env::var("SOAK_JOBS")
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(300);
+        .unwrap_or(200);
     let d = start(vec![]);
     let run = |count: usize| {
         for _ in 0..count {
