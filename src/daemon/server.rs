@@ -117,8 +117,9 @@ pub async fn run(
             .events
             .emit(id, EventBody::Cancelled { session: None });
     }
-    if let Some(id) = shared.jobs().running() {
-        if let Some(r) = shared.jobs().get(id) {
+    {
+        let jobs = shared.jobs();
+        if let Some(r) = jobs.running().and_then(|id| jobs.get(id)) {
             r.stop.store(SHUTDOWN, Ordering::SeqCst);
         }
     }
