@@ -63,7 +63,7 @@ def main(path):
             continue
         if ev["event"] == "step":
             steps += 1
-            print("  step {index}: commanded {commanded_um:.1} µm, axis {axis_um:.1} µm".format(**ev))
+            print("  step {index}: commanded {commanded_um:.1f} µm, axis {axis_um:.1f} µm".format(**ev))
         if ev["event"] in ("finished", "failed", "cancelled"):
             print("job", job_id, ev["event"], ev.get("reason", ""))
             break
