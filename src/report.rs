@@ -301,6 +301,48 @@ pub fn figure5(st: &StudyStats) -> RgbImage {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::pipeline::stats::{CaseStats, TargetStats};
+
+    fn case(name: &str, k: u32, std_um: f64) -> CaseStats {
+        CaseStats {
+            name: name.into(),
+            frames: 1,
+            step_um: 0.0,
+            k,
+            targets: vec![TargetStats {
+                name: "B".into(),
+                nominal_um: 1000.0,
+                nominal_px: 1000.0 / 774.0,
+                n: 3,
+                mean_um: 1000.0,
+                measured_grid_px: 1000.0 / 774.0 * k as f64,
+                pixel_ratio: 1.0 / k as f64,
+                std_um,
+                bias_um: 0.0,
+                per_run_um: vec![1000.0 - std_um, 1000.0, 1000.0 + std_um],
+            }],
+            rms_std_um: std_um,
+        }
+    }
+
+    #[test]
+    fn tables_show_each_case_and_the_gain() {
+        let st = StudyStats {
+            scale_um_per_px: 774.0,
+            cases: vec![case("case 1", 1, 280.0), case("case 2", 5, 100.0)],
+        };
+        let t = study_tables(&st);
+        assert!(t.contains("Table 1") && t.contains("Table 2") && t.contains("Table 3"));
+        let b_row = t.lines().find(|l| l.starts_with("B ")).unwrap();
+        assert!(b_row.contains("1.29") && b_row.contains("6.46"), "{b_row}");
+        let gain = t.lines().find(|l| l.starts_with("gain")).unwrap();
+        assert!(gain.contains("2.80x"), "{gain}");
+        let back: StudyStats = serde_json::from_str(&study_json(&st)).unwrap();
+        assert_eq!(back.cases.len(), 2);
+        assert_eq!(back.cases[1].targets[0].per_run_um.len(), 3);
+        assert_eq!(figure5(&st).dimensions(), (480, 360));
+        assert_eq!(figure4(&st, 1).dimensions(), (640, 400));
+    }
 
     #[test]
     fn plot_draws_series_inside_the_frame() {

@@ -84,6 +84,13 @@ fn finds_the_twelve_paper_targets_under_vignetting_gradient_and_noise() {
     assert!(det.skipped.is_empty(), "{:?}", det.skipped);
     // Red ink on white paper: green has the contrast.
     assert_eq!(measurement_channel(&img, &det), 1);
+    // A dim frame (70 % light) with the board rolled by 1°.
+    let rolled = View {
+        camera_um: [0.11 * 774.0, 0.64 * 774.0],
+        roll_rad: 1f64.to_radians(),
+    };
+    let img = render_frame(&board, &cam, &rolled, 0.7, 15);
+    assert_finds_all(&board, &cam, &rolled, &img, 0.3);
 }
 
 #[test]
@@ -324,4 +331,111 @@ fn bad_input_gives_errors_that_name_the_problem() {
         &DetectConfig::default(),
     );
     assert!(det.targets.is_empty() && det.skipped.is_empty());
+}
+
+/// The figures in docs/method.md: every target of the paper's board, raw and after an
+/// MJPEG-like JPEG round trip. `cargo test --release --test detect_estimate -- --ignored
+/// --nocapture study`.
+#[test]
+#[ignore = "a study (minutes): its figures are in docs/method.md"]
+fn study_accuracy_of_every_target() {
+    let board = Board::paper();
+    let cam = CameraModel::default();
+    let s = cam.scale_um_per_px;
+    let frames = 100;
+    println!("| target | CRB x, y (µm) | fit bias x, y | fit std x, y | fit σ reported | fit std, JPEG q70 | paper bias x, y | paper std x, y |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for idx in 0..board.targets.len() {
+        let bound = crb(&board, &cam, idx);
+        // [fit, fit after JPEG, paper] errors, and the fit's reported variance.
+        let mut errs: [Vec<[f64; 2]>; 3] = Default::default();
+        let mut rep = 0.0;
+        for i in 0..frames {
+            let p = subpixel(i + 1000 * idx);
+            let view = View::at([p[0] * s, p[1] * s]);
+            let (img, _, off) = target_frame(&board, &cam, idx, &view, 5000 + i as u64);
+            let jpeg = jpeg_round_trip(&img, 70);
+            for (slot, (im, est)) in [
+                (&img, Estimator::Fit),
+                (&jpeg, Estimator::Fit),
+                (&img, Estimator::Paper),
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                let det = detect(im, &DetectConfig::default());
+                assert_eq!(det.targets.len(), 1);
+                let plane = Plane::from_channel(im, measurement_channel(im, &det));
+                let e = estimate(&plane, &det.targets[0], est, 1.0).unwrap();
+                let o = e.offset_px();
+                errs[slot].push([(o[0] - off[0]) * s, (o[1] - off[1]) * s]);
+                if slot == 0 {
+                    let c = e.offset_cov_px2.unwrap();
+                    rep += (c[0][0] + c[1][1]) / 2.0 * s * s;
+                }
+            }
+        }
+        let ms = |e: &[[f64; 2]]| {
+            let n = e.len() as f64;
+            let m = [0, 1].map(|k| e.iter().map(|v| v[k]).sum::<f64>() / n);
+            let sd = [0, 1]
+                .map(|k| (e.iter().map(|v| (v[k] - m[k]).powi(2)).sum::<f64>() / (n - 1.0)).sqrt());
+            (m, sd)
+        };
+        let (fb, fs) = ms(&errs[0]);
+        let (_, js) = ms(&errs[1]);
+        let (pb, ps) = ms(&errs[2]);
+        println!(
+            "| {} | {:.2}, {:.2} | {:+.2}, {:+.2} | {:.2}, {:.2} | {:.2} | {:.2}, {:.2} | {:+.0}, {:+.0} | {:.0}, {:.0} |",
+            board.targets[idx].name,
+            bound[0], bound[1], fb[0], fb[1], fs[0], fs[1], (rep / frames as f64).sqrt(), js[0], js[1], pb[0], pb[1], ps[0], ps[1]
+        );
+    }
+}
+
+/// The path a reconstruction takes: a detection on the camera frame, scaled to a k-times
+/// finer grid, measured there with `px_per_camera_px = k`.
+#[test]
+fn a_scaled_guess_measures_a_finer_grid() {
+    // k = 6 also exercises the fit's pixel stride on fine grids.
+    for k in [3.0, 6.0] {
+        scaled_guess_on_finer_grid(k);
+    }
+}
+
+fn scaled_guess_on_finer_grid(k: f64) {
+    let board = Board::paper();
+    let cam = CameraModel::default();
+    let fine = CameraModel {
+        scale_um_per_px: cam.scale_um_per_px / k,
+        psf_sigma_px: cam.psf_sigma_px * k,
+        width: cam.width * k as u32,
+        height: cam.height * k as u32,
+        supersample: 3,
+        ..cam.clone()
+    };
+    let view = View::at([0.41 * 774.0, 0.27 * 774.0]);
+    let (img, _, off) = target_frame(&board, &cam, 3, &view, 21);
+    let det = detect(&img, &DetectConfig::default());
+    let c = &det.targets[0];
+    // The coarse frame's origin in the full frame, to place the fine window.
+    let t = &board.targets[3];
+    let centre = view.board_to_image(&cam, t.centre_um);
+    let x0 = (centre[0] - 32.0).floor();
+    let y0 = (centre[1] - 32.0).floor();
+    let full = c.translated([x0, y0]).scaled(k);
+    let (fx0, fy0) = ((k * (x0 + 0.5) - 0.5) as u32, (k * (y0 + 0.5) - 0.5) as u32);
+    let n = (65.0 * k) as u32;
+    let exp = expected_rgb(&board, &fine, &view, [fx0, fy0, n, n], 1.0);
+    let fimg = RgbImage::from_raw(n, n, add_noise(&exp, n, &fine, 22)).unwrap();
+    let plane = Plane::from_channel(&fimg, 1);
+    let guess = full.translated([-(fx0 as f64), -(fy0 as f64)]);
+    let e = estimate(&plane, &guess, Estimator::Fit, k).unwrap();
+    let rim_um = e.outer_radius_px / k * cam.scale_um_per_px;
+    assert!((rim_um - 17000.0).abs() < 300.0, "rim {rim_um} µm");
+    for (a, (&got, &want)) in e.offset_px().iter().zip(&off).enumerate() {
+        let err_um = (got / k - want) * cam.scale_um_per_px;
+        eprintln!("k = {k}, axis {a}: offset error {err_um:+.2} µm");
+        assert!(err_um.abs() < 8.0, "k = {k}, axis {a}: {err_um:.2} µm");
+    }
 }

@@ -60,6 +60,31 @@ pub struct Candidate {
     pub roi: Roi,
 }
 
+impl Candidate {
+    /// The same target in coordinates shifted by `d` (e.g. `-roi origin` for a crop).
+    pub fn translated(&self, d: [f64; 2]) -> Candidate {
+        let mv = |p: [f64; 2]| [p[0] + d[0], p[1] + d[1]];
+        Candidate {
+            outer_centre_px: mv(self.outer_centre_px),
+            inner_centre_px: mv(self.inner_centre_px),
+            ..self.clone()
+        }
+    }
+
+    /// The same target on a `k`-times finer grid whose pixel centres at integers keep the
+    /// image convention: coarse x maps to fine `k·(x + ½) − ½`. The ROI is left as is.
+    pub fn scaled(&self, k: f64) -> Candidate {
+        let sc = |p: [f64; 2]| [k * (p[0] + 0.5) - 0.5, k * (p[1] + 0.5) - 0.5];
+        Candidate {
+            outer_centre_px: sc(self.outer_centre_px),
+            inner_centre_px: sc(self.inner_centre_px),
+            outer_radii_px: self.outer_radii_px.map(|r| r * k),
+            inner_radii_px: self.inner_radii_px.map(|r| r * k),
+            roi: self.roi,
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Detection {
     pub targets: Vec<Candidate>,
@@ -117,11 +142,12 @@ impl Component {
         if ri2 > (0.25 * ro).powi(2) {
             Form::Ring(ri2.sqrt(), ro)
         } else {
-            // A filled disk has Ri² ≈ 0; a square has Ri ≈ 0.2 Ro and fails the box test
-            // only when it is rotated, so also demand the disk's area from the box.
+            // A filled disk has Ri² ≈ 0, but so has a square (Ri ≈ 0.2 Ro): demand the
+            // area of the circle the bounding box holds (a square fills 4/π of it), with half
+            // a pixel of slack around the circumference.
             let r_box = (w + h) / 4.0;
-            if (self.area - PI * r_box * r_box).abs() > tol * PI * r_box * r_box + 2.0 * PI * r_box
-            {
+            let circle = PI * r_box * r_box;
+            if (self.area - circle).abs() > 0.75 * tol * circle + 0.5 * PI * r_box {
                 return Form::Other;
             }
             Form::Disk((self.area / PI).sqrt())
@@ -129,34 +155,49 @@ impl Component {
     }
 }
 
-/// Ink mask, one byte per pixel (1 = ink).
-fn ink_mask(img: &RgbImage, cfg: &DetectConfig) -> Vec<u8> {
+/// Ink mask, one byte per pixel (1 = ink), and whether each row has any ink.
+fn ink_mask(img: &RgbImage, cfg: &DetectConfig) -> (Vec<u8>, Vec<bool>) {
     let w = img.width() as usize;
+    let h = img.height() as usize;
     let thr = (cfg.min_redness * 256.0).round() as i32;
     let min_r = cfg.min_red_dn as i32;
-    let mut mask = vec![0u8; w * img.height() as usize];
+    let mut mask = vec![0u8; w * h];
+    let mut rows = vec![false; h];
     if w == 0 {
-        return mask;
+        return (mask, rows);
     }
     mask.par_chunks_mut(w)
         .zip(img.as_raw().par_chunks(w * 3))
-        .for_each(|(m, row)| {
+        .zip(rows.par_iter_mut())
+        .with_min_len(16)
+        .for_each(|((m, row), any)| {
+            let mut n = 0u32;
             for (o, p) in m.iter_mut().zip(row.chunks_exact(3)) {
                 let (r, g, b) = (p[0] as i32, p[1] as i32, p[2] as i32);
-                let red = 256 * (r - g.max(b));
-                *o = (r >= min_r && red >= thr * r) as u8;
+                let ink = (r >= min_r) & (256 * (r - g.max(b)) >= thr * r);
+                *o = ink as u8;
+                n += ink as u32;
             }
+            *any = n > 0;
         });
-    mask
+    (mask, rows)
 }
 
 /// 8-connected components of the mask; `labels` gets 1-based component indices (0 = paper).
-fn components(mask: &[u8], w: usize, h: usize, labels: &mut Vec<u32>) -> Vec<Component> {
+fn components(
+    mask: &[u8],
+    rows: &[bool],
+    w: usize,
+    h: usize,
+    labels: &mut Vec<u32>,
+) -> Vec<Component> {
     labels.clear();
     labels.resize(w * h, 0);
     let mut comps = Vec::new();
     let mut stack: Vec<(u32, u32)> = Vec::new();
-    for start in 0..w * h {
+    // Only rows with ink can start a component (most rows of a frame have none).
+    let starts = (0..h).filter(|&y| rows[y]).flat_map(|y| y * w..(y + 1) * w);
+    for start in starts {
         if mask[start] == 0 || labels[start] != 0 {
             continue;
         }
@@ -215,9 +256,9 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
     if w == 0 || h == 0 {
         return det;
     }
-    let mask = ink_mask(img, cfg);
+    let (mask, rows) = ink_mask(img, cfg);
     let mut labels = Vec::new();
-    let comps = components(&mask, w, h, &mut labels);
+    let comps = components(&mask, &rows, w, h, &mut labels);
     let tol = cfg.shape_tolerance;
     let min_area = PI * cfg.min_outer_radius_px.powi(2) * 0.3;
 
@@ -262,15 +303,15 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
                     && d.bbox[2] < c.bbox[2]
                     && d.bbox[3] < c.bbox[3]
             })
-            .filter_map(|j| {
+            .filter(|&j| {
                 let reach = match forms[j] {
                     Form::Disk(r) => r,
                     Form::Ring(_, r) => r,
-                    Form::Other => return None,
+                    Form::Other => return false,
                 };
                 let d = &comps[j];
                 let off = (d.centroid[0] - c.centroid[0]).hypot(d.centroid[1] - c.centroid[1]);
-                (off + reach <= hole + 1.5).then_some(j)
+                off + reach <= hole + 1.5
             })
             .max_by(|&a, &b| comps[a].area.total_cmp(&comps[b].area));
         let centre = c.centroid;
@@ -350,10 +391,13 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
 fn ring_mean(img: &RgbImage, roi: Roi, c: [f64; 2], r0: f64, r1: f64) -> Option<[f64; 3]> {
     let mut s = [0.0; 3];
     let mut n = 0.0;
+    let (r0sq, r1sq) = (r0 * r0.abs(), r1 * r1);
     for y in roi.y..(roi.y + roi.h).min(img.height()) {
+        let dy = y as f64 - c[1];
         for x in roi.x..(roi.x + roi.w).min(img.width()) {
-            let r = (x as f64 - c[0]).hypot(y as f64 - c[1]);
-            if r >= r0 && r <= r1 {
+            let dx = x as f64 - c[0];
+            let r2 = dx * dx + dy * dy;
+            if r2 >= r0sq && r2 <= r1sq {
                 let p = img.get_pixel(x, y).0;
                 for k in 0..3 {
                     s[k] += p[k] as f64;
@@ -389,4 +433,77 @@ pub fn measurement_channel(img: &RgbImage, det: &Detection) -> usize {
     (0..3)
         .max_by(|&a, &b| contrast[a].total_cmp(&contrast[b]))
         .unwrap_or(1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cand() -> Candidate {
+        Candidate {
+            outer_centre_px: [10.0, 20.0],
+            inner_centre_px: [11.0, 20.0],
+            outer_radii_px: [16.0, 22.0],
+            inner_radii_px: [0.0, 7.0],
+            roi: Roi {
+                x: 0,
+                y: 0,
+                w: 5,
+                h: 5,
+            },
+        }
+    }
+
+    #[test]
+    fn translated_and_scaled_keep_the_pixel_centre_convention() {
+        let c = cand().translated([-4.0, 2.0]);
+        assert_eq!(c.outer_centre_px, [6.0, 22.0]);
+        assert_eq!(c.inner_centre_px, [7.0, 22.0]);
+        // Pixel 0's centre on a 10x grid is fine pixel 4.5; its left edge stays at -0.5.
+        let s = Candidate {
+            outer_centre_px: [0.0, -0.5],
+            ..cand()
+        }
+        .scaled(10.0);
+        assert_eq!(s.outer_centre_px, [4.5, -0.5]);
+        assert_eq!(s.outer_radii_px, [160.0, 220.0]);
+        assert_eq!(s.inner_radii_px, [0.0, 70.0]);
+    }
+
+    /// Draw a binary shape and classify its one component.
+    fn form_of(inside: impl Fn(f64, f64) -> bool) -> Form {
+        let (w, h) = (80, 80);
+        let mask: Vec<u8> = (0..w * h)
+            .map(|i| inside((i % w) as f64 - 40.0, (i / w) as f64 - 40.0) as u8)
+            .collect();
+        let mut labels = Vec::new();
+        let comps = components(&mask, &vec![true; h], w, h, &mut labels);
+        assert_eq!(comps.len(), 1);
+        comps[0].form(DetectConfig::default().shape_tolerance)
+    }
+
+    #[test]
+    fn moments_tell_rings_disks_and_clutter_apart() {
+        let r = |x: f64, y: f64| x.hypot(y);
+        match form_of(|x, y| r(x, y) >= 16.0 && r(x, y) < 22.0) {
+            Form::Ring(hole, rim) => {
+                assert!(
+                    (hole - 16.0).abs() < 1.0 && (rim - 22.0).abs() < 1.0,
+                    "{hole} {rim}"
+                )
+            }
+            f => panic!("ring taken for {f:?}"),
+        }
+        match form_of(|x, y| r(x, y) < 8.0) {
+            Form::Disk(rad) => assert!((rad - 8.0).abs() < 0.5, "{rad}"),
+            f => panic!("disk taken for {f:?}"),
+        }
+        assert_eq!(form_of(|x, y| x.abs() < 25.0 && y.abs() < 4.0), Form::Other);
+        assert_eq!(form_of(|x, y| x.abs() < 8.0 && y.abs() < 8.0), Form::Other);
+        // An ellipse is not round.
+        assert_eq!(
+            form_of(|x, y| (x / 20.0).hypot(y / 12.0) < 1.0),
+            Form::Other
+        );
+    }
 }

@@ -112,9 +112,9 @@ fn taps(f: i64, n: usize, k: usize) -> Taps {
         idx: [0; 4],
         w: [0.0; 4],
     };
-    for j in 0..4 {
-        t.idx[j] = (x0 as i64 - 1 + j as i64).clamp(0, n as i64 - 1) as u32;
-        t.w[j] = w[j] as f32;
+    for (j, (i, wt)) in t.idx.iter_mut().zip(&mut t.w).enumerate() {
+        *i = (x0 as i64 - 1 + j as i64).clamp(0, n as i64 - 1) as u32;
+        *wt = w[j] as f32;
     }
     t
 }
@@ -153,6 +153,7 @@ pub fn interp(frames: &[View], shifts: &[[i64; 2]], k: usize) -> Fine {
     let (fw, fh) = (w * k, h * k);
     let mut out = vec![0f32; fw * fh];
     let mut rows = vec![0f32; h * fw];
+    let mut first_group = true;
     for (sy, members) in groups_by_y(shifts) {
         // Row pass: every frame of the group resampled along x, summed.
         let tables: Vec<Vec<Taps>> = members
@@ -171,18 +172,33 @@ pub fn interp(frames: &[View], shifts: &[[i64; 2]], k: usize) -> Fine {
                 }
             }
         });
-        // Column pass of the group's sum, added to the output.
-        let col = tap_table(h, k, sy);
+        // Column pass of the group's sum, with the 1/N of the average folded into the
+        // weights; the first group writes, later ones add (no zero-fill or scaling pass).
+        let inv = 1.0 / frames.len() as f32;
+        let col: Vec<Taps> = tap_table(h, k, sy)
+            .into_iter()
+            .map(|t| Taps {
+                idx: t.idx,
+                w: t.w.map(|w| w * inv),
+            })
+            .collect();
         out.par_chunks_mut(fw).enumerate().for_each(|(yy, dst)| {
             let t = col[yy];
             let r: [&[f32]; 4] = std::array::from_fn(|j| &rows[t.idx[j] as usize * fw..][..fw]);
-            for x in 0..fw {
-                dst[x] += t.w[0] * r[0][x] + t.w[1] * r[1][x] + t.w[2] * r[2][x] + t.w[3] * r[3][x];
+            let w = t.w;
+            let taps = dst.iter_mut().zip(r[0]).zip(r[1]).zip(r[2]).zip(r[3]);
+            if first_group {
+                for ((((o, a), b), c), d) in taps {
+                    *o = w[0] * a + w[1] * b + w[2] * c + w[3] * d;
+                }
+            } else {
+                for ((((o, a), b), c), d) in taps {
+                    *o += w[0] * a + w[1] * b + w[2] * c + w[3] * d;
+                }
             }
         });
+        first_group = false;
     }
-    let inv = 1.0 / frames.len() as f32;
-    out.par_iter_mut().for_each(|v| *v *= inv);
     Fine {
         width: fw,
         height: fh,

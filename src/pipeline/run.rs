@@ -1,7 +1,21 @@
-//! (being written: the push-based pipeline)
+//! The push-based pipeline: `new`, `push` each frame with its position, `finish`.
+//!
+//! Frame 0 is searched for targets ([`detect`]); later frames are not: each target is
+//! measured where the previous frame's displacement predicts it, on a small window of the
+//! measurement channel, which keeps a frame to a few milliseconds while the axis moves.
+//! When a reconstruction is asked for, every frame's measurement channel is kept (one f32
+//! plane per frame) for `finish`, which runs once the displacements are known.
+
+use super::detect::{self, Candidate, DetectConfig};
+use super::estimate::{estimate, CentreEstimate};
+use super::plane::{Plane, Roi};
+use super::reconstruct::{self, Fine, View};
+use super::register;
 use super::*;
 use image::RgbImage;
+use rayon::prelude::*;
 use rigd_sim::Board;
+use std::time::Instant;
 
 /// What one pushed frame gave.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -25,30 +39,495 @@ pub struct Finished {
     pub images: Vec<NamedImage>,
 }
 
+/// Camera pixels kept around a target's outer rim in its reconstruction window: the
+/// estimators want the rim plus 3.5 px, the cubic kernel 2 more.
+const WINDOW_MARGIN_PX: f64 = 6.0;
+
+/// Largest accepted upsampling factor (a whole 1280x720 frame at k = 32 would be 3.8 GB).
+pub const MAX_K: u32 = 32;
+
 /// Push-based pipeline: `new`, `push` each frame with its position, `finish`.
 pub struct Pipeline {
-    _opts: ProcessOptions,
-    _board: Option<Board>,
+    opts: ProcessOptions,
+    board: Option<Board>,
+    detect_cfg: DetectConfig,
+    size: Option<(u32, u32)>,
+    channel: usize,
+    targets: Vec<Candidate>,
+    skipped: Vec<Skipped>,
+    /// The measurement channel of every frame.
+    planes: Vec<Plane>,
+    positions_um: Vec<f64>,
+    /// `[frame][target]`: the per-frame estimate, in frame coordinates.
+    per_frame: Vec<Vec<Option<CentreEstimate>>>,
+    image_shifts_px: Vec<[f64; 2]>,
 }
 
 impl Pipeline {
     pub fn new(opts: ProcessOptions, board: Option<Board>) -> Result<Pipeline, PipelineError> {
+        let bad = |name, message: String| Err(PipelineError::Option { name, message });
+        if !(opts.scale_um_per_px.is_finite() && opts.scale_um_per_px > 0.0) {
+            return bad(
+                "scale_um_per_px",
+                format!("must be positive, got {}", opts.scale_um_per_px),
+            );
+        }
+        if !(1..=MAX_K).contains(&opts.k) {
+            return bad("k", format!("must be 1..={MAX_K}, got {}", opts.k));
+        }
+        let [ax, ay] = opts.axis_dir;
+        if !(ax.is_finite() && ay.is_finite()) || ax.hypot(ay) == 0.0 {
+            return bad(
+                "axis_dir",
+                format!("must be a non-zero vector, got {:?}", opts.axis_dir),
+            );
+        }
         Ok(Pipeline {
-            _opts: opts,
-            _board: board,
+            opts,
+            board,
+            detect_cfg: DetectConfig::default(),
+            size: None,
+            channel: 1,
+            targets: Vec::new(),
+            skipped: Vec::new(),
+            planes: Vec::new(),
+            positions_um: Vec::new(),
+            per_frame: Vec::new(),
+            image_shifts_px: Vec::new(),
         })
+    }
+
+    /// Frames pushed so far.
+    pub fn frames(&self) -> usize {
+        self.positions_um.len()
+    }
+
+    /// Whether `finish` reconstructs, and so needs every frame's plane.
+    fn keeps_planes(&self) -> bool {
+        self.opts.combine != Combine::Mean || self.opts.whole_frame
     }
 
     pub fn push(
         &mut self,
-        _frame: &RgbImage,
-        _position_um: f64,
+        frame: &RgbImage,
+        position_um: f64,
     ) -> Result<FrameReport, PipelineError> {
-        Err(PipelineError::Other("not yet implemented".into()))
+        let t0 = Instant::now();
+        let index = self.positions_um.len();
+        if !position_um.is_finite() {
+            return Err(PipelineError::Other(format!(
+                "frame {index}: position {position_um} µm is not a number"
+            )));
+        }
+        let got = frame.dimensions();
+        match self.size {
+            None => {
+                let det = detect::detect(frame, &self.detect_cfg);
+                if det.targets.is_empty() {
+                    return Err(PipelineError::NoTarget { index });
+                }
+                self.channel = detect::measurement_channel(frame, &det);
+                self.targets = det.targets;
+                self.skipped = det.skipped;
+                self.size = Some(got);
+            }
+            Some(want) if want != got => return Err(PipelineError::FrameSize { index, got, want }),
+            Some(_) => {}
+        }
+        let plane = Plane::from_channel(frame, self.channel);
+        // Where the targets should be: the last frame's displacement, or the positions'.
+        let predicted = match (self.opts.registration, self.positions_um.first()) {
+            (Registration::Positions, Some(&p0)) => register::position_shift_px(
+                position_um,
+                p0,
+                self.opts.scale_um_per_px,
+                self.opts.axis_dir,
+            ),
+            _ => self.image_shifts_px.last().copied().unwrap_or([0.0, 0.0]),
+        };
+        let est: Vec<Option<CentreEstimate>> = self
+            .targets
+            .par_iter()
+            .map(|c| measure_in_frame(&plane, c, predicted, self.opts.estimator))
+            .collect();
+        let found = est.iter().filter(|e| e.is_some()).count();
+        let shift = if index == 0 {
+            if found == 0 {
+                return Err(PipelineError::NoTarget { index });
+            }
+            [0.0, 0.0]
+        } else {
+            let pairs: Vec<([f64; 2], [f64; 2])> = self.per_frame[0]
+                .iter()
+                .zip(&est)
+                .filter_map(|(a, b)| Some((a.as_ref()?.outer_px, b.as_ref()?.outer_px)))
+                .collect();
+            register::image_shift_px(&pairs).ok_or(PipelineError::NoTarget { index })?
+        };
+        if self.keeps_planes() {
+            self.planes.push(plane);
+        }
+        self.positions_um.push(position_um);
+        self.per_frame.push(est);
+        self.image_shifts_px.push(shift);
+        Ok(FrameReport {
+            index,
+            targets_found: found,
+            image_shift_px: shift,
+            process_ms: t0.elapsed().as_secs_f64() * 1e3,
+        })
     }
 
     pub fn finish(self) -> Result<Finished, PipelineError> {
-        Err(PipelineError::Other("not yet implemented".into()))
+        let n = self.positions_um.len();
+        let (width, height) = self.size.ok_or(PipelineError::NoFrames)?;
+        let opts = &self.opts;
+        let shifts_px: Vec<[f64; 2]> = match opts.registration {
+            Registration::Image => self.image_shifts_px.clone(),
+            Registration::Positions => self
+                .positions_um
+                .iter()
+                .map(|&p| {
+                    register::position_shift_px(
+                        p,
+                        self.positions_um[0],
+                        opts.scale_um_per_px,
+                        opts.axis_dir,
+                    )
+                })
+                .collect(),
+        };
+        let steps = register::residuals(
+            &self.positions_um,
+            &self.image_shifts_px,
+            opts.scale_um_per_px,
+            opts.axis_dir,
+        );
+        let k = match opts.combine {
+            Combine::Mean => 1,
+            _ => opts.k as usize,
+        };
+        let mut skipped = self.skipped.clone();
+        let mut images = Vec::new();
+        let measured: Vec<Result<(ObjectResult, Option<Fine>), String>> = (0..self.targets.len())
+            .into_par_iter()
+            .map(|t| self.measure_target(t, &shifts_px, k))
+            .collect();
+        let mut objects = Vec::new();
+        for (t, m) in measured.into_iter().enumerate() {
+            match m {
+                Ok((o, fine)) => {
+                    if let Some(f) = fine {
+                        images.push((objects.len(), f));
+                    }
+                    objects.push(o);
+                }
+                Err(reason) => skipped.push(Skipped {
+                    centre_px: self.targets[t].outer_centre_px,
+                    reason,
+                }),
+            }
+        }
+        if objects.is_empty() {
+            return Err(PipelineError::Other(format!(
+                "no target could be measured ({} found in frame 0: {})",
+                self.targets.len(),
+                skipped
+                    .iter()
+                    .map(|s| s.reason.as_str())
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            )));
+        }
+        if let Some(board) = &self.board {
+            name_objects(&mut objects, board, opts.scale_um_per_px);
+        }
+        let mut named: Vec<NamedImage> = images
+            .into_iter()
+            .map(|(i, f)| NamedImage {
+                name: match &objects[i].name {
+                    Some(name) => format!("target-{name}"),
+                    None => format!("target-{i:02}"),
+                },
+                image: f.to_png16(),
+            })
+            .collect();
+        if opts.whole_frame {
+            let views: Vec<View> = self
+                .planes
+                .iter()
+                .map(|p| View::new(&p.data, p.width, p.height))
+                .collect();
+            let kk = opts.k as usize;
+            let fine_shifts: Vec<[i64; 2]> = shifts_px
+                .iter()
+                .map(|&d| reconstruct::fine_shift(d, kk))
+                .collect();
+            let fine = match opts.combine {
+                Combine::Splat => reconstruct::splat(&views, &fine_shifts, kk),
+                _ => reconstruct::interp(&views, &fine_shifts, kk),
+            };
+            named.push(NamedImage {
+                name: "whole-frame".into(),
+                image: fine.to_png16(),
+            });
+        }
+        Ok(Finished {
+            result: ProcessResult {
+                options: self.opts.clone(),
+                frames: n,
+                width,
+                height,
+                objects,
+                skipped,
+                steps,
+            },
+            images: named,
+        })
+    }
+
+    /// One target's result with the chosen combine mode (and its reconstruction, if any).
+    fn measure_target(
+        &self,
+        t: usize,
+        shifts_px: &[[f64; 2]],
+        k: usize,
+    ) -> Result<(ObjectResult, Option<Fine>), String> {
+        let opts = &self.opts;
+        let s = opts.scale_um_per_px;
+        let first = self.per_frame[0][t]
+            .as_ref()
+            .ok_or("not measurable in frame 0")?;
+        let (est, sigma_px, frames, fine) = match opts.combine {
+            Combine::Mean => {
+                let ests: Vec<&CentreEstimate> = self
+                    .per_frame
+                    .iter()
+                    .filter_map(|f| f[t].as_ref())
+                    .collect();
+                let (offset, sigma) = mean_offset(&ests);
+                let mut e = first.clone();
+                e.inner_px = [e.outer_px[0] + offset[0], e.outer_px[1] + offset[1]];
+                (e, sigma, ests.len(), None)
+            }
+            Combine::Interp | Combine::Splat => {
+                let (e, fine) = self.reconstruct_target(t, shifts_px, k)?;
+                let sigma = e
+                    .offset_cov_px2
+                    .map(|c| [c[0][0].max(0.0).sqrt(), c[1][1].max(0.0).sqrt()]);
+                (e, sigma, self.positions_um.len(), Some(fine))
+            }
+        };
+        let off = est.offset_px();
+        Ok((
+            ObjectResult {
+                name: None,
+                centre_px: est.outer_px,
+                offset_px: off,
+                offset_um: [off[0] * s, off[1] * s],
+                sigma_um: sigma_px.map(|q| [q[0] * s, q[1] * s]),
+                nominal_um: None,
+                outer_radius_px: est.outer_radius_px,
+                inner_radius_px: est.inner_radius_px,
+                frames,
+                effective_pixel_um: s / k as f64,
+            },
+            fine,
+        ))
+    }
+
+    /// The target's window, reconstructed on the k-times finer grid and measured there.
+    /// The estimate comes back in camera pixels of frame 0.
+    fn reconstruct_target(
+        &self,
+        t: usize,
+        shifts_px: &[[f64; 2]],
+        k: usize,
+    ) -> Result<(CentreEstimate, Fine), String> {
+        let first = self.per_frame[0][t]
+            .as_ref()
+            .ok_or("not measurable in frame 0")?;
+        let c = &self.targets[t];
+        let reach = first.outer_radius_px.max(c.outer_radii_px[1]) + WINDOW_MARGIN_PX;
+        let side = (2.0 * reach).ceil() as u32 + 1;
+        let x0 = (first.outer_px[0] - reach).floor();
+        let y0 = (first.outer_px[1] - reach).floor();
+        let (w, h) = (self.planes[0].width, self.planes[0].height);
+        let mut crops = Vec::with_capacity(self.planes.len());
+        let mut fine_shifts = Vec::with_capacity(self.planes.len());
+        for (p, d) in self.planes.iter().zip(shifts_px) {
+            // The integer part of the displacement moves the window, the rest is resampled.
+            let (cx, cy) = (d[0].round(), d[1].round());
+            let (rx, ry) = (x0 + cx, y0 + cy);
+            let roi_ok = rx >= 0.0
+                && ry >= 0.0
+                && rx as usize + side as usize <= w
+                && ry as usize + side as usize <= h;
+            if !roi_ok {
+                return Err(format!(
+                    "its window ({rx}, {ry}, {side}x{side} px) leaves the frame during the scan"
+                ));
+            }
+            crops.push(p.crop(Roi {
+                x: rx as u32,
+                y: ry as u32,
+                w: side,
+                h: side,
+            }));
+            fine_shifts.push(reconstruct::fine_shift([d[0] - cx, d[1] - cy], k));
+        }
+        let views: Vec<View> = crops
+            .iter()
+            .map(|p| View::new(&p.data, p.width, p.height))
+            .collect();
+        let fine = match self.opts.combine {
+            Combine::Splat => reconstruct::splat(&views, &fine_shifts, k),
+            _ => reconstruct::interp(&views, &fine_shifts, k),
+        };
+        let plane = Plane {
+            width: fine.width,
+            height: fine.height,
+            data: fine.data.clone(),
+        };
+        // The guess on the fine grid: camera coordinate x maps to fine (x + 0.5) k - 0.5.
+        let kf = k as f64;
+        let to_fine = |p: [f64; 2]| [(p[0] - x0 + 0.5) * kf - 0.5, (p[1] - y0 + 0.5) * kf - 0.5];
+        let guess = Candidate {
+            outer_centre_px: to_fine(first.outer_px),
+            inner_centre_px: to_fine(first.inner_px),
+            outer_radii_px: [c.outer_radii_px[0] * kf, c.outer_radii_px[1] * kf],
+            inner_radii_px: [c.inner_radii_px[0] * kf, c.inner_radii_px[1] * kf],
+            roi: Roi {
+                x: 0,
+                y: 0,
+                w: fine.width as u32,
+                h: fine.height as u32,
+            },
+        };
+        let e = estimate(&plane, &guess, self.opts.estimator, kf)
+            .map_err(|e| format!("on its reconstruction: {e}"))?;
+        let from_fine = |p: [f64; 2]| [(p[0] + 0.5) / kf - 0.5 + x0, (p[1] + 0.5) / kf - 0.5 + y0];
+        let back = CentreEstimate {
+            outer_px: from_fine(e.outer_px),
+            inner_px: from_fine(e.inner_px),
+            outer_radius_px: e.outer_radius_px / kf,
+            inner_radius_px: e.inner_radius_px / kf,
+            offset_cov_px2: e
+                .offset_cov_px2
+                .map(|c| c.map(|r| r.map(|v| v / (kf * kf)))),
+        };
+        Ok((back, fine))
+    }
+}
+
+/// Measure one target in a frame at its frame-0 place moved by `shift_px`, on a window of
+/// the plane. `None` when it cannot be measured (out of frame, estimator failure).
+fn measure_in_frame(
+    plane: &Plane,
+    c: &Candidate,
+    shift_px: [f64; 2],
+    estimator: Estimator,
+) -> Option<CentreEstimate> {
+    let reach = c.outer_radii_px[1] + WINDOW_MARGIN_PX;
+    let cx = c.outer_centre_px[0] + shift_px[0];
+    let cy = c.outer_centre_px[1] + shift_px[1];
+    let x0 = (cx - reach).floor().max(0.0);
+    let y0 = (cy - reach).floor().max(0.0);
+    let side = (2.0 * reach).ceil() as u32 + 1;
+    let crop = plane.crop(Roi {
+        x: x0 as u32,
+        y: y0 as u32,
+        w: side,
+        h: side,
+    });
+    let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
+    let guess = Candidate {
+        outer_centre_px: mv(c.outer_centre_px),
+        inner_centre_px: mv(c.inner_centre_px),
+        outer_radii_px: c.outer_radii_px,
+        inner_radii_px: c.inner_radii_px,
+        roi: Roi {
+            x: 0,
+            y: 0,
+            w: crop.width as u32,
+            h: crop.height as u32,
+        },
+    };
+    let mut e = estimate(&crop, &guess, estimator, 1.0).ok()?;
+    e.outer_px = [e.outer_px[0] + x0, e.outer_px[1] + y0];
+    e.inner_px = [e.inner_px[0] + x0, e.inner_px[1] + y0];
+    Some(e)
+}
+
+/// Mean of per-frame offsets: inverse-covariance weighted when every frame has a
+/// covariance, else plain with the standard error of the scatter. Returns (offset, sigma).
+pub fn mean_offset(ests: &[&CentreEstimate]) -> ([f64; 2], Option<[f64; 2]>) {
+    let n = ests.len();
+    if n == 0 {
+        return ([f64::NAN; 2], None);
+    }
+    let covs: Option<Vec<nalgebra::Matrix2<f64>>> = ests
+        .iter()
+        .map(|e| {
+            e.offset_cov_px2
+                .map(|c| nalgebra::Matrix2::new(c[0][0], c[0][1], c[1][0], c[1][1]))
+        })
+        .collect();
+    if let Some(covs) = covs {
+        let mut info = nalgebra::Matrix2::zeros();
+        let mut acc = nalgebra::Vector2::zeros();
+        let mut ok = true;
+        for (e, c) in ests.iter().zip(&covs) {
+            match c.try_inverse() {
+                Some(w) => {
+                    let o = e.offset_px();
+                    info += w;
+                    acc += w * nalgebra::Vector2::new(o[0], o[1]);
+                }
+                None => ok = false,
+            }
+        }
+        if let (true, Some(cov)) = (ok, info.try_inverse()) {
+            let m = cov * acc;
+            return (
+                [m[0], m[1]],
+                Some([cov[(0, 0)].max(0.0).sqrt(), cov[(1, 1)].max(0.0).sqrt()]),
+            );
+        }
+    }
+    let offs: Vec<[f64; 2]> = ests.iter().map(|e| e.offset_px()).collect();
+    let mean = [0, 1].map(|a| offs.iter().map(|o| o[a]).sum::<f64>() / n as f64);
+    let sigma = (n > 1).then(|| {
+        [0, 1].map(|a| {
+            let var = offs.iter().map(|o| (o[a] - mean[a]).powi(2)).sum::<f64>() / (n - 1) as f64;
+            (var / n as f64).sqrt()
+        })
+    });
+    (mean, sigma)
+}
+
+/// Name the measured targets after the board's, and give their nominal offsets.
+fn name_objects(objects: &mut [ObjectResult], board: &Board, scale_um_per_px: f64) {
+    let found: Vec<[f64; 2]> = objects.iter().map(|o| o.centre_px).collect();
+    let centres: Vec<[f64; 2]> = board.targets.iter().map(|t| t.centre_um).collect();
+    // Within half the smallest ring hole: a target cannot be mistaken for its neighbour.
+    let tol = board
+        .targets
+        .iter()
+        .map(|t| match t.outer {
+            rigd_sim::board::Shape::Ring {
+                inner_radius_um, ..
+            } => inner_radius_um,
+            rigd_sim::board::Shape::Disk { radius_um } => radius_um,
+        })
+        .fold(f64::INFINITY, f64::min)
+        * 0.5;
+    let m = super::layout::match_layout(&found, &centres, scale_um_per_px, tol);
+    for (o, j) in objects.iter_mut().zip(m) {
+        if let Some(j) = j {
+            o.name = Some(board.targets[j].name.clone());
+            o.nominal_um = Some(board.targets[j].offset_um);
+        }
     }
 }
 
@@ -59,6 +538,13 @@ pub fn process_frames(
     opts: &ProcessOptions,
     board: Option<Board>,
 ) -> Result<Finished, PipelineError> {
+    if frames.len() != positions_um.len() {
+        return Err(PipelineError::Other(format!(
+            "{} frames but {} positions",
+            frames.len(),
+            positions_um.len()
+        )));
+    }
     let mut p = Pipeline::new(opts.clone(), board)?;
     for (f, &x) in frames.iter().zip(positions_um) {
         p.push(f, x)?;

@@ -10,7 +10,7 @@
 mod fit;
 mod paper;
 
-use super::detect::Candidate;
+use super::detect::{Candidate, Detection};
 use super::plane::Plane;
 use super::Estimator;
 use serde::{Deserialize, Serialize};
@@ -81,6 +81,36 @@ pub fn estimate(
         Estimator::Paper => paper::estimate(plane, &win, guess),
         Estimator::Fit => fit::estimate(plane, &win, guess, k),
     }
+}
+
+/// Measure every detected target of a frame on the ROI path: each target's ROI of channel
+/// `channel` only, estimated in parallel. Results in frame coordinates, in `det`'s order.
+pub fn estimate_targets(
+    img: &image::RgbImage,
+    det: &Detection,
+    channel: usize,
+    estimator: Estimator,
+) -> Vec<Result<CentreEstimate, EstimateError>> {
+    use rayon::prelude::*;
+    det.targets
+        .par_iter()
+        .map(|c| {
+            let plane = Plane::from_channel_roi(img, channel, c.roi);
+            let origin = [c.roi.x as f64, c.roi.y as f64];
+            let e = estimate(
+                &plane,
+                &c.translated([-origin[0], -origin[1]]),
+                estimator,
+                1.0,
+            )?;
+            let mv = |p: [f64; 2]| [p[0] + origin[0], p[1] + origin[1]];
+            Ok(CentreEstimate {
+                outer_px: mv(e.outer_px),
+                inner_px: mv(e.inner_px),
+                ..e
+            })
+        })
+        .collect()
 }
 
 fn check_guess(g: &Candidate) -> Result<(), EstimateError> {
@@ -155,10 +185,12 @@ impl Window {
 
     /// Paper and ink levels: high and low percentiles of the window (ink covers a good part
     /// of it, paper most of the rest).
-    pub fn levels(&self, plane: &Plane) -> (f64, f64) {
-        let mut v: Vec<f32> = Vec::with_capacity((self.x1 - self.x0) * (self.y1 - self.y0));
-        for y in self.y0..self.y1 {
-            v.extend_from_slice(&plane.data[y * plane.width + self.x0..y * plane.width + self.x1]);
+    pub fn levels(&self, plane: &Plane, step: usize) -> (f64, f64) {
+        let step = step.max(1);
+        let mut v: Vec<f32> = Vec::new();
+        for y in (self.y0..self.y1).step_by(step) {
+            let row = &plane.data[y * plane.width + self.x0..y * plane.width + self.x1];
+            v.extend(row.iter().step_by(step));
         }
         let n = v.len();
         let lo = n / 10;

@@ -46,7 +46,7 @@ pub(super) fn estimate(
     win: &Window,
     g: &Candidate,
 ) -> Result<CentreEstimate, EstimateError> {
-    let (paper, ink) = win.levels(plane);
+    let (paper, ink) = win.levels(plane, 1);
     let no_ink = |what: &str| EstimateError::NoInk {
         x: g.outer_centre_px[0],
         y: g.outer_centre_px[1],
@@ -66,10 +66,10 @@ pub(super) fn estimate(
     let split = ((hole - reach_inner) / 2.0).max(0.0);
     let (mut ring, mut inner) = (Moments::default(), Moments::default());
     for y in win.y0..win.y1 {
-        let row = &plane.data[y * plane.width..(y + 1) * plane.width];
+        let row = &plane.data[y * plane.width + win.x0..y * plane.width + win.x1];
         let fy = y as f64;
-        for x in win.x0..win.x1 {
-            if row[x] >= thr {
+        for (x, &v) in (win.x0..win.x1).zip(row) {
+            if v >= thr {
                 continue;
             }
             let fx = x as f64;
