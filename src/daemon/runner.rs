@@ -5,7 +5,7 @@
 use crate::daemon::plan::Plan;
 use crate::daemon::protocol::{process_options, EventBody, JobSpec, StepTimings};
 use crate::daemon::rig::Rig;
-use crate::daemon::session::{unix_s, SessionWriter, StepRow};
+use crate::daemon::session::{unix_s, Image16, SessionWriter, StepRow};
 use crate::daemon::study::{summarize, RunResult};
 use crate::hw::HwError;
 use crate::pipeline::Pipeline;
@@ -35,7 +35,7 @@ pub struct JobOutput {
     pub outcome: Outcome,
     /// `{"runs": [...], "study": {...}}`; runs that finished before a fault are kept.
     pub result: serde_json::Value,
-    pub images: Vec<(String, image::ImageBuffer<image::Luma<u16>, Vec<u16>>)>,
+    pub images: Vec<(String, Image16)>,
 }
 
 /// Everything the runner needs besides the rig and the session.
@@ -203,7 +203,7 @@ fn step(
     ))
 }
 
-type Images = Vec<(String, image::ImageBuffer<image::Luma<u16>, Vec<u16>>)>;
+type Images = Vec<(String, Image16)>;
 
 /// The processing side: one pipeline per run, fed as frames arrive.
 fn process_frames(
