@@ -147,6 +147,7 @@ mod tests {
                     outer_radius_px: 1.0,
                     inner_radius_px: 1.0,
                     frames: frames as usize,
+                    effective_pixel_um: 774.0,
                 }],
                 skipped: vec![],
                 steps: vec![],
