@@ -48,7 +48,9 @@ fn arb_json() -> impl Strategy<Value = Value> {
         Just(Value::Null),
         any::<bool>().prop_map(Value::from),
         any::<i64>().prop_map(Value::from),
-        any::<f64>().prop_filter("finite", |f| f.is_finite()).prop_map(Value::from),
+        any::<f64>()
+            .prop_filter("finite", |f| f.is_finite())
+            .prop_map(Value::from),
         prop_oneof![
             Just("submit".to_string()),
             Just("status".to_string()),
@@ -128,15 +130,43 @@ fn bad_requests_get_error_replies_and_the_connection_keeps_serving() {
         (b"42", "malformed", "object"),
         (br#"{"id":1,"kind":"fly"}"#, "bad_request", "fly"),
         (br#"{"id":2,"kind":"status","job":3}"#, "bad_request", "job"),
-        (br#"{"id":3,"kind":"cancel","job_id":"x"}"#, "bad_request", "invalid type"),
+        (
+            br#"{"id":3,"kind":"cancel","job_id":"x"}"#,
+            "bad_request",
+            "invalid type",
+        ),
         (br#"{"id":4,"v":9,"kind":"list"}"#, "version", "version 9"),
         (&long, "line_too_long", "limit"),
-        (br#"{"id":5,"kind":"submit","job":{"steps":3,"step_um":0}}"#, "rejected", "non-zero"),
-        (br#"{"id":6,"kind":"submit","job":{"steps":3,"step_um":1e6}}"#, "rejected", "soft limits"),
-        (br#"{"id":7,"kind":"submit","job":{"steps":3,"step_um":5,"speed":1}}"#, "bad_request", "speed"),
-        (br#"{"id":8,"kind":"submit","job":{"study":["case9"]}}"#, "bad_request", "case9"),
-        (br#"{"id":9,"kind":"cancel","job_id":99}"#, "not_found", "99"),
-        (br#"{"id":10,"kind":"result","job_id":99}"#, "not_found", "99"),
+        (
+            br#"{"id":5,"kind":"submit","job":{"steps":3,"step_um":0}}"#,
+            "rejected",
+            "non-zero",
+        ),
+        (
+            br#"{"id":6,"kind":"submit","job":{"steps":3,"step_um":1e6}}"#,
+            "rejected",
+            "soft limits",
+        ),
+        (
+            br#"{"id":7,"kind":"submit","job":{"steps":3,"step_um":5,"speed":1}}"#,
+            "bad_request",
+            "speed",
+        ),
+        (
+            br#"{"id":8,"kind":"submit","job":{"study":["case9"]}}"#,
+            "bad_request",
+            "case9",
+        ),
+        (
+            br#"{"id":9,"kind":"cancel","job_id":99}"#,
+            "not_found",
+            "99",
+        ),
+        (
+            br#"{"id":10,"kind":"result","job_id":99}"#,
+            "not_found",
+            "99",
+        ),
     ];
     for (line, code, needle) in &cases {
         let r = c.send(line);
@@ -147,7 +177,10 @@ fn bad_requests_get_error_replies_and_the_connection_keeps_serving() {
     }
     // Nothing was queued or moved, and the same connection still answers.
     let r = c.send(br#"{"id":"last","kind":"status"}"#);
-    assert_eq!((r["ok"].as_bool(), &r["id"]), (Some(true), &Value::from("last")));
+    assert_eq!(
+        (r["ok"].as_bool(), &r["id"]),
+        (Some(true), &Value::from("last"))
+    );
     assert_eq!(r["result"]["running"], Value::Null);
     let r = c.send(br#"{"kind":"list"}"#);
     assert_eq!(r["result"]["sessions"], serde_json::json!([]));
