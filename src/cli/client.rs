@@ -167,7 +167,7 @@ pub fn follow(c: &mut Client, id: u64, total: u32, quiet: bool) -> anyhow::Resul
 pub fn report_end(id: u64, end: &Ended) -> anyhow::Result<()> {
     match &end.body {
         EventBody::Finished { session } => {
-            println!("job {id} finished: session {session}");
+            eprintln!("job {id} finished: session {session}");
             Ok(())
         }
         EventBody::Failed { reason, session } => bail!(

@@ -56,26 +56,8 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     };
     let sim = SimSettings::default();
     let scale = sim.camera.scale_um_per_px;
-    let rig = sim_rig(&sim);
-    // The daemon runs on its own runtime thread; this thread is an ordinary client.
-    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let (ready_tx, ready_rx) = std::sync::mpsc::channel::<anyhow::Result<()>>();
-    let daemon = std::thread::spawn(move || -> anyhow::Result<()> {
-        let rt = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()?;
-        rt.block_on(async move {
-            let stop = async move {
-                let _ = stop_rx.await;
-            };
-            let _ = ready_tx.send(Ok(()));
-            server::run(settings, rig, stop, false).await?;
-            Ok(())
-        })
-    });
-    ready_rx.recv().context("the demo daemon did not start")??;
-    let mut c = connect_retry(&socket)?;
+    let mut daemon = server::Background::start(settings, sim_rig(&sim))?;
+    let mut c = Client::connect(&socket)?;
     c.request(&Request::Subscribe { job_id: None })?;
     let r = c.request(&Request::Submit {
         job: paper_study(a.repeats, scale),
@@ -91,13 +73,8 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     let end = follow(&mut c, id, total, a.json)?;
     let fetched = c.request(&Request::Result { job_id: id });
     drop(c);
-    let _ = stop_tx.send(());
-    let joined = daemon.join();
-    report_end(id, &end).map_err(|e| anyhow::anyhow!("{e:#}"))?;
-    match joined {
-        Ok(r) => r?,
-        Err(_) => anyhow::bail!("the demo daemon panicked"),
-    }
+    daemon.stop()?;
+    report_end(id, &end)?;
     let fetched = fetched?;
     let session = fetched["session"].as_str().unwrap_or_default().to_string();
     let study: StudySummary = serde_json::from_value(fetched["result"]["study"].clone())
@@ -111,6 +88,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
         "runtime_s": runtime_s,
         "runs_failed": failed,
         "cases": study.cases,
+        "stats": study.stats,
         "paper_rms_std_um": { "case1": 281.5, "case2": 96.6, "case3": 69.9 },
     });
     let dir = a.data_root.join(&session);
@@ -130,15 +108,4 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
         }
     }
     Ok(())
-}
-
-fn connect_retry(socket: &std::path::Path) -> anyhow::Result<Client> {
-    let t = Instant::now();
-    loop {
-        match Client::connect(socket) {
-            Ok(c) => return Ok(c),
-            Err(e) if t.elapsed().as_secs() > 10 => return Err(e),
-            Err(_) => std::thread::sleep(std::time::Duration::from_millis(20)),
-        }
-    }
 }

@@ -5,7 +5,7 @@
 use crate::daemon::plan::Plan;
 use crate::daemon::protocol::{process_options, EventBody, JobSpec, StepTimings};
 use crate::daemon::rig::Rig;
-use crate::daemon::session::{unix_s, SessionWriter, StepRow};
+use crate::daemon::session::{unix_s, Image16, SessionWriter, StepRow};
 use crate::daemon::study::{summarize, RunResult};
 use crate::hw::HwError;
 use crate::pipeline::Pipeline;
@@ -35,7 +35,7 @@ pub struct JobOutput {
     pub outcome: Outcome,
     /// `{"runs": [...], "study": {...}}`; runs that finished before a fault are kept.
     pub result: serde_json::Value,
-    pub images: Vec<(String, image::ImageBuffer<image::Luma<u16>, Vec<u16>>)>,
+    pub images: Vec<(String, Image16)>,
 }
 
 /// Everything the runner needs besides the rig and the session.
@@ -71,7 +71,13 @@ pub fn run_job(ctx: &JobContext<'_>, rig: &mut Rig, session: &mut SessionWriter)
         let (runs, images) = processor
             .join()
             .unwrap_or_else(|_| (Vec::new(), Vec::new()));
-        let study = (ctx.spec.process && !runs.is_empty()).then(|| summarize(&runs));
+        let names: Vec<&str> = info
+            .board
+            .iter()
+            .flat_map(|b| b.targets.iter().map(|t| t.name.as_str()))
+            .collect();
+        let study = (ctx.spec.process && !runs.is_empty())
+            .then(|| summarize(&runs, &names, info.scale_um_per_px));
         JobOutput {
             outcome,
             result: serde_json::json!({ "runs": runs, "study": study }),
@@ -197,7 +203,7 @@ fn step(
     ))
 }
 
-type Images = Vec<(String, image::ImageBuffer<image::Luma<u16>, Vec<u16>>)>;
+type Images = Vec<(String, Image16)>;
 
 /// The processing side: one pipeline per run, fed as frames arrive.
 fn process_frames(

@@ -117,8 +117,9 @@ pub async fn run(
             .events
             .emit(id, EventBody::Cancelled { session: None });
     }
-    if let Some(id) = shared.jobs().running() {
-        if let Some(r) = shared.jobs().get(id) {
+    {
+        let jobs = shared.jobs();
+        if let Some(r) = jobs.running().and_then(|id| jobs.get(id)) {
             r.stop.store(SHUTDOWN, Ordering::SeqCst);
         }
     }
@@ -129,4 +130,79 @@ pub async fn run(
     })?;
     tracing::info!("rigd stopped");
     Ok(rig)
+}
+
+/// A daemon running on its own thread and runtime (the demo's, and tests').
+pub struct Background {
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<Result<Rig, ServerError>>>,
+    pub socket: std::path::PathBuf,
+}
+
+impl Background {
+    /// Start serving; returns once the socket accepts connections.
+    pub fn start(settings: DaemonSettings, rig: Rig) -> Result<Background, ServerError> {
+        let socket = settings.socket.clone();
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let thread = std::thread::spawn(move || {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()
+                .map_err(|e| ServerError::Socket {
+                    path: settings.socket.display().to_string(),
+                    message: format!("runtime: {e}"),
+                })?;
+            rt.block_on(run(
+                settings,
+                rig,
+                async move {
+                    let _ = stop_rx.await;
+                },
+                false,
+            ))
+        });
+        let mut bg = Background {
+            stop: Some(stop_tx),
+            thread: Some(thread),
+            socket: socket.clone(),
+        };
+        let t = std::time::Instant::now();
+        while std::os::unix::net::UnixStream::connect(&socket).is_err() {
+            if bg.thread.as_ref().is_some_and(|t| t.is_finished()) || t.elapsed().as_secs() > 10 {
+                return Err(bg.stop().err().unwrap_or(ServerError::Socket {
+                    path: socket.display().to_string(),
+                    message: "the daemon did not start".into(),
+                }));
+            }
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        }
+        Ok(bg)
+    }
+
+    /// Stop as on SIGTERM and wait: returns the rig.
+    pub fn stop(&mut self) -> Result<Rig, ServerError> {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        match self.thread.take().map(|t| t.join()) {
+            Some(Ok(r)) => r,
+            Some(Err(_)) => Err(ServerError::Socket {
+                path: self.socket.display().to_string(),
+                message: "the daemon thread panicked".into(),
+            }),
+            None => Err(ServerError::Socket {
+                path: self.socket.display().to_string(),
+                message: "already stopped".into(),
+            }),
+        }
+    }
+}
+
+impl Drop for Background {
+    fn drop(&mut self) {
+        if self.thread.is_some() {
+            let _ = self.stop();
+        }
+    }
 }

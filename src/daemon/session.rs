@@ -22,6 +22,9 @@ pub const STEPS: &str = "steps.csv";
 pub const INTERFEROMETER: &str = "interferometer.csv";
 pub const RESULT: &str = "result.json";
 
+/// A reconstruction as the pipeline makes it: 16-bit grey.
+pub type Image16 = image::ImageBuffer<image::Luma<u16>, Vec<u16>>;
+
 #[derive(Debug, thiserror::Error)]
 pub enum SessionError {
     #[error("session {path}: {source}")]
@@ -255,7 +258,7 @@ impl SessionWriter {
     pub fn write_result(
         &mut self,
         result: &serde_json::Value,
-        images: &[(String, image::ImageBuffer<image::Luma<u16>, Vec<u16>>)],
+        images: &[(String, Image16)],
     ) -> Result<(), SessionError> {
         if !images.is_empty() {
             let dir = self.dir.join("images");

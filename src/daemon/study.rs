@@ -1,10 +1,10 @@
-//! The study summary: per case, the scatter of each target's measured offset over the
-//! repeats (the paper's Table 3), its mean against the nominal offset (Table 1), and the
-//! improvement over raw frames (Table 2). Built from the per-run results of one job.
+//! A job's runs reduced to the paper's study: per case, the scatter of each target's
+//! offset over the repeats (`pipeline::stats`), and each case's improvement over raw frames.
+//! The tables themselves are `report::study_tables`.
 
+use crate::pipeline::stats::{study_stats, CaseRuns, StudyStats};
 use crate::pipeline::ProcessResult;
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
 
 /// One run's outcome as the job records it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -21,208 +21,101 @@ pub struct RunResult {
     pub error: Option<String>,
 }
 
+/// One line of the study's summary (what `rigctl demo --json` lists as `cases`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TargetStats {
-    pub name: String,
-    pub nominal_um: Option<f64>,
-    /// Mean measured offset over the repeats (along the nominal direction).
-    pub mean_um: f64,
-    /// Standard deviation over the repeats (n - 1).
-    pub std_um: f64,
-    pub repeats: usize,
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CaseSummary {
+pub struct CaseLine {
     pub name: String,
     pub frames: u32,
     pub step_um: f64,
     pub k: u32,
-    /// RMS over targets of the per-target standard deviation.
+    /// RMS over targets of the per-target standard deviation over repeats.
     pub rms_std_um: f64,
-    /// rms_std_um of the single-frame case divided by this case's (1 for raw frames).
+    /// rms_std_um of the single-frame case over this case's.
     pub improvement: Option<f64>,
     pub runs_ok: usize,
     pub runs_failed: usize,
-    pub targets: Vec<TargetStats>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StudySummary {
-    pub cases: Vec<CaseSummary>,
+    pub cases: Vec<CaseLine>,
+    pub stats: StudyStats,
 }
 
-/// The measured offset of a target along its nominal direction (its length if no nominal).
-fn offset_along(o: &crate::pipeline::ObjectResult) -> f64 {
-    match o.nominal_um {
-        Some(n) if n[0].hypot(n[1]) > 0.0 => {
-            let l = n[0].hypot(n[1]);
-            (o.offset_um[0] * n[0] + o.offset_um[1] * n[1]) / l
-        }
-        _ => o.offset_um[0].hypot(o.offset_um[1]),
-    }
-}
-
-pub fn summarize(runs: &[RunResult]) -> StudySummary {
-    let mut order: Vec<String> = Vec::new();
+/// Reduce a job's runs, grouped by case in the order they first ran. `names` are the
+/// board's target names, in table order.
+pub fn summarize(runs: &[RunResult], names: &[&str], scale_um_per_px: f64) -> StudySummary {
+    let mut order: Vec<&str> = Vec::new();
     for r in runs {
-        if !order.contains(&r.case) {
-            order.push(r.case.clone());
+        if !order.contains(&r.case.as_str()) {
+            order.push(&r.case);
         }
     }
-    let mut cases: Vec<CaseSummary> = order
+    let case_runs: Vec<CaseRuns> = order
         .iter()
-        .map(|case| {
-            let of_case: Vec<&RunResult> = runs.iter().filter(|r| &r.case == case).collect();
-            let first = of_case[0];
-            let mut per: BTreeMap<String, (Option<f64>, Vec<f64>)> = BTreeMap::new();
-            let mut ok = 0;
-            for r in &of_case {
-                let Some(res) = &r.result else { continue };
-                ok += 1;
-                for (i, o) in res.objects.iter().enumerate() {
-                    let name = o.name.clone().unwrap_or_else(|| format!("#{i}"));
-                    let nominal = o.nominal_um.map(|n| n[0].hypot(n[1]));
-                    per.entry(name)
-                        .or_insert((nominal, Vec::new()))
-                        .1
-                        .push(offset_along(o));
-                }
-            }
-            let targets: Vec<TargetStats> = per
-                .into_iter()
-                .map(|(name, (nominal_um, v))| {
-                    let n = v.len() as f64;
-                    let mean = v.iter().sum::<f64>() / n.max(1.0);
-                    let var = if v.len() > 1 {
-                        v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0)
-                    } else {
-                        0.0
-                    };
-                    TargetStats {
-                        name,
-                        nominal_um,
-                        mean_um: mean,
-                        std_um: var.sqrt(),
-                        repeats: v.len(),
-                    }
-                })
-                .collect();
-            let rms = if targets.is_empty() {
-                f64::NAN
-            } else {
-                (targets.iter().map(|t| t.std_um.powi(2)).sum::<f64>() / targets.len() as f64)
-                    .sqrt()
-            };
-            CaseSummary {
-                name: case.clone(),
-                frames: first.frames,
-                step_um: first.step_um,
-                k: first.k,
-                rms_std_um: rms,
-                improvement: None,
-                runs_ok: ok,
-                runs_failed: of_case.len() - ok,
-                targets,
+        .map(|&case| {
+            let of: Vec<&RunResult> = runs.iter().filter(|r| r.case == case).collect();
+            CaseRuns {
+                name: case.to_string(),
+                frames: of[0].frames as usize,
+                step_um: of[0].step_um,
+                k: of[0].k,
+                runs: of
+                    .iter()
+                    .filter_map(|r| r.result.as_ref().map(|x| x.objects.clone()))
+                    .collect(),
             }
         })
         .collect();
-    let raw = cases
+    let stats = study_stats(&case_runs, names, scale_um_per_px);
+    let raw = stats
+        .cases
         .iter()
         .find(|c| c.frames == 1)
         .map(|c| c.rms_std_um)
         .filter(|x| x.is_finite() && *x > 0.0);
-    for c in &mut cases {
-        c.improvement = raw
-            .filter(|_| c.rms_std_um.is_finite() && c.rms_std_um > 0.0)
-            .map(|r| r / c.rms_std_um);
-    }
-    StudySummary { cases }
+    let cases = stats
+        .cases
+        .iter()
+        .zip(&case_runs)
+        .map(|(c, cr)| {
+            let total = runs.iter().filter(|r| r.case == c.name).count();
+            CaseLine {
+                name: c.name.clone(),
+                frames: c.frames as u32,
+                step_um: c.step_um,
+                k: c.k,
+                rms_std_um: c.rms_std_um,
+                improvement: raw
+                    .filter(|_| c.rms_std_um.is_finite() && c.rms_std_um > 0.0)
+                    .map(|r| r / c.rms_std_um),
+                runs_ok: cr.runs.len(),
+                runs_failed: total - cr.runs.len(),
+            }
+        })
+        .collect();
+    StudySummary { cases, stats }
 }
 
-/// The paper's three tables as text.
+/// Tables 1-3 and a line per case with its improvement over raw frames.
 pub fn tables(s: &StudySummary) -> String {
-    use std::fmt::Write;
-    let mut out = String::new();
-    let names: Vec<String> = {
-        let mut v: Vec<String> = Vec::new();
-        for c in &s.cases {
-            for t in &c.targets {
-                if !v.contains(&t.name) {
-                    v.push(t.name.clone());
-                }
-            }
-        }
-        v
-    };
-    let cell = |c: &CaseSummary, n: &str, f: &dyn Fn(&TargetStats) -> f64| {
-        c.targets
-            .iter()
-            .find(|t| t.name == n)
-            .map(|t| format!("{:>10.1}", f(t)))
-            .unwrap_or_else(|| format!("{:>10}", "-"))
-    };
-    let head = |out: &mut String, first: &str| {
-        let _ = write!(out, "{first:<8}");
-        for c in &s.cases {
-            let _ = write!(out, "{:>10}", c.name);
-        }
-        out.push('\n');
-    };
-    out.push_str("Table 1: nominal and measured offsets (µm, mean over repeats)\n");
-    let _ = write!(out, "{:<8}{:>10}", "target", "nominal");
+    let mut out = crate::report::study_tables(&s.stats);
+    out.push_str(
+        "\nImprovement over raw frames (RMS std of the single-frame case / the case's):\n",
+    );
     for c in &s.cases {
-        let _ = write!(out, "{:>10}", c.name);
-    }
-    out.push('\n');
-    for n in &names {
-        let nominal = s
-            .cases
-            .iter()
-            .flat_map(|c| &c.targets)
-            .find(|t| &t.name == n)
-            .and_then(|t| t.nominal_um);
-        let _ = write!(
-            out,
-            "{n:<8}{:>10}",
-            nominal.map(|x| format!("{x:.0}")).unwrap_or("-".into())
-        );
-        for c in &s.cases {
-            out.push_str(&cell(c, n, &|t| t.mean_um));
-        }
-        out.push('\n');
-    }
-    out.push_str("\nTable 2: improvement over raw frames (RMS std of case 1 / RMS std of case)\n");
-    head(&mut out, "");
-    let _ = write!(out, "{:<8}", "ratio");
-    for c in &s.cases {
-        let _ = write!(
-            out,
-            "{:>10}",
+        out.push_str(&format!(
+            "  {:<6} {:>3} frames at {:>5} µm, k = {:>2}: RMS std {:>7.1} µm  {}\n",
+            c.name,
+            c.frames,
+            c.step_um,
+            c.k,
+            c.rms_std_um,
             c.improvement
-                .map(|x| format!("{x:.2}"))
-                .unwrap_or("-".into())
-        );
+                .map(|x| format!("{x:.2}x"))
+                .unwrap_or_else(|| "-".into())
+        ));
     }
-    out.push_str("\n\nTable 3: standard deviation of the measured offsets over repeats (µm)\n");
-    head(&mut out, "target");
-    for n in &names {
-        let _ = write!(out, "{n:<8}");
-        for c in &s.cases {
-            out.push_str(&cell(c, n, &|t| t.std_um));
-        }
-        out.push('\n');
-    }
-    let _ = write!(out, "{:<8}", "RMS");
-    for c in &s.cases {
-        let _ = write!(out, "{:>10.1}", c.rms_std_um);
-    }
-    out.push('\n');
-    let _ = write!(out, "{:<8}", "frames");
-    for c in &s.cases {
-        let _ = write!(out, "{:>10}", format!("{}@{}", c.frames, c.step_um));
-    }
-    out.push('\n');
     out
 }
 
@@ -254,6 +147,7 @@ mod tests {
                     outer_radius_px: 1.0,
                     inner_radius_px: 1.0,
                     frames: frames as usize,
+                    effective_pixel_um: 774.0,
                 }],
                 skipped: vec![],
                 steps: vec![],
@@ -264,20 +158,24 @@ mod tests {
 
     #[test]
     fn std_over_repeats_and_improvement_over_raw_frames() {
+        let mut failed = run("case2", 10, 2, 0.0);
+        failed.result = None;
+        failed.error = Some("no target".into());
         let runs = vec![
             run("case1", 1, 0, 80.0),
             run("case1", 1, 1, 120.0),
             run("case2", 10, 0, 95.0),
             run("case2", 10, 1, 105.0),
+            failed,
         ];
-        let s = summarize(&runs);
+        let s = summarize(&runs, &["A"], 774.0);
         assert_eq!(s.cases.len(), 2);
         // std of {80, 120} (n-1) = 28.28; of {95, 105} = 7.07.
         assert!((s.cases[0].rms_std_um - 28.284).abs() < 1e-2);
         assert!((s.cases[1].rms_std_um - 7.071).abs() < 1e-2);
         assert!((s.cases[1].improvement.unwrap() - 4.0).abs() < 1e-9);
-        assert!((s.cases[0].targets[0].mean_um - 100.0).abs() < 1e-9);
+        assert_eq!((s.cases[1].runs_ok, s.cases[1].runs_failed), (2, 1));
         let t = tables(&s);
-        assert!(t.contains("Table 3") && t.contains("4.00"), "{t}");
+        assert!(t.contains("Table 3") && t.contains("4.00x"), "{t}");
     }
 }

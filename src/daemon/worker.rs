@@ -121,15 +121,14 @@ fn execute(shared: &Shared, job: &JobRecord, live: &mut Rig) {
     };
     tracing::info!(job = id, state = ?jstate, reason = ?reason, "job ended");
     shared.jobs().finish(id, jstate, reason.clone());
-    let session = Some(name);
     let body = match jstate {
-        JobState::Finished => EventBody::Finished {
-            session: session.unwrap_or_default(),
+        JobState::Finished => EventBody::Finished { session: name },
+        JobState::Cancelled => EventBody::Cancelled {
+            session: Some(name),
         },
-        JobState::Cancelled => EventBody::Cancelled { session },
         _ => EventBody::Failed {
             reason: reason.unwrap_or_default(),
-            session,
+            session: Some(name),
         },
     };
     shared.events.emit(id, body);

@@ -1,0 +1,398 @@
+//! The daemon over its real Unix socket, in-process, on a small fast simulated rig:
+//! queueing, cancel, faults, disconnecting clients, many clients, replay, and a short soak.
+
+use rigd::cli::client::Client;
+use rigd::daemon::protocol::{EventBody, JobSpec, ProcessingOverride, Request};
+use rigd::daemon::server::Background;
+use rigd::daemon::session::{Session, SessionState};
+use rigd::daemon::simrig::{sim_rig, Fault, SimSettings};
+use rigd::daemon::DaemonSettings;
+use rigd::sim::CameraModel;
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+
+struct Rigd {
+    bg: Background,
+    data: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+fn small_sim(faults: Vec<Fault>) -> SimSettings {
+    SimSettings {
+        camera: CameraModel {
+            width: 48,
+            height: 32,
+            supersample: 2,
+            frame_period_ms: 1.0,
+            exposure_ms: 0.5,
+            ..CameraModel::default()
+        },
+        faults,
+        ..SimSettings::default()
+    }
+}
+
+fn start(faults: Vec<Fault>) -> Rigd {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let settings = DaemonSettings {
+        socket: dir.path().join("rigd.sock"),
+        group: None,
+        data_root: data.clone(),
+    };
+    let bg = Background::start(settings, sim_rig(&small_sim(faults))).unwrap();
+    Rigd {
+        bg,
+        data,
+        _dir: dir,
+    }
+}
+
+impl Rigd {
+    fn client(&self) -> Client {
+        Client::connect(&self.bg.socket).unwrap()
+    }
+}
+
+fn scan(steps: u32, settle_ms: u64) -> JobSpec {
+    JobSpec {
+        step_um: Some(50.0),
+        steps: Some(steps),
+        settle_ms,
+        process: false,
+        ..JobSpec::default()
+    }
+}
+
+fn submit(c: &mut Client, job: JobSpec) -> u64 {
+    c.request(&Request::Submit { job }).unwrap()["job_id"]
+        .as_u64()
+        .unwrap()
+}
+
+/// Events of job `id` until its terminal one (the client is subscribed).
+fn events_until_end(c: &mut Client, id: u64) -> Vec<EventBody> {
+    let mut v = Vec::new();
+    loop {
+        let e = c.next_event().unwrap();
+        if e.job_id != id {
+            continue;
+        }
+        let end = e.body.is_terminal();
+        v.push(e.body);
+        if end {
+            return v;
+        }
+    }
+}
+
+fn session_of(data: &Path, events: &[EventBody]) -> Session {
+    let name = events
+        .iter()
+        .find_map(|e| match e {
+            EventBody::Started { session, .. } => Some(session.clone()),
+            _ => None,
+        })
+        .expect("a started event");
+    Session::open(&data.join(name)).unwrap()
+}
+
+#[test]
+fn a_job_runs_its_steps_in_order_and_records_every_frame() {
+    let d = start(vec![]);
+    let mut c = d.client();
+    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let id = submit(&mut c, scan(5, 0));
+    let ev = events_until_end(&mut c, id);
+    assert!(matches!(
+        ev[0],
+        EventBody::Accepted {
+            total_frames: 5,
+            ..
+        }
+    ));
+    assert!(matches!(ev.last(), Some(EventBody::Finished { .. })));
+    let steps: Vec<(u32, f64, f64)> = ev
+        .iter()
+        .filter_map(|e| match e {
+            EventBody::Step {
+                index,
+                commanded_um,
+                interferometer_um,
+                ..
+            } => Some((*index, *commanded_um, interferometer_um.unwrap())),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        steps.iter().map(|s| s.0).collect::<Vec<_>>(),
+        vec![0, 1, 2, 3, 4]
+    );
+    for (i, cmd, ifm) in &steps {
+        assert_eq!(*cmd, 1000.0 + 50.0 * *i as f64);
+        // The axis ends within its random positioning error (2 µm RMS) of the target.
+        assert!((ifm - cmd).abs() < 12.0, "interferometer {ifm} vs {cmd}");
+    }
+    let s = session_of(&d.data, &ev);
+    assert_eq!(s.manifest.state, SessionState::Finished);
+    assert_eq!(s.steps.len(), 5);
+    for r in &s.steps {
+        let img = image::open(s.frame_path(r.index)).unwrap();
+        assert_eq!((img.width(), img.height()), (48, 32));
+    }
+    let text = std::fs::read_to_string(s.dir.join("steps.csv")).unwrap();
+    assert!(text.starts_with("index,position_um,"), "{text}");
+    let st = c.request(&Request::Status { job_id: Some(id) }).unwrap();
+    assert_eq!(
+        (st["state"].as_str(), st["frames_done"].as_u64()),
+        (Some("finished"), Some(5))
+    );
+}
+
+#[test]
+fn jobs_queue_behind_the_running_one_and_cancel_stops_them() {
+    let d = start(vec![]);
+    let mut c = d.client();
+    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let long = submit(&mut c, scan(200, 20));
+    let queued = c.request(&Request::Submit { job: scan(3, 0) }).unwrap();
+    assert_eq!(queued["queue_position"].as_u64(), Some(1));
+    let queued = queued["job_id"].as_u64().unwrap();
+    let st = c.request(&Request::Status { job_id: None }).unwrap();
+    assert_eq!(st["queued"], serde_json::json!([queued]));
+    // Cancel the queued job: it never starts.
+    let r = c.request(&Request::Cancel { job_id: queued }).unwrap();
+    assert_eq!(r["state"], "cancelled");
+    // Let the long job take a few steps, then cancel it.
+    let mut seen = 0;
+    while seen < 3 {
+        let e = c.next_event().unwrap();
+        if e.job_id == long && matches!(e.body, EventBody::Step { .. }) {
+            seen += 1;
+        }
+    }
+    assert_eq!(
+        c.request(&Request::Cancel { job_id: long }).unwrap()["state"],
+        "cancelling"
+    );
+    let ev = events_until_end(&mut c, long);
+    assert!(matches!(
+        ev.last(),
+        Some(EventBody::Cancelled { session: Some(_) })
+    ));
+    let st = c.request(&Request::Status { job_id: Some(long) }).unwrap();
+    let done = st["frames_done"].as_u64().unwrap();
+    assert!((3..200).contains(&done), "{done}");
+    let list = c.request(&Request::List).unwrap();
+    let sessions = list["sessions"].as_array().unwrap();
+    assert_eq!(sessions.len(), 1, "the cancelled queued job has no session");
+    assert_eq!(sessions[0]["state"], "cancelled");
+    assert_eq!(sessions[0]["frames_captured"].as_u64(), Some(done));
+    // Cancelling again names the problem.
+    let e = c.request(&Request::Cancel { job_id: long }).unwrap_err();
+    assert!(e.to_string().contains("already"), "{e}");
+}
+
+#[test]
+fn each_injected_fault_fails_the_job_with_its_reason_and_keeps_the_frames() {
+    for (fault, want, kept) in [
+        (Fault::Alarm(4), "alarm", 3),
+        (Fault::SerialLoss(3), "port gone", 2),
+        (Fault::CameraTimeout(5), "no reply", 4),
+    ] {
+        let d = start(vec![fault]);
+        let mut c = d.client();
+        c.request(&Request::Subscribe { job_id: None }).unwrap();
+        let id = submit(&mut c, scan(10, 0));
+        let ev = events_until_end(&mut c, id);
+        let Some(EventBody::Failed { reason, .. }) = ev.last() else {
+            panic!("{fault:?}: {ev:?}")
+        };
+        assert!(reason.contains(want), "{fault:?}: {reason}");
+        let s = session_of(&d.data, &ev);
+        assert_eq!(s.manifest.state, SessionState::Failed);
+        assert_eq!(s.steps.len(), kept, "{fault:?}");
+        assert!(s.manifest.reason.as_deref().unwrap().contains(want));
+        // The daemon keeps serving.
+        c.request(&Request::Hello).unwrap();
+    }
+}
+
+#[test]
+fn a_client_that_disconnects_does_not_affect_its_job() {
+    let d = start(vec![]);
+    let id = {
+        let mut c = d.client();
+        c.request(&Request::Subscribe { job_id: None }).unwrap();
+        submit(&mut c, scan(8, 5))
+    };
+    let mut c = d.client();
+    let r = c.request(&Request::Subscribe { job_id: Some(id) }).unwrap();
+    let ev = if r["status"]["state"] == "finished" {
+        vec![]
+    } else {
+        events_until_end(&mut c, id)
+    };
+    assert!(ev.is_empty() || matches!(ev.last(), Some(EventBody::Finished { .. })));
+    let st = c.request(&Request::Status { job_id: Some(id) }).unwrap();
+    assert_eq!(
+        (st["state"].as_str(), st["frames_done"].as_u64()),
+        (Some("finished"), Some(8))
+    );
+}
+
+#[test]
+fn many_clients_at_once_all_get_their_jobs_done() {
+    let d = start(vec![]);
+    let socket = d.bg.socket.clone();
+    let threads: Vec<_> = (0..16)
+        .map(|i| {
+            let socket = socket.clone();
+            std::thread::spawn(move || {
+                let mut c = Client::connect(&socket).unwrap();
+                c.request(&Request::Subscribe { job_id: None }).unwrap();
+                let id = submit(&mut c, scan(1 + i % 3, 0));
+                // Interleave other requests while the queue drains.
+                c.request(&Request::List).unwrap();
+                c.request(&Request::Status { job_id: None }).unwrap();
+                let ev = events_until_end(&mut c, id);
+                (id, ev.last().cloned(), 1 + i % 3)
+            })
+        })
+        .collect();
+    let mut ids = Vec::new();
+    for t in threads {
+        let (id, last, _) = t.join().unwrap();
+        assert!(matches!(last, Some(EventBody::Finished { .. })), "{last:?}");
+        ids.push(id);
+    }
+    ids.sort();
+    ids.dedup();
+    assert_eq!(ids.len(), 16);
+    let mut c = d.client();
+    let list = c.request(&Request::List).unwrap();
+    let frames: u64 = list["sessions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["frames_captured"].as_u64().unwrap())
+        .sum();
+    assert_eq!(frames, (0..16).map(|i| 1 + i % 3).sum::<u64>());
+}
+
+#[test]
+fn replay_feeds_the_recorded_frames_and_positions_through_the_job_path() {
+    let d = start(vec![]);
+    let mut c = d.client();
+    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let live = submit(
+        &mut c,
+        JobSpec {
+            process: true,
+            ..scan(4, 0)
+        },
+    );
+    let ev = events_until_end(&mut c, live);
+    let live_s = session_of(&d.data, &ev);
+    let r = c
+        .request(&Request::Replay {
+            session: live_s.manifest.name.clone(),
+            processing: ProcessingOverride::default(),
+        })
+        .unwrap();
+    let rid = r["job_id"].as_u64().unwrap();
+    let ev = events_until_end(&mut c, rid);
+    assert!(
+        matches!(ev.last(), Some(EventBody::Finished { .. })),
+        "{ev:?}"
+    );
+    let rs = session_of(&d.data, &ev);
+    assert_eq!(
+        rs.manifest.replay_of.as_deref(),
+        Some(live_s.manifest.name.as_str())
+    );
+    assert_eq!(rs.manifest.rig.mode, "replay");
+    assert_eq!(rs.steps.len(), 4);
+    for (a, b) in live_s.steps.iter().zip(&rs.steps) {
+        assert_eq!(
+            (a.position_um, a.axis_um, a.interferometer_um, a.sequence),
+            (b.position_um, b.axis_um, b.interferometer_um, b.sequence)
+        );
+        let fa = std::fs::read(live_s.frame_path(a.index)).unwrap();
+        let fb = image::open(rs.frame_path(b.index)).unwrap().into_rgb8();
+        assert_eq!(image::load_from_memory(&fa).unwrap().into_rgb8(), fb);
+    }
+    // Same frames, same positions, same pipeline: the same result.
+    let a = c.request(&Request::Result { job_id: live }).unwrap();
+    let b = c.request(&Request::Result { job_id: rid }).unwrap();
+    assert_eq!(a["result"]["runs"], b["result"]["runs"]);
+    // An unknown session or a path outside the data root is refused.
+    for bad in ["nope", "../etc", ".hidden"] {
+        let e = c
+            .request(&Request::Replay {
+                session: bad.into(),
+                processing: ProcessingOverride::default(),
+            })
+            .unwrap_err();
+        assert!(
+            e.to_string().contains(bad) || e.to_string().contains("session"),
+            "{e}"
+        );
+    }
+}
+
+fn open_fds() -> usize {
+    std::fs::read_dir("/proc/self/fd").unwrap().count()
+}
+
+fn rss_kb() -> u64 {
+    let s = std::fs::read_to_string("/proc/self/status").unwrap();
+    s.lines()
+        .find(|l| l.starts_with("VmRSS:"))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|v| v.parse().ok())
+        .unwrap()
+}
+
+/// A short soak: 200 one-frame jobs, each on its own connection (the long version:
+/// `SOAK_JOBS=3000 cargo test --test daemon_jobs soak -- --nocapture`).
+#[test]
+fn soak_short_jobs_leak_neither_files_nor_memory() {
+    let n: usize = std::env::var("SOAK_JOBS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(200);
+    let d = start(vec![]);
+    let run = |count: usize| {
+        for _ in 0..count {
+            let mut c = d.client();
+            c.request(&Request::Subscribe { job_id: None }).unwrap();
+            let id = submit(&mut c, scan(1, 0));
+            let ev = events_until_end(&mut c, id);
+            assert!(matches!(ev.last(), Some(EventBody::Finished { .. })));
+        }
+    };
+    run(30); // warm up: allocator pools, runtime threads, the job table's first growth
+    let (fd0, rss0) = (open_fds(), rss_kb());
+    let t = std::time::Instant::now();
+    run(n);
+    let (fd1, rss1) = (open_fds(), rss_kb());
+    eprintln!(
+        "soak: {n} jobs in {:.1} s; open fds {fd0} -> {fd1}; RSS {rss0} -> {rss1} kB",
+        t.elapsed().as_secs_f64()
+    );
+    assert!(fd1 <= fd0 + 2, "open files grew: {fd0} -> {fd1}");
+    assert!(rss1 < rss0 + 8 * 1024, "memory grew: {rss0} -> {rss1} kB");
+    let mut c = d.client();
+    let list = c.request(&Request::List).unwrap();
+    assert_eq!(list["sessions"].as_array().unwrap().len(), n + 30);
+}
+
+#[test]
+fn hello_names_the_protocol_and_the_rig() {
+    let d = start(vec![]);
+    let r: Value = d.client().request(&Request::Hello).unwrap();
+    assert_eq!(r["protocol"], 1);
+    assert_eq!(r["rig"]["mode"], "sim");
+    assert_eq!(r["rig"]["frame_size"], serde_json::json!([48, 32]));
+}

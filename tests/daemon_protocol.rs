@@ -1,0 +1,188 @@
+//! The request decoder under property tests (nothing panics, every bad line gets an error),
+//! and bad requests over a live socket: each gets an error reply before anything moves and
+//! the connection keeps serving.
+
+use proptest::prelude::*;
+use rigd::daemon::protocol::{decode_request, ErrorCode, MAX_LINE_BYTES};
+use rigd::daemon::server::Background;
+use rigd::daemon::simrig::{sim_rig, SimSettings};
+use rigd::daemon::DaemonSettings;
+use rigd::sim::CameraModel;
+use serde_json::Value;
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::UnixStream;
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 2000, ..ProptestConfig::default() })]
+
+    #[test]
+    fn arbitrary_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..300)) {
+        let _ = decode_request(&bytes);
+    }
+
+    #[test]
+    fn json_of_any_shape_decodes_or_names_an_error(v in arb_json()) {
+        let line = serde_json::to_vec(&v).unwrap();
+        match decode_request(&line) {
+            Ok(_) => {}
+            Err((_, e)) => prop_assert!(!e.message.is_empty()),
+        }
+    }
+
+    #[test]
+    fn mutated_submits_decode_or_name_an_error(
+        key in "[a-z_]{1,10}",
+        val in arb_json(),
+    ) {
+        let mut job = serde_json::json!({"step_um": 50.0, "steps": 3});
+        job[key.as_str()] = val;
+        let line = serde_json::to_vec(&serde_json::json!({"kind": "submit", "job": job})).unwrap();
+        if let Err((_, e)) = decode_request(&line) {
+            prop_assert!(matches!(e.code, ErrorCode::BadRequest), "{:?}", e);
+        }
+    }
+}
+
+fn arb_json() -> impl Strategy<Value = Value> {
+    let leaf = prop_oneof![
+        Just(Value::Null),
+        any::<bool>().prop_map(Value::from),
+        any::<i64>().prop_map(Value::from),
+        any::<f64>()
+            .prop_filter("finite", |f| f.is_finite())
+            .prop_map(Value::from),
+        prop_oneof![
+            Just("submit".to_string()),
+            Just("status".to_string()),
+            Just("cancel".to_string()),
+            Just("replay".to_string()),
+            "[a-z]{0,8}",
+        ]
+        .prop_map(Value::from),
+    ];
+    leaf.prop_recursive(3, 24, 6, |inner| {
+        prop_oneof![
+            proptest::collection::vec(inner.clone(), 0..4).prop_map(Value::from),
+            proptest::collection::btree_map(
+                prop_oneof![
+                    Just("kind".to_string()),
+                    Just("job".to_string()),
+                    Just("job_id".to_string()),
+                    Just("id".to_string()),
+                    Just("v".to_string()),
+                    Just("steps".to_string()),
+                    Just("step_um".to_string()),
+                    "[a-z_]{1,6}",
+                ],
+                inner,
+                0..5
+            )
+            .prop_map(|m| Value::Object(m.into_iter().collect())),
+        ]
+    })
+}
+
+struct Conn {
+    r: BufReader<UnixStream>,
+    w: UnixStream,
+}
+
+impl Conn {
+    fn send(&mut self, bytes: &[u8]) -> Value {
+        self.w.write_all(bytes).unwrap();
+        self.w.write_all(b"\n").unwrap();
+        let mut line = String::new();
+        self.r.read_line(&mut line).unwrap();
+        serde_json::from_str(&line).unwrap_or_else(|e| panic!("{e}: {line}"))
+    }
+}
+
+#[test]
+fn bad_requests_get_error_replies_and_the_connection_keeps_serving() {
+    let dir = tempfile::tempdir().unwrap();
+    let settings = DaemonSettings {
+        socket: dir.path().join("s.sock"),
+        group: None,
+        data_root: dir.path().join("data"),
+    };
+    let sim = SimSettings {
+        camera: CameraModel {
+            width: 32,
+            height: 24,
+            supersample: 1,
+            ..CameraModel::default()
+        },
+        ..SimSettings::default()
+    };
+    let mut bg = Background::start(settings, sim_rig(&sim)).unwrap();
+    // The socket is group read-write, nobody else.
+    use std::os::unix::fs::PermissionsExt;
+    let mode = std::fs::metadata(&bg.socket).unwrap().permissions().mode();
+    assert_eq!(mode & 0o777, 0o660);
+    let s = UnixStream::connect(&bg.socket).unwrap();
+    let mut c = Conn {
+        r: BufReader::new(s.try_clone().unwrap()),
+        w: s,
+    };
+    let long = vec![b' '; MAX_LINE_BYTES + 1];
+    let cases: Vec<(&[u8], &str, &str)> = vec![
+        (b"{not json", "malformed", "not JSON"),
+        (b"42", "malformed", "object"),
+        (br#"{"id":1,"kind":"fly"}"#, "bad_request", "fly"),
+        (br#"{"id":2,"kind":"status","job":3}"#, "bad_request", "job"),
+        (
+            br#"{"id":3,"kind":"cancel","job_id":"x"}"#,
+            "bad_request",
+            "invalid type",
+        ),
+        (br#"{"id":4,"v":9,"kind":"list"}"#, "version", "version 9"),
+        (&long, "line_too_long", "limit"),
+        (
+            br#"{"id":5,"kind":"submit","job":{"steps":3,"step_um":0}}"#,
+            "rejected",
+            "non-zero",
+        ),
+        (
+            br#"{"id":6,"kind":"submit","job":{"steps":3,"step_um":1e6}}"#,
+            "rejected",
+            "soft limits",
+        ),
+        (
+            br#"{"id":7,"kind":"submit","job":{"steps":3,"step_um":5,"speed":1}}"#,
+            "bad_request",
+            "speed",
+        ),
+        (
+            br#"{"id":8,"kind":"submit","job":{"study":["case9"]}}"#,
+            "bad_request",
+            "case9",
+        ),
+        (
+            br#"{"id":9,"kind":"cancel","job_id":99}"#,
+            "not_found",
+            "99",
+        ),
+        (
+            br#"{"id":10,"kind":"result","job_id":99}"#,
+            "not_found",
+            "99",
+        ),
+    ];
+    for (line, code, needle) in &cases {
+        let r = c.send(line);
+        assert_eq!(r["ok"], false, "{r}");
+        assert_eq!(r["error"]["code"], *code, "{r}");
+        let msg = r["error"]["message"].as_str().unwrap();
+        assert!(msg.contains(needle), "{msg:?} should name {needle:?}");
+    }
+    // Nothing was queued or moved, and the same connection still answers.
+    let r = c.send(br#"{"id":"last","kind":"status"}"#);
+    assert_eq!(
+        (r["ok"].as_bool(), &r["id"]),
+        (Some(true), &Value::from("last"))
+    );
+    assert_eq!(r["result"]["running"], Value::Null);
+    let r = c.send(br#"{"kind":"list"}"#);
+    assert_eq!(r["result"]["sessions"], serde_json::json!([]));
+    bg.stop().unwrap();
+}

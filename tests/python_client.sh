@@ -1,0 +1,19 @@
+#!/bin/sh
+# Run docs/examples/client.py against a live `rigd --sim` on a temporary socket.
+# Usage: tests/python_client.sh [path/to/rigd]   (default: target/debug/rigd, built if missing)
+set -eu
+cd "$(dirname "$0")/.."
+RIGD=${1:-target/debug/rigd}
+[ -x "$RIGD" ] || cargo build --bin rigd
+DIR=$(mktemp -d)
+"$RIGD" --sim --socket "$DIR/rigd.sock" --data-root "$DIR/data" 2>"$DIR/rigd.log" &
+PID=$!
+cleanup() { kill -TERM "$PID" 2>/dev/null || true; wait "$PID" 2>/dev/null || true; rm -rf "$DIR"; }
+trap cleanup EXIT
+i=0
+while [ ! -S "$DIR/rigd.sock" ]; do
+    i=$((i + 1))
+    if [ "$i" -gt 200 ]; then echo "rigd did not start:"; cat "$DIR/rigd.log"; exit 1; fi
+    sleep 0.05
+done
+python3 docs/examples/client.py "$DIR/rigd.sock"
