@@ -110,25 +110,34 @@ pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
     };
     let dir = folder::open(&args.dir, args.frames)?;
     let mut pipeline = Pipeline::new(args.options(), board)?;
-    // PNG decoding is most of a frame's cost: decode a batch of frames in parallel, then
-    // push them in order (errors are still reported for the first bad frame in order).
+    // PNG decoding is most of a frame's cost: a scoped thread decodes batches of frames in
+    // parallel while this one pushes the previous ones, in order (a bad frame is reported
+    // when its turn comes, so the first bad frame in order is the one named).
     let batch = rayon::current_num_threads().max(1) * 2;
     let items: Vec<_> = dir.frames.iter().zip(&dir.positions_um).collect();
-    for chunk in items.chunks(batch) {
-        let decoded: Vec<_> = {
+    std::thread::scope(|scope| -> anyhow::Result<()> {
+        let (tx, rx) = std::sync::mpsc::sync_channel(batch);
+        let paths: Vec<&std::path::PathBuf> = items.iter().map(|(p, _)| *p).collect();
+        scope.spawn(move || {
             use rayon::prelude::*;
-            chunk
-                .par_iter()
-                .map(|(path, _)| folder::load_frame(path))
-                .collect()
-        };
-        for ((path, &pos), frame) in chunk.iter().zip(decoded) {
+            for chunk in paths.chunks(batch) {
+                let decoded: Vec<_> = chunk.par_iter().map(|p| folder::load_frame(p)).collect();
+                for frame in decoded {
+                    // The receiver stops early on the first error: nothing left to do.
+                    if tx.send(frame).is_err() {
+                        return;
+                    }
+                }
+            }
+        });
+        for ((path, &pos), frame) in items.iter().zip(rx) {
             let rep = pipeline
                 .push(&frame?, pos)
                 .with_context(|| path.display().to_string())?;
             tracing::debug!(?rep, "frame");
         }
-    }
+        Ok(())
+    })?;
     let done = pipeline
         .finish()
         .with_context(|| args.dir.display().to_string())?;
