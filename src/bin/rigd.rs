@@ -79,7 +79,8 @@ fn run(a: Args) -> anyhow::Result<()> {
     let rig = sim_rig(&SimSettings {
         faults: a.faults,
         ..SimSettings::default()
-    });
+    })
+    .context("starting the simulated rig")?;
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(server::run(
         settings,
