@@ -164,9 +164,7 @@ pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
             "faults": s.faults.iter().map(|f| format!("{f:?}")).collect::<Vec<_>>(),
         }),
     };
-    let log = SimInterferometer {
-        axis: Arc::clone(&rig.axis),
-    };
+    let log = SimInterferometer::new(Arc::clone(&rig.axis));
     Ok(Rig {
         info,
         axis: Box::new(EmulatedStage {
@@ -304,6 +302,12 @@ impl Camera for RigCamera {
 /// The interferometer of the simulated rig: the axis' true position.
 pub struct SimInterferometer {
     axis: Arc<Axis>,
+}
+
+impl SimInterferometer {
+    pub fn new(axis: Arc<Axis>) -> SimInterferometer {
+        SimInterferometer { axis }
+    }
 }
 
 impl PositionLog for SimInterferometer {
