@@ -15,8 +15,8 @@ pub mod motion;
 pub mod pty;
 pub mod render;
 pub mod rig;
-pub mod xl80;
 pub mod serve;
+pub mod xl80;
 
 pub use board::Board;
 pub use camera::CameraModel;
