@@ -40,7 +40,7 @@ fn start(faults: Vec<Fault>) -> Rigd {
         group: None,
         data_root: data.clone(),
     };
-    let bg = Background::start(settings, sim_rig(&small_sim(faults))).unwrap();
+    let bg = Background::start(settings, sim_rig(&small_sim(faults)).unwrap()).unwrap();
     Rigd {
         bg,
         data,

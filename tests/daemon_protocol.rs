@@ -114,7 +114,7 @@ fn bad_requests_get_error_replies_and_the_connection_keeps_serving() {
         },
         ..SimSettings::default()
     };
-    let mut bg = Background::start(settings, sim_rig(&sim)).unwrap();
+    let mut bg = Background::start(settings, sim_rig(&sim).unwrap()).unwrap();
     // The socket is group read-write, nobody else.
     use std::os::unix::fs::PermissionsExt;
     let mode = std::fs::metadata(&bg.socket).unwrap().permissions().mode();

@@ -1,7 +1,10 @@
-//! `rigd`: the rig daemon. `rigd --sim` runs the simulated rig with no configuration.
+//! `rigd`: the rig daemon. `rigd --config FILE` runs the rig the file describes; `rigd --sim`
+//! runs the simulated rig with no configuration.
 
 use anyhow::{bail, Context};
 use clap::Parser;
+use rigd::config::Config;
+use rigd::daemon::hwrig::rig_from_config;
 use rigd::daemon::simrig::{sim_rig, Fault, SimSettings};
 use rigd::daemon::{default_socket, server, settings_from_config, DaemonSettings};
 use std::path::PathBuf;
@@ -56,12 +59,6 @@ fn run(a: Args) -> anyhow::Result<()> {
         }
         None => None,
     };
-    if !a.sim {
-        if from_config.is_none() {
-            bail!("give --config FILE for a rig, or --sim for the simulated rig");
-        }
-        bail!("this build drives only the simulated rig: run with --sim (the hardware drivers are not wired into the daemon yet)");
-    }
     if !a.faults.is_empty() && !a.sim {
         bail!("--fault needs --sim");
     }
@@ -76,10 +73,19 @@ fn run(a: Args) -> anyhow::Result<()> {
             .or(from_config.as_ref().map(|c| c.data_root.clone()))
             .unwrap_or_else(|| PathBuf::from("rigd-sessions")),
     };
-    let rig = sim_rig(&SimSettings {
-        faults: a.faults,
-        ..SimSettings::default()
-    });
+    let rig = match (&a.config, a.sim) {
+        // --sim wins: the config then only sets the daemon's socket and data root.
+        (_, true) => sim_rig(&SimSettings {
+            faults: a.faults,
+            ..SimSettings::default()
+        })
+        .context("starting the simulated rig")?,
+        (Some(p), false) => {
+            let cfg = Config::load(p)?;
+            rig_from_config(&cfg).with_context(|| format!("opening the rig of {}", p.display()))?
+        }
+        (None, false) => bail!("give --config FILE for a rig, or --sim for the simulated rig"),
+    };
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(server::run(
         settings,

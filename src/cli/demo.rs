@@ -56,7 +56,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     };
     let sim = SimSettings::default();
     let scale = sim.camera.scale_um_per_px;
-    let mut daemon = server::Background::start(settings, sim_rig(&sim))?;
+    let mut daemon = server::Background::start(settings, sim_rig(&sim)?)?;
     let mut c = Client::connect(&socket)?;
     c.request(&Request::Subscribe { job_id: None })?;
     let r = c.request(&Request::Submit {

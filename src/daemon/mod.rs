@@ -11,6 +11,7 @@
 pub mod commands;
 pub mod connection;
 pub mod events;
+pub mod hwrig;
 pub mod jobs;
 pub mod plan;
 pub mod protocol;

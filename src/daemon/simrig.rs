@@ -1,15 +1,25 @@
-//! The simulated rig `rigd --sim` runs when no better one is built in: a stage over
-//! `rigd_sim::motion::Axis`, a camera that renders the paper's board from where the axis truly
-//! is at the exposure instant, and an interferometer that reads the axis' true position.
+//! The simulated rig `rigd --sim` runs: the whole `rigd_sim::SimRig` driven through the same
+//! drivers a real rig uses. The axis is moved by rigd's GRBL driver over the real serialport
+//! path to the GRBL emulator on a pseudo-terminal, the piezo by the GCS driver to the PI GCS
+//! emulator; the camera is the rig's frame-clock camera (frames show where the line of sight
+//! truly was during the exposure, motion blur included); the interferometer reads the axis'
+//! true position.
 //!
-//! Faults can be injected (`rigd --sim --fault alarm@5`) to exercise the job's fault path.
+//! Faults can be injected (`rigd --sim --fault alarm@5`): alarms and serial loss through the
+//! GRBL emulator's own fault injection, camera timeouts at the camera.
 
 use crate::daemon::rig::{PositionLog, Rig, RigInfo};
-use crate::hw::{Camera, Frame, HwError, MotionState, Stage, StageStatus};
+use crate::hw::gcs::{GcsOptions, GcsStage};
+use crate::hw::grbl::{GrblOptions, GrblStage};
+use crate::hw::limits::TravelLimits;
+use crate::hw::sim_camera::SimCamera;
+use crate::hw::{Camera, Frame, HwError, Stage, StageStatus};
+use rigd_sim::gcs::{GcsSim, GcsSimOptions};
+use rigd_sim::grbl::{GrblSim, GrblSimOptions};
 use rigd_sim::motion::{Axis, AxisParams};
-use rigd_sim::render::{render_frame, View};
-use rigd_sim::{Board, CameraModel};
-use std::sync::atomic::{AtomicU32, Ordering};
+use rigd_sim::serve::Faults;
+use rigd_sim::{CameraModel, SimRig, SimRigConfig};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
@@ -48,19 +58,32 @@ impl std::str::FromStr for Fault {
 #[derive(Debug, Clone)]
 pub struct SimSettings {
     pub axis: AxisParams,
+    pub piezo: AxisParams,
     pub camera: CameraModel,
-    pub board: Board,
+    /// Board file (`config/boards/*.toml`); none = the paper's board.
+    pub board_file: Option<PathBuf>,
+    /// Soft travel limits the drivers enforce.
+    pub axis_limits_um: [f64; 2],
+    pub piezo_limits_um: [f64; 2],
     pub faults: Vec<Fault>,
 }
 
 impl Default for SimSettings {
     fn default() -> Self {
         SimSettings {
-            // A fast axis and frame clock, so the demo's 620 frames fit in well under a minute.
+            // A fast axis and frame clock, so the demo's 620 frames fit in about a minute.
             axis: AxisParams {
                 max_speed_um_s: 50_000.0,
                 accel_um_s2: 2_000_000.0,
                 ..AxisParams::default()
+            },
+            piezo: AxisParams {
+                max_speed_um_s: 10_000.0,
+                accel_um_s2: 1_000_000.0,
+                position_error_rms_um: 0.05,
+                hard_min_um: 0.0,
+                hard_max_um: 1_500.0,
+                seed: 2,
             },
             camera: CameraModel {
                 frame_period_ms: 5.0,
@@ -68,260 +91,223 @@ impl Default for SimSettings {
                 supersample: 4,
                 ..CameraModel::default()
             },
-            board: Board::paper(),
+            board_file: None,
+            axis_limits_um: [0.0, 250_000.0],
+            piezo_limits_um: [0.0, 1_400.0],
             faults: Vec::new(),
         }
     }
 }
 
-/// Build the simulated rig.
-pub fn sim_rig(s: &SimSettings) -> Rig {
-    let axis = Arc::new(Axis::new(s.axis.clone()));
-    axis.set_position(0.0);
-    let piezo = Arc::new(Axis::new(AxisParams {
-        max_speed_um_s: 10_000.0,
-        accel_um_s2: 1_000_000.0,
-        position_error_rms_um: 0.05,
-        hard_min_um: 0.0,
-        hard_max_um: 1_500.0,
-        seed: s.axis.seed + 1,
-    }));
-    let alarm_at = s.faults.iter().find_map(|f| match f {
-        Fault::Alarm(n) => Some(*n),
-        _ => None,
-    });
-    let loss_at = s.faults.iter().find_map(|f| match f {
-        Fault::SerialLoss(n) => Some(*n),
-        _ => None,
-    });
-    let timeout_at = s.faults.iter().find_map(|f| match f {
-        Fault::CameraTimeout(n) => Some(*n),
-        _ => None,
-    });
+fn sim_error(device: &str, e: impl std::fmt::Display) -> HwError {
+    HwError::Other {
+        device: device.into(),
+        message: e.to_string(),
+    }
+}
+
+fn limits(device: &str, l: [f64; 2]) -> Result<TravelLimits, HwError> {
+    TravelLimits::new(l[0], l[1], l[1] - l[0]).map_err(|e| sim_error(device, e))
+}
+
+/// Build the simulated rig: start the `SimRig`, serve its axis and piezo on two ptys and
+/// connect rigd's drivers to them.
+pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
+    let rc = SimRigConfig {
+        board_file: s.board_file.clone(),
+        camera: s.camera.clone(),
+        axis: s.axis.clone(),
+        piezo: s.piezo.clone(),
+        ..SimRigConfig::default()
+    };
+    let board = rc.board().map_err(|e| sim_error("sim-rig", e))?;
+    let rig = SimRig::start(rc.clone()).map_err(|e| sim_error("sim-rig", e))?;
+
+    let grbl = GrblSim::spawn(Arc::clone(&rig.axis), GrblSimOptions::default(), None)
+        .map_err(|e| sim_error("sim-grbl", e))?;
+    let mut go = GrblOptions::new(
+        grbl.path().to_string_lossy(),
+        limits("axis", s.axis_limits_um)?,
+    );
+    go.feed_um_s = s.axis.max_speed_um_s;
+    let axis = GrblStage::connect("axis", go)?;
+
+    let gcs = GcsSim::spawn(Arc::clone(&rig.piezo), GcsSimOptions::default(), None)
+        .map_err(|e| sim_error("sim-gcs", e))?;
+    let piezo = GcsStage::connect(
+        "piezo",
+        GcsOptions::new(
+            gcs.path().to_string_lossy(),
+            limits("piezo", s.piezo_limits_um)?,
+        ),
+    )?;
+
+    let fault_at = |want: fn(&Fault) -> Option<u32>| s.faults.iter().find_map(want);
     let info = RigInfo {
         mode: "sim".into(),
-        axis_limits_um: [0.0, 250_000.0],
-        piezo_limits_um: Some([0.0, 1_400.0]),
+        axis_limits_um: s.axis_limits_um,
+        piezo_limits_um: Some(s.piezo_limits_um),
         default_start_um: 1_000.0,
         scale_um_per_px: s.camera.scale_um_per_px,
-        axis_dir: [-1.0, 0.0],
+        // The camera rides the axis: the board moves the other way in the image.
+        axis_dir: [-rc.axis_dir[0], -rc.axis_dir[1]],
         frame_size: (s.camera.width, s.camera.height),
-        board: Some(s.board.clone()),
+        board: Some(board.clone()),
         config: serde_json::json!({
             "sim": true,
             "axis": s.axis,
+            "piezo": s.piezo,
             "camera": s.camera,
-            "board": s.board.name,
+            "board": board.name,
+            "axis_driver": "grbl (emulated, pty)",
+            "piezo_driver": "gcs (emulated, pty)",
             "faults": s.faults.iter().map(|f| format!("{f:?}")).collect::<Vec<_>>(),
         }),
     };
-    Rig {
+    let log = SimInterferometer::new(Arc::clone(&rig.axis));
+    Ok(Rig {
         info,
-        axis: Box::new(SimStage::new("axis", axis.clone(), alarm_at, loss_at)),
-        piezo: Some(Box::new(SimStage::new("piezo", piezo.clone(), None, None))),
-        camera: Box::new(SimCam {
-            axis: axis.clone(),
-            piezo,
-            model: s.camera.clone(),
-            board: s.board.clone(),
-            sequence: 0,
-            grabs: AtomicU32::new(0),
-            timeout_at,
+        axis: Box::new(EmulatedStage {
+            faults: grbl.faults().clone(),
+            stage: Box::new(axis),
+            _emulator: Box::new(grbl),
+            moves: 0,
+            alarm_at: fault_at(|f| match f {
+                Fault::Alarm(n) => Some(*n),
+                _ => None,
+            }),
+            loss_at: fault_at(|f| match f {
+                Fault::SerialLoss(n) => Some(*n),
+                _ => None,
+            }),
         }),
-        log: Some(Box::new(SimInterferometer { axis })),
-    }
+        piezo: Some(Box::new(EmulatedStage {
+            faults: gcs.faults().clone(),
+            stage: Box::new(piezo),
+            _emulator: Box::new(gcs),
+            moves: 0,
+            alarm_at: None,
+            loss_at: None,
+        })),
+        camera: Box::new(RigCamera {
+            cam: SimCamera::new(Arc::clone(&rig.camera)),
+            grabs: 0,
+            timeout_at: fault_at(|f| match f {
+                Fault::CameraTimeout(n) => Some(*n),
+                _ => None,
+            }),
+            _rig: rig,
+        }),
+        log: Some(Box::new(log)),
+    })
 }
 
-/// A stage over a simulated axis.
-pub struct SimStage {
-    name: String,
-    axis: Arc<Axis>,
+/// A driver connected to an emulated controller, which it keeps alive; arms the
+/// emulator's fault injection on the configured move.
+struct EmulatedStage {
+    // Dropped before the emulator: the driver closes its port first.
+    stage: Box<dyn Stage>,
+    _emulator: Box<dyn Send>,
+    faults: Faults,
     moves: u32,
     alarm_at: Option<u32>,
     loss_at: Option<u32>,
-    alarmed: bool,
-    gone: bool,
 }
 
-impl SimStage {
-    pub fn new(name: &str, axis: Arc<Axis>, alarm_at: Option<u32>, loss_at: Option<u32>) -> Self {
-        SimStage {
-            name: name.into(),
-            axis,
-            moves: 0,
-            alarm_at,
-            loss_at,
-            alarmed: false,
-            gone: false,
+impl EmulatedStage {
+    /// Count a move and arm the fault due on it.
+    fn arm(&mut self) {
+        self.moves += 1;
+        if self.alarm_at == Some(self.moves) {
+            self.faults.update(|p| p.alarm_mid_move = true);
         }
-    }
-
-    fn check(&self) -> Result<(), HwError> {
-        if self.gone {
-            return Err(HwError::PortGone {
-                device: self.name.clone(),
-                message: "the serial port closed (injected)".into(),
-            });
+        if self.loss_at == Some(self.moves) {
+            self.faults.vanish();
+            // The emulator thread closes the pty master on its next turn.
+            std::thread::sleep(Duration::from_millis(30));
         }
-        if self.alarmed {
-            return Err(HwError::Alarm {
-                device: self.name.clone(),
-                code: 1,
-                message: "hard limit triggered; reset and home".into(),
-            });
-        }
-        Ok(())
     }
 }
 
-impl Stage for SimStage {
+impl Stage for EmulatedStage {
     fn name(&self) -> &str {
-        &self.name
+        self.stage.name()
     }
     fn move_rel(&mut self, delta_um: f64) -> Result<(), HwError> {
-        let here = self.axis.reported_um(Instant::now());
-        self.move_abs(here + delta_um)
+        self.arm();
+        self.stage.move_rel(delta_um)
     }
     fn move_abs(&mut self, target_um: f64) -> Result<(), HwError> {
-        self.check()?;
-        self.moves += 1;
-        if self.loss_at == Some(self.moves) {
-            self.gone = true;
-            self.axis.stop();
-            return self.check();
-        }
-        if self.alarm_at == Some(self.moves) {
-            self.alarmed = true;
-            self.axis.stop();
-            return self.check();
-        }
-        self.axis
-            .command_move(target_um)
-            .map(|_| ())
-            .map_err(|e| HwError::Limit {
-                device: self.name.clone(),
-                target_um,
-                reason: e.to_string(),
-            })
+        self.arm();
+        self.stage.move_abs(target_um)
     }
     fn wait_settled(&mut self, timeout: Duration) -> Result<f64, HwError> {
-        self.check()?;
-        let end = self.axis.move_ends_at();
-        let now = Instant::now();
-        if end > now + timeout {
-            return Err(HwError::Timeout {
-                device: self.name.clone(),
-                timeout_ms: timeout.as_millis() as u64,
-                waiting_for: "end of move".into(),
-            });
-        }
-        std::thread::sleep(end.saturating_duration_since(now));
-        Ok(self.axis.reported_um(Instant::now()))
+        self.stage.wait_settled(timeout)
     }
     fn position_um(&mut self) -> Result<f64, HwError> {
-        self.check()?;
-        Ok(self.axis.reported_um(Instant::now()))
+        self.stage.position_um()
     }
     fn stop(&mut self) -> Result<(), HwError> {
-        // A real controller still halts on a feed hold while alarmed: stop the axis first.
-        self.axis.stop();
-        Ok(())
+        self.stage.stop()
     }
     fn home(&mut self) -> Result<(), HwError> {
-        self.check()?;
-        self.axis.set_position(0.0);
-        Ok(())
+        self.stage.home()
     }
     fn status(&mut self) -> Result<StageStatus, HwError> {
-        self.check()?;
-        let now = Instant::now();
-        Ok(StageStatus {
-            state: if self.axis.is_moving(now) {
-                MotionState::Moving
-            } else {
-                MotionState::Idle
-            },
-            position_um: self.axis.reported_um(now),
-        })
+        self.stage.status()
     }
 }
 
-/// A camera on a frame clock that renders the board from the true axis position.
-pub struct SimCam {
-    axis: Arc<Axis>,
-    piezo: Arc<Axis>,
-    model: CameraModel,
-    board: Board,
-    sequence: u64,
-    grabs: AtomicU32,
+/// The rig's frame-clock camera, keeping the whole `SimRig` alive; can be told to stop
+/// delivering from its n-th grab on.
+struct RigCamera {
+    cam: SimCamera,
+    grabs: u32,
     timeout_at: Option<u32>,
+    _rig: SimRig,
 }
 
-impl SimCam {
-    fn expose(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError> {
-        let n = self.grabs.fetch_add(1, Ordering::Relaxed) + 1;
-        if self.timeout_at.is_some_and(|t| n >= t) {
+impl RigCamera {
+    fn injected_timeout(&mut self, timeout: Duration) -> Result<(), HwError> {
+        self.grabs += 1;
+        if self.timeout_at.is_some_and(|t| self.grabs >= t) {
             std::thread::sleep(timeout.min(Duration::from_millis(50)));
             return Err(HwError::Timeout {
-                device: "camera".into(),
+                device: self.cam.name().into(),
                 timeout_ms: timeout.as_millis() as u64,
                 waiting_for: "a frame (injected)".into(),
             });
         }
-        // The next frame of the clock that starts at or after `not_before`.
-        let period = Duration::from_secs_f64(self.model.frame_period_ms / 1000.0);
-        let wait = not_before
-            .duration_since(SystemTime::now())
-            .unwrap_or_default();
-        let wall = SystemTime::now() + wait;
-        let since_epoch = wall
-            .duration_since(SystemTime::UNIX_EPOCH)
-            .unwrap_or_default();
-        let phase =
-            Duration::from_nanos((since_epoch.as_nanos() % period.as_nanos().max(1)) as u64);
-        let to_next = if phase.is_zero() {
-            Duration::ZERO
-        } else {
-            period - phase
-        };
-        std::thread::sleep(wait + to_next);
-        let exposed = SystemTime::now();
-        let mid = Instant::now() + Duration::from_secs_f64(self.model.exposure_ms / 2000.0);
-        let x = self.axis.position_at(mid) + self.piezo.position_at(mid);
-        self.sequence += 1;
-        let image = render_frame(
-            &self.board,
-            &self.model,
-            &View::at([x, 0.0]),
-            1.0,
-            self.sequence,
-        );
-        Ok(Frame {
-            image,
-            sequence: self.sequence,
-            timestamp: exposed,
-        })
+        Ok(())
     }
 }
 
-impl Camera for SimCam {
+impl Camera for RigCamera {
     fn name(&self) -> &str {
-        "sim-camera"
+        self.cam.name()
     }
     fn size(&self) -> (u32, u32) {
-        (self.model.width, self.model.height)
+        self.cam.size()
     }
     fn grab(&mut self, timeout: Duration) -> Result<Frame, HwError> {
-        self.expose(SystemTime::now(), timeout)
+        self.injected_timeout(timeout)?;
+        self.cam.grab(timeout)
     }
     fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError> {
-        self.expose(not_before, timeout)
+        self.injected_timeout(timeout)?;
+        self.cam.grab_fresh(not_before, timeout)
     }
 }
 
 /// The interferometer of the simulated rig: the axis' true position.
 pub struct SimInterferometer {
     axis: Arc<Axis>,
+}
+
+impl SimInterferometer {
+    pub fn new(axis: Arc<Axis>) -> SimInterferometer {
+        SimInterferometer { axis }
+    }
 }
 
 impl PositionLog for SimInterferometer {

@@ -1,0 +1,150 @@
+//! The rig `rigd --config FILE` runs: built from the config's `[axis]`, `[piezo]`, `[camera]`,
+//! `[board]` and `[xl80]` through `hw::open`. When every device's driver is "sim" the
+//! devices are one `SimRig` (`open_sim_rig`), so the camera sees the stages move.
+
+use crate::config::{CameraDriver, Config, StageDriver};
+use crate::daemon::rig::{PositionLog, Rig, RigInfo};
+use crate::daemon::simrig::SimInterferometer;
+use crate::hw::open::{open_camera, open_sim_rig, open_stage};
+use crate::hw::sim_camera::SimCamera;
+use crate::hw::{Camera, Frame, HwError};
+use crate::xl80::follow::Follower;
+use std::sync::Arc;
+use std::time::{Duration, SystemTime};
+
+fn missing(section: &str, cfg: &Config) -> HwError {
+    HwError::Other {
+        device: section.trim_matches(['[', ']']).into(),
+        message: format!(
+            "{}: the daemon needs a {section} section",
+            cfg.source.display()
+        ),
+    }
+}
+
+/// Build the rig a config describes, connecting to its devices now.
+pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
+    let axis_cfg = cfg.axis.as_ref().ok_or_else(|| missing("[axis]", cfg))?;
+    let cam_cfg = cfg
+        .camera
+        .as_ref()
+        .ok_or_else(|| missing("[camera]", cfg))?;
+    let all_sim = axis_cfg.driver == StageDriver::Sim
+        && cfg
+            .piezo
+            .as_ref()
+            .is_none_or(|p| p.driver == StageDriver::Sim)
+        && cam_cfg.driver == CameraDriver::Sim;
+    let board = match &cfg.board {
+        Some(b) => Some(rigd_sim::Board::load(&b.path).map_err(|e| HwError::Other {
+            device: "board".into(),
+            message: e.to_string(),
+        })?),
+        None => all_sim.then(rigd_sim::Board::paper),
+    };
+    let axis_limits = axis_cfg.limits();
+    let info = RigInfo {
+        mode: if all_sim { "sim" } else { "hardware" }.into(),
+        axis_limits_um: [axis_limits.min_um, axis_limits.max_um],
+        piezo_limits_um: cfg.piezo.as_ref().map(|p| {
+            let l = p.limits();
+            [l.min_um, l.max_um]
+        }),
+        default_start_um: axis_limits.min_um.max(0.0),
+        scale_um_per_px: cfg.pipeline.scale_um_per_px,
+        axis_dir: [-1.0, 0.0],
+        frame_size: (cam_cfg.width, cam_cfg.height),
+        board,
+        config: serde_json::to_value(cfg).unwrap_or_default(),
+    };
+    if all_sim {
+        let hw = open_sim_rig(cfg)?;
+        let size = hw.camera.size();
+        let log = SimInterferometer::new(Arc::clone(&hw.rig.axis));
+        return Ok(Rig {
+            info: RigInfo {
+                frame_size: size,
+                ..info
+            },
+            axis: Box::new(hw.axis),
+            piezo: match cfg.piezo {
+                Some(_) => Some(Box::new(hw.piezo)),
+                None => None,
+            },
+            camera: Box::new(SimRigCamera {
+                cam: hw.camera,
+                _rig: hw.rig,
+            }),
+            log: Some(Box::new(log)),
+        });
+    }
+    let axis = open_stage("axis", axis_cfg)?;
+    let piezo = match &cfg.piezo {
+        Some(p) => Some(open_stage("piezo", p)?),
+        None => None,
+    };
+    let camera = open_camera(cam_cfg, cfg.board.as_ref().map(|b| b.path.as_path()))?;
+    let log = cfg.xl80.as_ref().map(|x| -> Box<dyn PositionLog> {
+        let mut f = Follower::new(&x.path, x.format);
+        if let Some(u) = crate::xl80::length_unit_um(&x.rtx_unit) {
+            f = f.with_rtx_unit_um(u);
+        }
+        Box::new(FollowedLog { follower: f })
+    });
+    Ok(Rig {
+        info,
+        axis,
+        piezo,
+        camera,
+        log,
+    })
+}
+
+/// The simulated camera, keeping the `SimRig` it watches alive.
+struct SimRigCamera {
+    cam: SimCamera,
+    _rig: rigd_sim::SimRig,
+}
+
+impl Camera for SimRigCamera {
+    fn name(&self) -> &str {
+        self.cam.name()
+    }
+    fn size(&self) -> (u32, u32) {
+        self.cam.size()
+    }
+    fn grab(&mut self, timeout: Duration) -> Result<Frame, HwError> {
+        self.cam.grab(timeout)
+    }
+    fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError> {
+        self.cam.grab_fresh(not_before, timeout)
+    }
+}
+
+/// The XL-80's live log, followed as the laser software writes it.
+struct FollowedLog {
+    follower: Follower,
+}
+
+impl PositionLog for FollowedLog {
+    fn position_at(&mut self, t: SystemTime) -> Option<f64> {
+        if let Err(e) = self.follower.poll() {
+            tracing::warn!("xl80 log {}: {e}", self.follower.path().display());
+        }
+        let log = self.follower.log();
+        let gap = |r: &crate::xl80::Reading| {
+            let at = log.time_of(r)?;
+            Some(match at.duration_since(t) {
+                Ok(d) => d,
+                Err(e) => e.duration(),
+            })
+        };
+        // Only a reading within a second of `t` says where the stage was then.
+        log.readings
+            .iter()
+            .filter_map(|r| Some((gap(r)?, r.position_um)))
+            .filter(|(d, _)| *d <= Duration::from_secs(1))
+            .min_by_key(|(d, _)| *d)
+            .map(|(_, p)| p)
+    }
+}
