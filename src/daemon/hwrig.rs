@@ -5,9 +5,8 @@
 use crate::config::{CameraDriver, Config, StageDriver};
 use crate::daemon::rig::{PositionLog, Rig, RigInfo};
 use crate::daemon::simrig::SimInterferometer;
-use crate::hw::open::{open_camera, open_sim_rig, open_stage};
-use crate::hw::sim_camera::SimCamera;
-use crate::hw::{Camera, Frame, HwError};
+use crate::hw::open::{open_camera, open_sim_rig, open_stage, SimRigCamera};
+use crate::hw::{Camera, HwError};
 use crate::xl80::follow::Follower;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};
@@ -71,10 +70,7 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
                 Some(_) => Some(Box::new(hw.piezo)),
                 None => None,
             },
-            camera: Box::new(SimRigCamera {
-                cam: hw.camera,
-                _rig: hw.rig,
-            }),
+            camera: Box::new(SimRigCamera::new(hw.rig, hw.camera)),
             log: Some(Box::new(log)),
         });
     }
@@ -98,27 +94,6 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
         camera,
         log,
     })
-}
-
-/// The simulated camera, keeping the `SimRig` it watches alive.
-struct SimRigCamera {
-    cam: SimCamera,
-    _rig: rigd_sim::SimRig,
-}
-
-impl Camera for SimRigCamera {
-    fn name(&self) -> &str {
-        self.cam.name()
-    }
-    fn size(&self) -> (u32, u32) {
-        self.cam.size()
-    }
-    fn grab(&mut self, timeout: Duration) -> Result<Frame, HwError> {
-        self.cam.grab(timeout)
-    }
-    fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError> {
-        self.cam.grab_fresh(not_before, timeout)
-    }
 }
 
 /// The XL-80's live log, followed as the laser software writes it.

@@ -41,9 +41,15 @@ pub fn open_stage(name: &str, cfg: &StageConfig) -> Result<Box<dyn Stage>, HwErr
 }
 
 /// The simulated camera together with the simulated rig it watches (kept alive with it).
-struct SimRigCamera {
+pub struct SimRigCamera {
     _rig: rigd_sim::SimRig,
     cam: SimCamera,
+}
+
+impl SimRigCamera {
+    pub fn new(rig: rigd_sim::SimRig, cam: SimCamera) -> SimRigCamera {
+        SimRigCamera { _rig: rig, cam }
+    }
 }
 
 impl Camera for SimRigCamera {
@@ -83,7 +89,7 @@ pub fn open_camera(cfg: &CameraConfig, board: Option<&Path>) -> Result<Box<dyn C
                 message: e.to_string(),
             })?;
             let cam = SimCamera::new(Arc::clone(&rig.camera));
-            Ok(Box::new(SimRigCamera { _rig: rig, cam }))
+            Ok(Box::new(SimRigCamera::new(rig, cam)))
         }
     }
 }
