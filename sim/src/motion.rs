@@ -45,12 +45,13 @@ impl Default for AxisParams {
     }
 }
 
-/// One planned move: from `from_um` at `start` to `to_um`.
+/// A trapezoidal move from `from_um` to `to_um`, independent of any clock: position as a
+/// function of the seconds since the move began. The real-time `Axis` and `sim-session`'s
+/// virtual clock both plan with it.
 #[derive(Debug, Clone, Copy)]
-struct Segment {
-    start: Instant,
-    from_um: f64,
-    to_um: f64,
+pub struct Profile {
+    pub from_um: f64,
+    pub to_um: f64,
     /// Time to accelerate to `v_peak`, and time at `v_peak`.
     t_acc: f64,
     t_flat: f64,
@@ -58,8 +59,8 @@ struct Segment {
     accel: f64,
 }
 
-impl Segment {
-    fn plan(start: Instant, from_um: f64, to_um: f64, p: &AxisParams) -> Segment {
+impl Profile {
+    pub fn plan(from_um: f64, to_um: f64, p: &AxisParams) -> Profile {
         let dist = (to_um - from_um).abs();
         let a = p.accel_um_s2;
         // Triangle profile if the move is too short to reach full speed.
@@ -71,8 +72,7 @@ impl Segment {
         } else {
             0.0
         };
-        Segment {
-            start,
+        Profile {
             from_um,
             to_um,
             t_acc,
@@ -82,12 +82,13 @@ impl Segment {
         }
     }
 
-    fn duration(&self) -> Duration {
-        Duration::from_secs_f64(2.0 * self.t_acc + self.t_flat)
+    pub fn duration_s(&self) -> f64 {
+        2.0 * self.t_acc + self.t_flat
     }
 
-    fn position_at(&self, t: Instant) -> f64 {
-        let s = t.saturating_duration_since(self.start).as_secs_f64();
+    /// Position `s` seconds after the move began (clamped to the ends).
+    pub fn position_after(&self, s: f64) -> f64 {
+        let s = s.max(0.0);
         let dir = (self.to_um - self.from_um).signum();
         let (ta, tf, v, a) = (self.t_acc, self.t_flat, self.v_peak, self.accel);
         let d = if s <= ta {
@@ -101,6 +102,31 @@ impl Segment {
             return self.to_um;
         };
         self.from_um + dir * d
+    }
+}
+
+/// One planned move in real time: a profile started at `start`.
+#[derive(Debug, Clone, Copy)]
+struct Segment {
+    start: Instant,
+    profile: Profile,
+}
+
+impl Segment {
+    fn plan(start: Instant, from_um: f64, to_um: f64, p: &AxisParams) -> Segment {
+        Segment {
+            start,
+            profile: Profile::plan(from_um, to_um, p),
+        }
+    }
+
+    fn duration(&self) -> Duration {
+        Duration::from_secs_f64(self.profile.duration_s())
+    }
+
+    fn position_at(&self, t: Instant) -> f64 {
+        self.profile
+            .position_after(t.saturating_duration_since(self.start).as_secs_f64())
     }
 }
 
@@ -174,7 +200,7 @@ impl Axis {
             0.0
         };
         let seg = Segment::plan(now, from, target_um + err, p);
-        st.rest_um = seg.to_um;
+        st.rest_um = seg.profile.to_um;
         st.commanded_um = target_um;
         st.segment = Some(seg);
         Ok(seg.duration())

@@ -11,7 +11,7 @@ use clap::{Parser, ValueEnum};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use rigd_sim::motion::{AxisParams, TruePosition};
+use rigd_sim::motion::{AxisParams, Profile, TruePosition};
 use rigd_sim::xl80::{write_log, LogFormat, Xl80};
 use rigd_sim::{FrameRenderer, SimRigConfig};
 use std::io::Write;
@@ -64,55 +64,24 @@ struct Args {
     dwell_ms: f64,
 }
 
-/// One move on the virtual clock: trapezoidal velocity profile, as `motion::Axis` plans.
+/// One move on the virtual clock: the axis' own trapezoidal profile, started at `start_s`.
 struct Move {
     start_s: f64,
-    from_um: f64,
-    to_um: f64,
-    t_acc: f64,
-    t_flat: f64,
-    v: f64,
-    a: f64,
+    profile: Profile,
 }
 
 impl Move {
     fn plan(start_s: f64, from_um: f64, to_um: f64, p: &AxisParams) -> Move {
-        let dist = (to_um - from_um).abs();
-        let a = p.accel_um_s2;
-        let v = p.max_speed_um_s.min((dist * a).sqrt());
-        let t_acc = v / a;
-        let t_flat = if v > 0.0 {
-            (dist - a * t_acc * t_acc).max(0.0) / v
-        } else {
-            0.0
-        };
         Move {
             start_s,
-            from_um,
-            to_um,
-            t_acc,
-            t_flat,
-            v,
-            a,
+            profile: Profile::plan(from_um, to_um, p),
         }
     }
     fn end_s(&self) -> f64 {
-        self.start_s + 2.0 * self.t_acc + self.t_flat
+        self.start_s + self.profile.duration_s()
     }
     fn at(&self, t_s: f64) -> f64 {
-        let s = (t_s - self.start_s).max(0.0);
-        let (ta, tf, v, a) = (self.t_acc, self.t_flat, self.v, self.a);
-        let d = if s <= ta {
-            0.5 * a * s * s
-        } else if s <= ta + tf {
-            0.5 * a * ta * ta + v * (s - ta)
-        } else if s <= 2.0 * ta + tf {
-            let r = s - ta - tf;
-            0.5 * a * ta * ta + v * tf + v * r - 0.5 * a * r * r
-        } else {
-            return self.to_um;
-        };
-        self.from_um + (self.to_um - self.from_um).signum() * d
+        self.profile.position_after(t_s - self.start_s)
     }
 }
 
