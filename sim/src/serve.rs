@@ -392,3 +392,57 @@ impl<C: Controller> Loop<C> {
         }
     }
 }
+
+/// The fault-injection flags both standalone emulators (`sim-grbl`, `sim-gcs`) take.
+#[derive(Debug, Clone, clap::Args)]
+pub struct FaultArgs {
+    /// Drop every Nth reply (0 = never).
+    #[arg(long, default_value_t = 0)]
+    pub drop_every: u32,
+    /// A garbage line before every Nth reply (0 = never).
+    #[arg(long, default_value_t = 0)]
+    pub garbage_every: u32,
+    /// Deliver every reply this many ms late (0 = on time).
+    #[arg(long, default_value_t = 0)]
+    pub late_ms: u64,
+    /// Make the first move fail halfway (GRBL: ALARM:1; GCS: motion error -1024, servo off).
+    #[arg(long)]
+    pub alarm_mid_move: bool,
+    /// Make the port vanish every N seconds, for a second (0 = never).
+    #[arg(long, default_value_t = 0.0)]
+    pub vanish_every_s: f64,
+}
+
+impl FaultArgs {
+    pub fn plan(&self) -> FaultPlan {
+        FaultPlan {
+            drop_every: self.drop_every,
+            garbage_every: self.garbage_every,
+            alarm_mid_move: self.alarm_mid_move,
+            late_replies: if self.late_ms > 0 { u32::MAX } else { 0 },
+            late_by: Duration::from_millis(self.late_ms),
+            ..FaultPlan::default()
+        }
+    }
+
+    /// Arm the plan, print the port path, then serve until killed (vanishing the port on
+    /// schedule if asked). `path` is asked again after the port comes back: without a link
+    /// the new pty has a new name.
+    pub fn serve_forever(&self, faults: &Faults, path: impl Fn() -> PathBuf) -> ! {
+        faults.set(self.plan());
+        println!("{}", path().display());
+        loop {
+            if self.vanish_every_s > 0.0 {
+                std::thread::sleep(Duration::from_secs_f64(self.vanish_every_s));
+                faults.vanish();
+                eprintln!("port vanished");
+                std::thread::sleep(Duration::from_secs(1));
+                faults.restore();
+                std::thread::sleep(Duration::from_millis(50));
+                eprintln!("port back at {}", path().display());
+            } else {
+                std::thread::sleep(Duration::from_secs(3600));
+            }
+        }
+    }
+}

@@ -7,7 +7,7 @@ use anyhow::Context;
 use clap::Parser;
 use rigd_sim::gcs::{GcsSim, GcsSimOptions};
 use rigd_sim::motion::{Axis, AxisParams};
-use rigd_sim::serve::FaultPlan;
+use rigd_sim::serve::FaultArgs;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
@@ -34,18 +34,8 @@ struct Args {
     /// Servo on at power-on.
     #[arg(long)]
     servo_on: bool,
-    #[arg(long, default_value_t = 0)]
-    drop_every: u32,
-    #[arg(long, default_value_t = 0)]
-    garbage_every: u32,
-    /// Deliver every reply this many ms late (0 = on time).
-    #[arg(long, default_value_t = 0)]
-    late_ms: u64,
-    /// Make the first move fail halfway (motion error -1024, servo off).
-    #[arg(long)]
-    alarm_mid_move: bool,
-    #[arg(long, default_value_t = 0.0)]
-    vanish_every_s: f64,
+    #[command(flatten)]
+    faults: FaultArgs,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -58,28 +48,7 @@ fn main() -> anyhow::Result<()> {
         ..GcsSimOptions::default()
     };
     let sim = GcsSim::spawn(axis, opts, a.link.as_deref()).context("opening a pty")?;
-    sim.faults().set(FaultPlan {
-        drop_every: a.drop_every,
-        garbage_every: a.garbage_every,
-        alarm_mid_move: a.alarm_mid_move,
-        late_replies: if a.late_ms > 0 { u32::MAX } else { 0 },
-        late_by: Duration::from_millis(a.late_ms),
-        ..FaultPlan::default()
-    });
-    println!("{}", sim.path().display());
-    loop {
-        if a.vanish_every_s > 0.0 {
-            std::thread::sleep(Duration::from_secs_f64(a.vanish_every_s));
-            sim.faults().vanish();
-            eprintln!("port vanished");
-            std::thread::sleep(Duration::from_secs(1));
-            sim.faults().restore();
-            std::thread::sleep(Duration::from_millis(50));
-            eprintln!("port back at {}", sim.path().display());
-        } else {
-            std::thread::sleep(Duration::from_secs(3600));
-        }
-    }
+    a.faults.serve_forever(sim.faults(), || sim.path())
 }
 
 /// A flexure: short travel, fast, nanometre-level positioning.
