@@ -14,7 +14,7 @@
 //! A piezo has no reference switch: `home()` moves to the configured `home_um`.
 
 use super::limits::TravelLimits;
-use super::serial::{Deadline, SerialLines};
+use super::serial::{Deadline, OverSerial, SerialLink};
 use super::{HwError, MotionState, Stage, StageStatus};
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
@@ -126,10 +126,9 @@ const POLL: Duration = Duration::from_millis(1);
 pub struct GcsStage {
     name: String,
     opts: GcsOptions,
-    link: Option<SerialLines>,
+    link: SerialLink,
     target_um: Option<f64>,
     idn: Option<String>,
-    stale: bool,
     garbage_lines: u64,
 }
 
@@ -138,7 +137,7 @@ impl std::fmt::Debug for GcsStage {
         f.debug_struct("GcsStage")
             .field("name", &self.name)
             .field("port", &self.opts.port)
-            .field("connected", &self.link.is_some())
+            .field("connected", &self.link.is_open())
             .finish()
     }
 }
@@ -152,12 +151,11 @@ impl GcsStage {
             message: format!("bad gcs options: {message}"),
         })?;
         Ok(GcsStage {
+            link: SerialLink::new(&name, &opts.port, opts.baud, DRAIN_QUIET),
             name,
             opts,
-            link: None,
             target_um: None,
             idn: None,
-            stale: false,
             garbage_lines: 0,
         })
     }
@@ -170,12 +168,12 @@ impl GcsStage {
     }
 
     pub fn reconnect(&mut self) -> Result<(), HwError> {
-        self.link = None;
+        self.link.close();
         self.guard(|s| s.ensure_connected())
     }
 
     pub fn is_connected(&self) -> bool {
-        self.link.is_some()
+        self.link.is_open()
     }
 
     /// The controller's `*IDN?` answer, once connected.
@@ -195,51 +193,15 @@ impl GcsStage {
         })
     }
 
-    fn guard<T>(&mut self, f: impl FnOnce(&mut Self) -> Result<T, HwError>) -> Result<T, HwError> {
-        let r = f(self);
-        match &r {
-            Err(HwError::PortGone { message, .. }) => {
-                tracing::warn!(device = %self.name, %message, "port gone; will reopen on next use");
-                self.link = None;
-                self.target_um = None;
-            }
-            Err(HwError::Timeout { .. } | HwError::Protocol { .. }) => self.stale = true,
-            _ => {}
-        }
-        r
-    }
-
     fn deadline(&self) -> Deadline {
         Deadline::after(Duration::from_millis(self.opts.reply_timeout_ms))
     }
 
-    fn port(&mut self) -> Result<&mut SerialLines, HwError> {
-        self.link.as_mut().ok_or_else(|| HwError::PortGone {
-            device: self.name.clone(),
-            message: "not connected".into(),
-        })
-    }
-
-    fn ensure_connected(&mut self) -> Result<(), HwError> {
-        if self.link.is_some() {
-            return Ok(());
-        }
-        let r = self.open_and_setup();
-        if r.is_err() {
-            self.link = None;
-        }
-        r
-    }
-
-    fn open_and_setup(&mut self) -> Result<(), HwError> {
-        self.link = Some(SerialLines::open(
-            &self.name,
-            &self.opts.port,
-            self.opts.baud,
-        )?);
+    /// After (re)opening: identify, clear an old error, switch the servo on.
+    fn setup(&mut self) -> Result<(), HwError> {
         self.target_um = None;
         // Whatever an earlier session left in the buffers is not ours.
-        self.stale = true;
+        self.link.mark_stale();
         let idn = self.query_line("*IDN?", |l| (!l.is_empty()).then(|| l.to_string()))?;
         tracing::info!(device = %self.name, idn = %idn, "gcs controller connected");
         self.idn = Some(idn);
@@ -255,20 +217,9 @@ impl GcsStage {
         Ok(())
     }
 
-    fn drain_if_stale(&mut self) -> Result<(), HwError> {
-        if self.stale {
-            self.port()?.drain(DRAIN_QUIET)?;
-            self.stale = false;
-        }
-        Ok(())
-    }
-
     /// Send a command that has no reply.
     fn send(&mut self, cmd: &str) -> Result<(), HwError> {
-        self.drain_if_stale()?;
-        let mut b = cmd.as_bytes().to_vec();
-        b.push(b'\n');
-        self.port()?.write(&b)
+        self.link.write_line(cmd)
     }
 
     /// Send bytes, then read lines until `parse` accepts one (others are line noise).
@@ -278,11 +229,10 @@ impl GcsStage {
         what: &str,
         parse: impl Fn(&str) -> Option<T>,
     ) -> Result<T, HwError> {
-        self.drain_if_stale()?;
-        self.port()?.write(bytes)?;
+        self.link.write(bytes)?;
         let dl = self.deadline();
         loop {
-            let raw = self.port()?.read_line(dl, &format!("reply to {what}"))?;
+            let raw = self.link.read_line(dl, &format!("reply to {what}"))?;
             let text = std::str::from_utf8(&raw).map(str::trim);
             match text.ok().and_then(&parse) {
                 Some(v) => return Ok(v),
@@ -354,6 +304,20 @@ impl GcsStage {
             Some(t) => Ok(t),
             None => self.query_position(),
         }
+    }
+}
+
+impl OverSerial for GcsStage {
+    fn link(&mut self) -> &mut SerialLink {
+        &mut self.link
+    }
+
+    fn handshake(&mut self) -> Result<(), HwError> {
+        self.setup()
+    }
+
+    fn port_lost(&mut self) {
+        self.target_um = None;
     }
 }
 

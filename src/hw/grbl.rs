@@ -14,7 +14,7 @@
 
 use super::grbl_codes::{GrblAlarm, GrblErrorCode};
 use super::limits::TravelLimits;
-use super::serial::{Deadline, SerialLines};
+use super::serial::{Deadline, OverSerial, SerialLink};
 use super::{HwError, MotionState, Stage, StageStatus};
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
@@ -232,12 +232,10 @@ struct Lock {
 pub struct GrblStage {
     name: String,
     opts: GrblOptions,
-    link: Option<SerialLines>,
+    link: SerialLink,
     /// Where the last accepted move ends, µm (None: ask the controller).
     target_um: Option<f64>,
     lock: Option<Lock>,
-    /// A reply may still be in flight (after a timeout or an alarm): drain first.
-    stale: bool,
     garbage_lines: u64,
     banners_seen: u64,
 }
@@ -247,7 +245,7 @@ impl std::fmt::Debug for GrblStage {
         f.debug_struct("GrblStage")
             .field("name", &self.name)
             .field("port", &self.opts.port)
-            .field("connected", &self.link.is_some())
+            .field("connected", &self.link.is_open())
             .finish()
     }
 }
@@ -266,12 +264,11 @@ impl GrblStage {
             message: format!("bad grbl options: {message}"),
         })?;
         Ok(GrblStage {
+            link: SerialLink::new(&name, &opts.port, opts.baud, DRAIN_QUIET),
             name,
             opts,
-            link: None,
             target_um: None,
             lock: None,
-            stale: false,
             garbage_lines: 0,
             banners_seen: 0,
         })
@@ -286,12 +283,12 @@ impl GrblStage {
 
     /// Close and reopen the port (after `PortGone`, or to pick up a replugged adapter).
     pub fn reconnect(&mut self) -> Result<(), HwError> {
-        self.link = None;
+        self.link.close();
         self.ensure_connected()
     }
 
     pub fn is_connected(&self) -> bool {
-        self.link.is_some()
+        self.link.is_open()
     }
 
     /// Lines that were neither replies nor known push messages (line noise), so far.
@@ -331,48 +328,8 @@ impl GrblStage {
         Deadline::after(Duration::from_millis(self.opts.reply_timeout_ms))
     }
 
-    /// Run an operation; keep the connection state consistent with its failure.
-    fn guard<T>(&mut self, f: impl FnOnce(&mut Self) -> Result<T, HwError>) -> Result<T, HwError> {
-        let r = f(self);
-        match &r {
-            Err(HwError::PortGone { message, .. }) => {
-                tracing::warn!(device = %self.name, %message, "port gone; will reopen on next use");
-                self.link = None;
-                self.target_um = None;
-            }
-            Err(HwError::Timeout { .. } | HwError::Alarm { .. } | HwError::Protocol { .. }) => {
-                self.stale = true;
-            }
-            _ => {}
-        }
-        r
-    }
-
-    fn port(&mut self) -> Result<&mut SerialLines, HwError> {
-        self.link.as_mut().ok_or_else(|| HwError::PortGone {
-            device: self.name.clone(),
-            message: "not connected".into(),
-        })
-    }
-
-    fn ensure_connected(&mut self) -> Result<(), HwError> {
-        if self.link.is_some() {
-            return Ok(());
-        }
-        let r = self.open_and_greet();
-        if r.is_err() {
-            self.link = None;
-        }
-        r
-    }
-
-    fn open_and_greet(&mut self) -> Result<(), HwError> {
-        self.link = Some(SerialLines::open(
-            &self.name,
-            &self.opts.port,
-            self.opts.baud,
-        )?);
-        self.stale = false;
+    /// After (re)opening: wait for the banner, learn the lock state, home if configured.
+    fn greet(&mut self) -> Result<(), HwError> {
         self.lock = None;
         self.target_um = None;
         let banner = Duration::from_millis(self.opts.banner_timeout_ms);
@@ -381,7 +338,7 @@ impl GrblStage {
             Err(HwError::Timeout { .. }) => {
                 // No reset on open (DTR not wired, or a board already booted): ask for one.
                 tracing::info!(device = %self.name, "no banner on open; sending a soft reset");
-                self.port()?.write(&[0x18])?;
+                self.link.write(&[0x18])?;
                 self.wait_banner(Deadline::after(banner))?;
             }
             Err(e) => return Err(e),
@@ -400,7 +357,7 @@ impl GrblStage {
     /// Read until the banner; everything before it is boot noise.
     fn wait_banner(&mut self, dl: Deadline) -> Result<(), HwError> {
         loop {
-            let raw = self.port()?.read_line(dl, "the Grbl banner")?;
+            let raw = self.link.read_line(dl, "the Grbl banner")?;
             match classify(&raw) {
                 Line::Banner(b) => {
                     self.note(&Line::Banner(b));
@@ -468,26 +425,12 @@ impl GrblStage {
         }
     }
 
-    fn drain_if_stale(&mut self) -> Result<(), HwError> {
-        if self.stale {
-            let n = self.port()?.drain(DRAIN_QUIET)?;
-            if n > 0 {
-                tracing::debug!(device = %self.name, bytes = n, "drained stale input");
-            }
-            self.stale = false;
-        }
-        Ok(())
-    }
-
     /// Send one line and wait for its `ok` / `error:N`.
     fn command(&mut self, line: &str, dl: Deadline) -> Result<(), HwError> {
-        self.drain_if_stale()?;
-        let mut bytes = line.as_bytes().to_vec();
-        bytes.push(b'\n');
-        self.port()?.write(&bytes)?;
+        self.link.write_line(line)?;
         let waiting_for = format!("reply to {line:?}");
         loop {
-            let raw = self.port()?.read_line(dl, &waiting_for)?;
+            let raw = self.link.read_line(dl, &waiting_for)?;
             match classify(&raw) {
                 Line::Ok => return Ok(()),
                 Line::Error(code) => {
@@ -516,10 +459,9 @@ impl GrblStage {
 
     /// Ask for a `?` status report.
     fn query(&mut self, dl: Deadline) -> Result<GrblReport, HwError> {
-        self.drain_if_stale()?;
-        self.port()?.write(b"?")?;
+        self.link.write(b"?")?;
         loop {
-            let raw = self.port()?.read_line(dl, "a status report")?;
+            let raw = self.link.read_line(dl, "a status report")?;
             match classify(&raw) {
                 Line::Status(r) => {
                     self.note(&Line::Status(r));
@@ -569,8 +511,7 @@ impl GrblStage {
 
     /// 0x18 and wait for the banner.
     fn soft_reset(&mut self) -> Result<(), HwError> {
-        self.drain_if_stale()?;
-        self.port()?.write(&[0x18])?;
+        self.link.write(&[0x18])?;
         let dl = Deadline::after(Duration::from_millis(self.opts.banner_timeout_ms));
         self.wait_banner(dl)
     }
@@ -608,6 +549,20 @@ impl GrblStage {
         self.command(&gcode, dl)?;
         self.target_um = Some(target_um);
         Ok(())
+    }
+}
+
+impl OverSerial for GrblStage {
+    fn link(&mut self) -> &mut SerialLink {
+        &mut self.link
+    }
+
+    fn handshake(&mut self) -> Result<(), HwError> {
+        self.greet()
+    }
+
+    fn port_lost(&mut self) {
+        self.target_um = None;
     }
 }
 
@@ -679,10 +634,9 @@ impl Stage for GrblStage {
     fn stop(&mut self) -> Result<(), HwError> {
         self.guard(|s| {
             s.ensure_connected()?;
-            s.drain_if_stale()?;
             let locked_before = s.lock.is_some();
             // Feed hold first so the axis decelerates under control and keeps its position.
-            s.port()?.write(b"!")?;
+            s.link.write(b"!")?;
             let dl = s.reply_deadline();
             loop {
                 let r = s.query(dl)?;

@@ -4,6 +4,10 @@
 //! `\n`, drops a trailing `\r`, and turns the port's failures into [`HwError`]s: nothing
 //! within the deadline is `Timeout`, a hangup or I/O error is `PortGone` (the port must be
 //! reopened), a read of zero bytes (EOF) likewise.
+//!
+//! [`SerialLink`] keeps one such port for a driver: opened on first use, dropped when it
+//! vanishes and reopened on the next call, drained when a reply may still be in flight.
+//! [`OverSerial`] is what a driver adds to it: the handshake after each open.
 
 use super::HwError;
 use serialport::SerialPort;
@@ -141,6 +145,153 @@ impl SerialLines {
     }
 }
 
+/// A driver's connection: the port while it is open, and whether stale input may be waiting.
+pub struct SerialLink {
+    device: String,
+    path: String,
+    baud: u32,
+    /// How long the line must stay quiet to count as drained.
+    drain_quiet: Duration,
+    lines: Option<SerialLines>,
+    /// A reply may still be in flight (after a timeout, an alarm, a garbled line): drain first.
+    stale: bool,
+}
+
+impl std::fmt::Debug for SerialLink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SerialLink")
+            .field("device", &self.device)
+            .field("path", &self.path)
+            .field("connected", &self.is_open())
+            .finish()
+    }
+}
+
+impl SerialLink {
+    /// A closed link to `path` at `baud`; `device` names it in errors.
+    pub fn new(device: &str, path: &str, baud: u32, drain_quiet: Duration) -> SerialLink {
+        SerialLink {
+            device: device.to_string(),
+            path: path.to_string(),
+            baud,
+            drain_quiet,
+            lines: None,
+            stale: false,
+        }
+    }
+
+    pub fn is_open(&self) -> bool {
+        self.lines.is_some()
+    }
+
+    /// Drop the port; the next [`OverSerial::ensure_connected`] reopens it.
+    pub fn close(&mut self) {
+        self.lines = None;
+    }
+
+    /// Open the port afresh (nothing stale yet).
+    fn open(&mut self) -> Result<(), HwError> {
+        self.lines = Some(SerialLines::open(&self.device, &self.path, self.baud)?);
+        self.stale = false;
+        Ok(())
+    }
+
+    /// Whatever is waiting in the buffers is not ours: drain before the next write.
+    pub fn mark_stale(&mut self) {
+        self.stale = true;
+    }
+
+    fn port(&mut self) -> Result<&mut SerialLines, HwError> {
+        self.lines.as_mut().ok_or_else(|| HwError::PortGone {
+            device: self.device.clone(),
+            message: "not connected".into(),
+        })
+    }
+
+    /// Write `bytes` (after draining stale input, so the reply read next is this one's).
+    pub fn write(&mut self, bytes: &[u8]) -> Result<(), HwError> {
+        if self.stale {
+            let quiet = self.drain_quiet;
+            let n = self.port()?.drain(quiet)?;
+            if n > 0 {
+                tracing::debug!(device = %self.device, bytes = n, "drained stale input");
+            }
+            self.stale = false;
+        }
+        self.port()?.write(bytes)
+    }
+
+    /// Write one command line, `\n`-terminated.
+    pub fn write_line(&mut self, line: &str) -> Result<(), HwError> {
+        let mut bytes = Vec::with_capacity(line.len() + 1);
+        bytes.extend_from_slice(line.as_bytes());
+        bytes.push(b'\n');
+        self.write(&bytes)
+    }
+
+    /// The next line; see [`SerialLines::read_line`].
+    pub fn read_line(&mut self, deadline: Deadline, waiting_for: &str) -> Result<Vec<u8>, HwError> {
+        self.port()?.read_line(deadline, waiting_for)
+    }
+
+    /// Keep the link consistent with an operation's failure: a vanished port is dropped
+    /// (returns true), a failure that may leave a reply in flight marks the input stale.
+    fn failed(&mut self, e: &HwError) -> bool {
+        match e {
+            HwError::PortGone { message, .. } => {
+                tracing::warn!(device = %self.device, %message, "port gone; will reopen on next use");
+                self.lines = None;
+                true
+            }
+            HwError::Timeout { .. } | HwError::Alarm { .. } | HwError::Protocol { .. } => {
+                self.stale = true;
+                false
+            }
+            _ => false,
+        }
+    }
+}
+
+/// A driver speaking its protocol over a [`SerialLink`]. It supplies the handshake; the
+/// provided methods keep the connection (lazy open, reopen after the port vanished).
+pub(crate) trait OverSerial {
+    fn link(&mut self) -> &mut SerialLink;
+
+    /// What to say after the port (re)opened (banner, identification, servo on). A failure
+    /// closes the port again, so the next call starts over.
+    fn handshake(&mut self) -> Result<(), HwError>;
+
+    /// The port vanished: forget what was known about the controller's state.
+    fn port_lost(&mut self);
+
+    /// Open the port and run the handshake unless already connected.
+    fn ensure_connected(&mut self) -> Result<(), HwError> {
+        if self.link().is_open() {
+            return Ok(());
+        }
+        self.link().open()?;
+        let r = self.handshake();
+        if r.is_err() {
+            self.link().close();
+        }
+        r
+    }
+
+    /// Run an operation; keep the connection state consistent with its failure.
+    fn guard<T>(&mut self, f: impl FnOnce(&mut Self) -> Result<T, HwError>) -> Result<T, HwError>
+    where
+        Self: Sized,
+    {
+        let r = f(self);
+        if let Err(e) = &r {
+            if self.link().failed(e) {
+                self.port_lost();
+            }
+        }
+        r
+    }
+}
+
 /// When a wait ends, and the budget it was given (for the error message).
 #[derive(Debug, Clone, Copy)]
 pub struct Deadline {
@@ -157,5 +308,106 @@ impl Deadline {
     }
     pub fn expired(&self) -> bool {
         Instant::now() >= self.at
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::pty::Pty;
+
+    /// The least driver: counts handshakes and lost ports.
+    struct Probe {
+        link: SerialLink,
+        handshakes: u32,
+        lost: u32,
+    }
+
+    impl OverSerial for Probe {
+        fn link(&mut self) -> &mut SerialLink {
+            &mut self.link
+        }
+        fn handshake(&mut self) -> Result<(), HwError> {
+            self.handshakes += 1;
+            Ok(())
+        }
+        fn port_lost(&mut self) {
+            self.lost += 1;
+        }
+    }
+
+    fn probe(pty: &Pty) -> Probe {
+        let path = pty.slave_path().to_str().unwrap();
+        Probe {
+            link: SerialLink::new("probe", path, 115_200, Duration::from_millis(20)),
+            handshakes: 0,
+            lost: 0,
+        }
+    }
+
+    fn ask(p: &mut Probe, line: &str, ms: u64) -> Result<Vec<u8>, HwError> {
+        p.guard(|p| {
+            p.ensure_connected()?;
+            p.link.write_line(line)?;
+            p.link
+                .read_line(Deadline::after(Duration::from_millis(ms)), "the answer")
+        })
+    }
+
+    #[test]
+    fn a_late_reply_is_drained_before_the_next_command() {
+        let pty = Pty::open().unwrap();
+        let mut p = probe(&pty);
+        match ask(&mut p, "A", 20).unwrap_err() {
+            HwError::Timeout {
+                device,
+                timeout_ms,
+                waiting_for,
+            } => {
+                assert_eq!((device.as_str(), timeout_ms), ("probe", 20));
+                assert_eq!(waiting_for, "the answer");
+            }
+            e => panic!("expected a timeout, got {e}"),
+        }
+        // The answer to A arrives late; B's own answer comes after B was sent.
+        pty.write_all(b"answer A\r\n").unwrap();
+        std::thread::sleep(Duration::from_millis(10));
+        p.guard(|p| p.link.write_line("B")).unwrap();
+        pty.write_all(b"answer B\r\n").unwrap();
+        let line = p
+            .link
+            .read_line(Deadline::after(Duration::from_millis(500)), "B")
+            .unwrap();
+        assert_eq!(line, b"answer B");
+        assert_eq!((p.handshakes, p.lost), (1, 0));
+        let mut sent = [0u8; 16];
+        let n = pty.read(&mut sent).unwrap();
+        assert_eq!(&sent[..n], b"A\nB\n");
+    }
+
+    #[test]
+    fn a_vanished_port_is_dropped_and_reopening_names_it() {
+        let pty = Pty::open().unwrap();
+        let path = pty.slave_path().display().to_string();
+        let mut p = probe(&pty);
+        p.guard(|p| p.ensure_connected()).unwrap();
+        assert!(p.link.is_open());
+        drop(pty);
+        let e = ask(&mut p, "A", 200).unwrap_err();
+        assert!(matches!(e, HwError::PortGone { .. }), "{e}");
+        assert!(!p.link.is_open());
+        assert_eq!(p.lost, 1);
+        // The next call tries to reopen, and says which port it could not open.
+        let e = ask(&mut p, "A", 200).unwrap_err();
+        assert!(e.to_string().contains(&path), "{e}");
+        assert!(!p.link.is_open());
+        assert_eq!((p.handshakes, p.lost), (1, 2));
+    }
+
+    #[test]
+    fn a_closed_link_says_so() {
+        let mut link = SerialLink::new("probe", "/nonexistent", 9_600, Duration::ZERO);
+        let e = link.write(b"?").unwrap_err();
+        assert_eq!(e.to_string(), "probe: port gone: not connected");
     }
 }
