@@ -2,22 +2,19 @@
 //! the real `serialport` code path. The emulator's parser lives in sim/, the driver's in
 //! src/hw/: they share nothing.
 
+mod support;
+
 use rigd::hw::gcs::{GcsOptions, GcsStage};
 use rigd::hw::limits::TravelLimits;
 use rigd::hw::{HwError, MotionState, Stage};
 use rigd::sim::gcs::{GcsSim, GcsSimOptions};
-use rigd::sim::motion::{Axis, AxisParams};
-use std::sync::Arc;
+use rigd::sim::motion::AxisParams;
 use std::time::{Duration, Instant};
+use support::emulated::{self, replug, step, time_per_step, unplug};
 
 const SETTLE: Duration = Duration::from_secs(2);
 
-struct Rig {
-    _dir: tempfile::TempDir,
-    axis: Arc<Axis>,
-    sim: GcsSim,
-    opts: GcsOptions,
-}
+type Rig = emulated::Rig<GcsSim, GcsOptions>;
 
 /// A 100 µm flexure that positions to 5 nm RMS; settles 10 ms after the profile ends.
 fn rig_with(sim_opts: GcsSimOptions) -> Rig {
@@ -36,21 +33,12 @@ fn piezo() -> AxisParams {
 }
 
 fn rig_with_axis(sim_opts: GcsSimOptions, params: AxisParams) -> Rig {
-    let dir = tempfile::tempdir().unwrap();
-    let axis = Arc::new(Axis::new(params));
-    let link = dir.path().join("piezo");
-    let sim = GcsSim::spawn(axis.clone(), sim_opts, Some(&link)).unwrap();
-    let mut opts = GcsOptions::new(
-        link.to_str().unwrap(),
-        TravelLimits::new(0.0, 100.0, 60.0).unwrap(),
-    );
-    opts.reply_timeout_ms = 200;
-    Rig {
-        _dir: dir,
-        axis,
-        sim,
-        opts,
-    }
+    let spawn = |axis, link: &_| GcsSim::spawn(axis, sim_opts, Some(link));
+    Rig::spawn(params, "piezo", spawn, |port| {
+        let mut opts = GcsOptions::new(port, TravelLimits::new(0.0, 100.0, 60.0).unwrap());
+        opts.reply_timeout_ms = 200;
+        opts
+    })
 }
 
 fn rig() -> Rig {
@@ -78,12 +66,11 @@ fn moves_settle_on_target_within_the_positioning_error() {
     let p = s.wait_settled(SETTLE).unwrap();
     assert!((p - 20.0).abs() < 0.05, "{p}");
     for i in 1..=4 {
-        s.move_rel(5.0).unwrap();
-        let p = s.wait_settled(SETTLE).unwrap();
+        let p = step(&mut s, 5.0, SETTLE).unwrap();
         assert!((p - (20.0 + 5.0 * i as f64)).abs() < 0.05, "{p}");
     }
     // The sensor reading is the true position.
-    assert!((r.axis.position_at(Instant::now()) - s.position_um().unwrap()).abs() < 1e-5);
+    assert!((r.true_um() - s.position_um().unwrap()).abs() < 1e-5);
 }
 
 #[test]
@@ -116,7 +103,7 @@ fn um_per_unit_scales_the_protocol_values() {
     s.move_abs(12.5).unwrap();
     let p = s.wait_settled(SETTLE).unwrap();
     assert!((p - 12.5).abs() < 0.05, "{p}");
-    assert!((r.axis.position_at(Instant::now()) - 12.5).abs() < 0.05);
+    assert!((r.true_um() - 12.5).abs() < 0.05);
 }
 
 #[test]
@@ -137,8 +124,7 @@ fn stop_mid_move_halts_and_accepts_the_stop_error() {
     assert!(here > 0.5 && here < 49.5, "stopped at {here}");
     assert!(!r.axis.is_moving(Instant::now()));
     // Usable afterwards, no stale error 10.
-    s.move_rel(1.0).unwrap();
-    let p = s.wait_settled(SETTLE).unwrap();
+    let p = step(&mut s, 1.0, SETTLE).unwrap();
     assert!((p - here - 1.0).abs() < 0.05, "{p} vs {here}+1");
 }
 
@@ -261,16 +247,13 @@ fn fault_port_gone_is_reported_then_reopened_on_next_use() {
     let mut s = GcsStage::connect("piezo", r.opts.clone()).unwrap();
     s.move_abs(25.0).unwrap();
     s.wait_settled(SETTLE).unwrap();
-    r.sim.faults().vanish();
-    std::thread::sleep(Duration::from_millis(30));
+    unplug(r.sim.faults());
     assert!(matches!(s.position_um(), Err(HwError::PortGone { .. })));
     assert!(!s.is_connected());
-    r.sim.faults().restore();
-    std::thread::sleep(Duration::from_millis(30));
+    replug(r.sim.faults());
     let p = s.position_um().unwrap();
     assert!((p - 25.0).abs() < 0.05, "{p}");
-    s.move_rel(5.0).unwrap();
-    assert!((s.wait_settled(SETTLE).unwrap() - 30.0).abs() < 0.05);
+    assert!((step(&mut s, 5.0, SETTLE).unwrap() - 30.0).abs() < 0.05);
 }
 
 /// Time per 5 µm piezo step through MOV, ERR?, ONT? polling and POS?. A study, not a timed
@@ -281,13 +264,6 @@ fn study_time_per_5um_step() {
     let r = rig();
     let mut s = GcsStage::connect("piezo", r.opts.clone()).unwrap();
     let n = 15;
-    let t = Instant::now();
-    for _ in 0..n {
-        s.move_rel(5.0).unwrap();
-        s.wait_settled(SETTLE).unwrap();
-    }
-    println!(
-        "GCS: {:?} per 5 µm step (10 ms of it is settling), {n} steps",
-        t.elapsed() / n
-    );
+    let per = time_per_step(&mut s, 5.0, n, SETTLE);
+    println!("GCS: {per:?} per 5 µm step (10 ms of it is settling), {n} steps");
 }

@@ -2,50 +2,37 @@
 //! real `serialport` code path. The emulator's parser lives in sim/, the driver's in
 //! src/hw/: they share nothing.
 
+mod support;
+
 use rigd::hw::grbl::{GrblOptions, GrblStage, OnAlarm};
 use rigd::hw::grbl_codes::GrblAlarm;
 use rigd::hw::limits::TravelLimits;
 use rigd::hw::{HwError, MotionState, Stage};
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
-use rigd::sim::motion::{Axis, AxisParams};
-use std::sync::Arc;
+use rigd::sim::motion::AxisParams;
 use std::time::{Duration, Instant};
+use support::emulated::{self, replug, step, time_per_step, unplug};
 
 const SETTLE: Duration = Duration::from_secs(3);
 /// The axis' positioning error is 2 µm RMS: 5 sigma.
 const TRUE_POSITION_TOL_UM: f64 = 10.0;
 
-struct Rig {
-    _dir: tempfile::TempDir,
-    axis: Arc<Axis>,
-    sim: GrblSim,
-    opts: GrblOptions,
-}
+type Rig = emulated::Rig<GrblSim, GrblOptions>;
 
 fn rig_with(sim_opts: GrblSimOptions) -> Rig {
-    let dir = tempfile::tempdir().unwrap();
-    let axis = Arc::new(Axis::new(AxisParams::default()));
-    let link = dir.path().join("grbl");
-    let sim = GrblSim::spawn(axis.clone(), sim_opts, Some(&link)).unwrap();
-    let limits = TravelLimits::new(-1_000.0, 20_000.0, 5_000.0).unwrap();
-    let mut opts = GrblOptions::new(link.to_str().unwrap(), limits);
-    opts.banner_timeout_ms = 500;
-    opts.reply_timeout_ms = 200;
-    opts.home_timeout_ms = 3_000;
-    Rig {
-        _dir: dir,
-        axis,
-        sim,
-        opts,
-    }
+    let spawn = |axis, link: &_| GrblSim::spawn(axis, sim_opts, Some(link));
+    Rig::spawn(AxisParams::default(), "grbl", spawn, |port| {
+        let limits = TravelLimits::new(-1_000.0, 20_000.0, 5_000.0).unwrap();
+        let mut opts = GrblOptions::new(port, limits);
+        opts.banner_timeout_ms = 500;
+        opts.reply_timeout_ms = 200;
+        opts.home_timeout_ms = 3_000;
+        opts
+    })
 }
 
 fn rig() -> Rig {
     rig_with(GrblSimOptions::default())
-}
-
-fn true_um(axis: &Axis) -> f64 {
-    axis.position_at(Instant::now())
 }
 
 #[test]
@@ -71,8 +58,7 @@ fn a_board_that_does_not_reset_on_open_gets_a_soft_reset() {
     assert!(t.elapsed() >= Duration::from_millis(r.opts.banner_timeout_ms));
     assert_eq!(s.banners_seen(), 1);
     assert_eq!(s.status().unwrap().state, MotionState::Idle);
-    s.move_rel(50.0).unwrap();
-    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+    assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 50.0);
 }
 
 #[test]
@@ -99,11 +85,11 @@ fn relative_and_absolute_moves_end_within_the_positioning_error() {
     }
     let p = s.position_um().unwrap();
     assert!((p - 150.0).abs() < 1.0, "reported {p}");
-    assert!((true_um(&r.axis) - 150.0).abs() < TRUE_POSITION_TOL_UM);
+    assert!((r.true_um() - 150.0).abs() < TRUE_POSITION_TOL_UM);
     s.move_abs(2_000.0).unwrap();
     let p = s.wait_settled(SETTLE).unwrap();
     assert!((p - 2_000.0).abs() < 1.0, "reported {p}");
-    assert!((true_um(&r.axis) - 2_000.0).abs() < TRUE_POSITION_TOL_UM);
+    assert!((r.true_um() - 2_000.0).abs() < TRUE_POSITION_TOL_UM);
     s.move_rel(-500.0).unwrap();
     let p = s.wait_settled(SETTLE).unwrap();
     assert!((p - 1_500.0).abs() < 1.0, "reported {p}");
@@ -149,7 +135,7 @@ fn home_sets_the_origin() {
     s.wait_settled(SETTLE).unwrap();
     s.home().unwrap();
     assert_eq!(s.position_um().unwrap(), 0.0);
-    assert!(true_um(&r.axis).abs() < 1e-9);
+    assert!(r.true_um().abs() < 1e-9);
 }
 
 #[test]
@@ -167,16 +153,14 @@ fn a_controller_locked_at_boot_follows_the_alarm_policy() {
     assert!(!r.axis.is_moving(Instant::now()));
     // home clears it.
     s.home().unwrap();
-    s.move_rel(50.0).unwrap();
-    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+    assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 50.0);
 
     // unlock: `$X` then the move.
     let r = rig_with(locked.clone());
     let mut opts = r.opts.clone();
     opts.on_alarm = OnAlarm::Unlock;
     let mut s = GrblStage::connect("axis", opts).unwrap();
-    s.move_rel(50.0).unwrap();
-    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+    assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 50.0);
 
     // home_on_connect: ready at once.
     let r = rig_with(locked);
@@ -215,8 +199,7 @@ fn controller_errors_are_typed_with_grbl_text() {
     let e = s.send_line("G1 X1").unwrap_err();
     assert!(matches!(e, HwError::Controller { code: 22, .. }), "{e}");
     // The driver is still in step afterwards.
-    s.move_rel(50.0).unwrap();
-    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+    assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 50.0);
 }
 
 #[test]
@@ -247,7 +230,7 @@ fn fault_alarm_mid_move_then_recovery_by_policy() {
     s.move_rel(4_000.0).unwrap();
     let e = s.wait_settled(SETTLE).unwrap_err();
     assert!(matches!(e, HwError::Alarm { code: 1, .. }), "{e}");
-    let stopped = true_um(&r.axis);
+    let stopped = r.true_um();
     assert!(stopped > 100.0 && stopped < 3_900.0, "stopped at {stopped}");
     // unlock policy: soft reset (GRBL demands it after ALARM:1), $X, move on.
     s.move_rel(100.0).unwrap();
@@ -270,8 +253,7 @@ fn fault_alarm_mid_move_with_fail_policy_refuses_until_homed() {
         Err(HwError::Alarm { code: 1, .. })
     ));
     s.home().unwrap();
-    s.move_rel(50.0).unwrap();
-    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+    assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 50.0);
 }
 
 #[test]
@@ -296,8 +278,7 @@ fn fault_no_reply_times_out_then_the_driver_resyncs() {
     // The line was executed, only its `ok` was lost: the next sync still works.
     let p = s.wait_settled(SETTLE).unwrap();
     assert_eq!(p, 50.0);
-    s.move_rel(50.0).unwrap();
-    assert_eq!(s.wait_settled(SETTLE).unwrap(), 100.0);
+    assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 100.0);
 }
 
 #[test]
@@ -318,8 +299,7 @@ fn fault_late_reply_is_not_taken_for_the_next_one() {
         f.late_replies = 1;
         f.late_by = Duration::from_millis(50);
     });
-    s.move_rel(50.0).unwrap();
-    assert_eq!(s.wait_settled(SETTLE).unwrap(), 100.0);
+    assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 100.0);
 }
 
 #[test]
@@ -327,8 +307,7 @@ fn fault_garbage_lines_are_skipped_and_counted() {
     let r = rig();
     let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
     r.sim.faults().update(|f| f.garbage_replies = 4);
-    s.move_rel(50.0).unwrap();
-    assert_eq!(s.wait_settled(SETTLE).unwrap(), 50.0);
+    assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 50.0);
     assert!(s.garbage_lines() >= 3, "counted {}", s.garbage_lines());
 }
 
@@ -338,21 +317,18 @@ fn fault_port_gone_is_reported_then_reopened_on_next_use() {
     let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
     s.move_rel(50.0).unwrap();
     s.wait_settled(SETTLE).unwrap();
-    r.sim.faults().vanish();
-    std::thread::sleep(Duration::from_millis(30));
+    unplug(r.sim.faults());
     let e = s.position_um().unwrap_err();
     assert!(matches!(e, HwError::PortGone { .. }), "{e}");
     assert!(!s.is_connected());
     // Still gone: reopening fails cleanly.
     assert!(matches!(s.position_um(), Err(HwError::PortGone { .. })));
-    r.sim.faults().restore();
-    std::thread::sleep(Duration::from_millis(30));
+    replug(r.sim.faults());
     // Lazy reopen: banner again, position kept by the controller.
     let p = s.position_um().unwrap();
     assert!(s.is_connected());
     assert_eq!(p, 50.0);
-    s.move_rel(50.0).unwrap();
-    assert_eq!(s.wait_settled(SETTLE).unwrap(), 100.0);
+    assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 100.0);
 }
 
 /// Time per 50 µm step through the full GRBL sync (move, G4 P0, `?`), with the default sim
@@ -364,12 +340,7 @@ fn study_time_per_50um_step() {
     let r = rig();
     let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
     let n = 50;
-    let t = Instant::now();
-    for _ in 0..n {
-        s.move_rel(50.0).unwrap();
-        s.wait_settled(SETTLE).unwrap();
-    }
-    let per = t.elapsed() / n;
+    let per = time_per_step(&mut s, 50.0, n, SETTLE);
     let motion = Duration::from_secs_f64(2.0 * (50.0f64 / 500_000.0).sqrt());
     println!(
         "GRBL: {per:?} per 50 µm step ({motion:?} of it is motion), {n} steps, final {} µm",

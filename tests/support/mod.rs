@@ -1,5 +1,8 @@
-//! Shared by the integration tests: scenes rendered with rigd_sim, only where targets are.
+//! Shared by the integration tests: scenes rendered with rigd_sim, only where targets are;
+//! controller emulators for the driver tests in [`emulated`].
 #![allow(dead_code)]
+
+pub mod emulated;
 
 use image::RgbImage;
 use rigd::sim::render::{add_noise, expected_rgb, View};
