@@ -5,6 +5,7 @@
 //! Outputs go to an output folder through temporary names renamed at the very end, the
 //! result file last, so a failed run leaves nothing that looks complete.
 
+use crate::atomic_file;
 use crate::pipeline::run::NamedImage;
 use crate::pipeline::ProcessResult;
 use image::RgbImage;
@@ -175,36 +176,25 @@ pub fn write_outputs(
         path: path.to_path_buf(),
         message: format!("{what}: {e}"),
     };
+    let atomic = |e: atomic_file::AtomicWriteError| io(&e.path, e.what, &e.source);
     std::fs::create_dir_all(out).map_err(|e| io(out, "cannot create", &e))?;
-    let mut staged: Vec<(PathBuf, PathBuf)> = Vec::new();
-    let cleanup = |staged: &[(PathBuf, PathBuf)]| {
-        for (tmp, _) in staged {
-            let _ = std::fs::remove_file(tmp);
-        }
-    };
+    // Staged files not committed are removed when `staged` drops.
+    let mut staged = Vec::new();
     for img in images {
         let fin = out.join(format!("{}.png", img.name));
-        let tmp = out.join(format!(".{}.png.tmp", img.name));
-        if let Err(e) = img.image.save_with_format(&tmp, image::ImageFormat::Png) {
-            cleanup(&staged);
-            let _ = std::fs::remove_file(&tmp);
-            return Err(io(&tmp, "cannot write", &e));
-        }
-        staged.push((tmp, fin));
+        let mut png = Vec::new();
+        img.image
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .map_err(|e| io(&atomic_file::temp_path(&fin), "cannot write", &e))?;
+        staged.push(atomic_file::stage(&fin, &png).map_err(atomic)?);
     }
-    let fin = out.join("result.json");
-    let tmp = out.join(".result.json.tmp");
     let json = serde_json::to_string_pretty(result).expect("results serialise");
-    if let Err(e) = std::fs::write(&tmp, json) {
-        cleanup(&staged);
-        return Err(io(&tmp, "cannot write", &e));
-    }
-    staged.push((tmp, fin));
-    let mut written = Vec::new();
-    for (tmp, fin) in &staged {
-        std::fs::rename(tmp, fin).map_err(|e| io(fin, "cannot rename into place", &e))?;
-        written.push(fin.clone());
-    }
+    staged.push(atomic_file::stage(&out.join("result.json"), json.as_bytes()).map_err(atomic)?);
+    let written = staged
+        .into_iter()
+        .map(|s| s.commit().map_err(atomic))
+        .collect::<Result<Vec<_>, _>>()?;
+    atomic_file::sync_dir(out).map_err(atomic)?;
     Ok(written)
 }
 

@@ -3,6 +3,7 @@
 //! The map of the code is `docs/architecture.md`. In short:
 //! - `pipeline`: frames + positions -> measured target offsets (the science).
 //! - `folder`: the `rigctl process` folder contract (frames/*.png + steps.csv).
+//! - `atomic_file`: files written whole or not at all (temporary name, sync, rename).
 //! - `report`: the paper's tables and figures from repeated runs.
 //! - `hw`: hardware traits and drivers (GRBL axis, PI GCS piezo, V4L2 camera, sim adapters).
 //! - `xl80`: Renishaw XL-80 interferometer logs (CSV export, CARTO .rtx), following and alignment.
@@ -10,6 +11,7 @@
 //! - `daemon`: protocol, server, job runner, sessions, replay.
 //! - `cli`: the `rigctl` subcommands; the binaries in `src/bin` are thin.
 
+pub mod atomic_file;
 pub mod cli;
 pub mod config;
 pub mod daemon;

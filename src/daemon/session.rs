@@ -6,13 +6,13 @@
 //! manifest's state is updated last. After a crash the manifest still says `running`; the
 //! next daemon start marks such sessions `incomplete`.
 
+use crate::atomic_file::{self, AtomicWriteError};
 use crate::daemon::plan::Plan;
 use crate::daemon::protocol::{JobSpec, PROTOCOL_VERSION};
 use crate::daemon::rig::RigInfo;
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use std::fs;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
@@ -105,21 +105,19 @@ pub fn unix_s(t: SystemTime) -> f64 {
         .unwrap_or(0.0)
 }
 
+impl From<AtomicWriteError> for SessionError {
+    fn from(e: AtomicWriteError) -> SessionError {
+        io(&e.path)(e.source)
+    }
+}
+
 /// Write `bytes` to `path` atomically: temporary file, fsync, rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
-    let tmp = path.with_file_name(format!(".{name}.tmp"));
-    let mut f = fs::File::create(&tmp).map_err(io(&tmp))?;
-    f.write_all(bytes).map_err(io(&tmp))?;
-    f.sync_all().map_err(io(&tmp))?;
-    drop(f);
-    fs::rename(&tmp, path).map_err(io(path))
+    Ok(atomic_file::write(path, bytes)?)
 }
 
 fn sync_dir(dir: &Path) -> Result<(), SessionError> {
-    fs::File::open(dir)
-        .and_then(|d| d.sync_all())
-        .map_err(io(dir))
+    Ok(atomic_file::sync_dir(dir)?)
 }
 
 /// File name of frame `index` under `frames/`.

@@ -1,0 +1,138 @@
+//! Files that appear whole or not at all: written under a hidden temporary name beside the
+//! final one (`.NAME.tmp`), synced, then renamed into place, so a reader (or a restart after
+//! a crash) sees the old version or the new one, never half a file.
+//!
+//! [`write`] does one file. [`stage`] writes without renaming, for a set of files that should
+//! appear together: stage them all, then [`Staged::commit`] each (a staged file that is
+//! dropped uncommitted is removed). [`sync_dir`] makes the renames themselves durable.
+
+use std::fs;
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+
+/// What failed, on which path (the temporary one for writing, the final one for renaming).
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: {what}: {source}")]
+pub struct AtomicWriteError {
+    pub path: PathBuf,
+    pub what: &'static str,
+    pub source: io::Error,
+}
+
+fn fail<'a>(path: &'a Path, what: &'static str) -> impl FnOnce(io::Error) -> AtomicWriteError + 'a {
+    move |source| AtomicWriteError {
+        path: path.to_path_buf(),
+        what,
+        source,
+    }
+}
+
+/// The temporary name beside `path`: `dir/.NAME.tmp`.
+pub fn temp_path(path: &Path) -> PathBuf {
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
+    path.with_file_name(format!(".{name}.tmp"))
+}
+
+/// `bytes` written and synced under the temporary name, not yet in place.
+#[derive(Debug)]
+#[must_use = "a staged file is removed unless committed"]
+pub struct Staged {
+    tmp: PathBuf,
+    path: PathBuf,
+    committed: bool,
+}
+
+/// Write `bytes` to the temporary beside `path` and sync it to disk.
+pub fn stage(path: &Path, bytes: &[u8]) -> Result<Staged, AtomicWriteError> {
+    let staged = Staged {
+        tmp: temp_path(path),
+        path: path.to_path_buf(),
+        committed: false,
+    };
+    let mut f = fs::File::create(&staged.tmp).map_err(fail(&staged.tmp, "cannot write"))?;
+    f.write_all(bytes)
+        .and_then(|_| f.sync_all())
+        .map_err(fail(&staged.tmp, "cannot write"))?;
+    Ok(staged)
+}
+
+impl Staged {
+    /// Rename into place; returns the final path.
+    pub fn commit(mut self) -> Result<PathBuf, AtomicWriteError> {
+        fs::rename(&self.tmp, &self.path).map_err(fail(&self.path, "cannot rename into place"))?;
+        self.committed = true;
+        Ok(std::mem::take(&mut self.path))
+    }
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        if !self.committed {
+            let _ = fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+/// Write `bytes` to `path` atomically: temporary file, sync, rename.
+pub fn write(path: &Path, bytes: &[u8]) -> Result<(), AtomicWriteError> {
+    stage(path, bytes)?.commit().map(drop)
+}
+
+/// Sync a folder, so the renames into it survive a power cut.
+pub fn sync_dir(dir: &Path) -> Result<(), AtomicWriteError> {
+    fs::File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(fail(dir, "cannot sync"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    #[test]
+    fn write_replaces_the_file_and_leaves_no_temporary() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("a.json");
+        write(&p, b"old").unwrap();
+        write(&p, b"new").unwrap();
+        assert_eq!(fs::read(&p).unwrap(), b"new");
+        assert_eq!(names(d.path()), ["a.json"]);
+        sync_dir(d.path()).unwrap();
+    }
+
+    #[test]
+    fn staged_files_appear_only_when_committed() {
+        let d = tempfile::tempdir().unwrap();
+        let a = stage(&d.path().join("a.png"), b"A").unwrap();
+        let b = stage(&d.path().join("b.png"), b"B").unwrap();
+        assert_eq!(names(d.path()), [".a.png.tmp", ".b.png.tmp"]);
+        assert_eq!(a.commit().unwrap(), d.path().join("a.png"));
+        drop(b);
+        assert_eq!(names(d.path()), ["a.png"]);
+    }
+
+    #[test]
+    fn failures_name_the_path_and_what_was_done() {
+        let d = tempfile::tempdir().unwrap();
+        let missing = d.path().join("no").join("x.csv");
+        let e = write(&missing, b"x").unwrap_err();
+        assert_eq!(e.path, d.path().join("no").join(".x.csv.tmp"));
+        assert!(e.to_string().contains("cannot write"), "{e}");
+        // Renaming over a non-empty folder fails: the final path is named.
+        let target = d.path().join("full");
+        fs::create_dir_all(target.join("inside")).unwrap();
+        let e = write(&target, b"x").unwrap_err();
+        assert_eq!(e.path, target);
+        assert!(e.to_string().contains("cannot rename into place"), "{e}");
+        assert_eq!(names(d.path()), ["full"]);
+    }
+}
