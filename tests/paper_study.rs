@@ -14,11 +14,13 @@
 
 mod support;
 
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use rigd::pipeline::stats::{study_stats, CaseRuns, StudyStats};
 use rigd::pipeline::{process_frames, Combine, Estimator, ProcessOptions, Registration};
+use rigd::sim::frames::FrameRenderer;
 use rigd::sim::render::View;
 use rigd::sim::{Board, CameraModel};
-use support::{render_rois, Rng};
 
 const NAMES: [&str; 6] = ["A", "B", "C", "D", "E", "F"];
 
@@ -50,23 +52,20 @@ const CASES: [Case; 3] = [
     },
 ];
 
-/// The frames and commanded positions of one case of one experiment.
+/// The frames and commanded positions of one case of one experiment. Frame `sequence + i`
+/// draws its own flicker, vibration and noise (`FrameEffects`).
 fn render_case(
-    board: &Board,
-    cam: &CameraModel,
+    frames: &FrameRenderer,
     start_um: [f64; 2],
     case: &Case,
-    rng: &mut Rng,
+    sequence: &mut u64,
 ) -> (Vec<image::RgbImage>, Vec<f64>) {
     (0..case.frames)
         .map(|i| {
             let pos = case.step_um * i as f64;
-            let view = View::at([
-                start_um[0] + pos + cam.vibration_um * rng.normal(),
-                start_um[1] + cam.vibration_um * rng.normal(),
-            ]);
-            let light = 1.0 + cam.flicker_rms * rng.normal();
-            (render_rois(board, cam, &view, light, rng.next_u64()), pos)
+            *sequence += 1;
+            let img = frames.render_at(*sequence, [start_um[0] + pos, start_um[1]]);
+            (img, pos)
         })
         .unzip()
 }
@@ -93,7 +92,9 @@ fn run_study(
     methods: &[(Estimator, bool)],
 ) -> Vec<StudyStats> {
     let board = Board::paper();
-    let mut rng = Rng(2015);
+    let frames = FrameRenderer::new(board.clone(), cam.clone(), 2015).expect("a valid camera");
+    let mut rng = ChaCha8Rng::seed_from_u64(2015);
+    let mut sequence = 0;
     let mut runs: Vec<Vec<CaseRuns>> = methods
         .iter()
         .map(|_| {
@@ -112,14 +113,14 @@ fn run_study(
     for _ in 0..experiments {
         // A random sub-pixel start: the sampling phase of every target differs per experiment.
         let start = [
-            cam.scale_um_per_px * rng.uniform(),
-            cam.scale_um_per_px * rng.uniform(),
+            cam.scale_um_per_px * rng.gen::<f64>(),
+            cam.scale_um_per_px * rng.gen::<f64>(),
         ];
         for (ci, case) in CASES.iter().enumerate() {
-            let (frames, pos) = render_case(&board, cam, start, case, &mut rng);
+            let (imgs, pos) = render_case(&frames, start, case, &mut sequence);
             for (mi, &(est, rec)) in methods.iter().enumerate() {
                 let done =
-                    process_frames(&frames, &pos, &options(case, est, rec), Some(board.clone()))
+                    process_frames(&imgs, &pos, &options(case, est, rec), Some(board.clone()))
                         .unwrap_or_else(|e| panic!("{} {est:?}: {e}", case.name));
                 let mut r = runs[mi][ci].clone();
                 r.runs.push(done.result.objects);

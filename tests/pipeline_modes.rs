@@ -3,18 +3,19 @@
 mod support;
 
 use rigd::pipeline::{process_frames, Combine, Estimator, ProcessOptions, Registration};
+use rigd::sim::render::SceneRenderer;
 use rigd::sim::View;
 use support::*;
 
 const STEP_UM: f64 = 50.0;
 
 fn scan(n: usize) -> (Vec<image::RgbImage>, Vec<f64>) {
-    let (board, cam) = (small_board(), small_camera());
+    let scene = SceneRenderer::new(small_board(), small_camera());
     (0..n)
         .map(|i| {
             let pos = STEP_UM * i as f64;
             let view = View::at([123.0 + pos, 456.0]);
-            (render_rois(&board, &cam, &view, 1.0, 40 + i as u64), pos)
+            (frame(&scene, view, 40 + i as u64), pos)
         })
         .unzip()
 }
