@@ -2,9 +2,9 @@
 //! before running jobs. Refuses while a daemon answers on the configured socket (it owns the
 //! ports and the camera then).
 
-use crate::config::Config;
+use crate::config::{Config, StageConfig};
 use crate::hw::open::{open_camera, open_stage};
-use crate::hw::Stage;
+use crate::hw::{HwError, Stage};
 use anyhow::{bail, Context};
 use std::path::PathBuf;
 use std::time::{Duration, Instant, SystemTime};
@@ -71,46 +71,15 @@ pub fn run(args: HwArgs) -> anyhow::Result<()> {
     };
     match args.command {
         HwCommand::Probe => probe(&cfg),
-        HwCommand::Position => {
-            let mut s = open_stage(section, stage_cfg()?)?;
-            let st = s.status()?;
-            println!("{section}: {:?} at {:.3} µm", st.state, st.position_um);
-            Ok(())
-        }
+        HwCommand::Position => act_and_report(section, stage_cfg()?, "", |_| Ok(())),
         HwCommand::MoveRel { delta_um } => {
-            let c = stage_cfg()?;
-            let mut s = open_stage(section, c)?;
-            let from = s.position_um()?;
-            s.move_rel(delta_um)?;
-            settle_and_report(s.as_mut(), from, c.move_timeout())
+            move_and_report(section, stage_cfg()?, |s| s.move_rel(delta_um))
         }
         HwCommand::MoveAbs { target_um } => {
-            let c = stage_cfg()?;
-            let mut s = open_stage(section, c)?;
-            let from = s.position_um()?;
-            s.move_abs(target_um)?;
-            settle_and_report(s.as_mut(), from, c.move_timeout())
+            move_and_report(section, stage_cfg()?, |s| s.move_abs(target_um))
         }
-        HwCommand::Home => {
-            let mut s = open_stage(section, stage_cfg()?)?;
-            s.home()?;
-            let st = s.status()?;
-            println!(
-                "{section}: homed; {:?} at {:.3} µm",
-                st.state, st.position_um
-            );
-            Ok(())
-        }
-        HwCommand::Stop => {
-            let mut s = open_stage(section, stage_cfg()?)?;
-            s.stop()?;
-            let st = s.status()?;
-            println!(
-                "{section}: stopped; {:?} at {:.3} µm",
-                st.state, st.position_um
-            );
-            Ok(())
-        }
+        HwCommand::Home => act_and_report(section, stage_cfg()?, "homed; ", |s| s.home()),
+        HwCommand::Stop => act_and_report(section, stage_cfg()?, "stopped; ", |s| s.stop()),
         HwCommand::Grab { out } => grab(&cfg, &out),
         HwCommand::Cameras => unreachable!("handled above"),
         HwCommand::Xl80 => xl80(&cfg),
@@ -128,9 +97,35 @@ fn refuse_if_daemon_running(cfg: &Config) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn settle_and_report(s: &mut dyn Stage, from: f64, timeout: Duration) -> anyhow::Result<()> {
+/// Open the stage, run `act`, print its state and position after.
+fn act_and_report(
+    section: &str,
+    cfg: &StageConfig,
+    done: &str,
+    act: impl FnOnce(&mut dyn Stage) -> Result<(), HwError>,
+) -> anyhow::Result<()> {
+    let mut s = open_stage(section, cfg)?;
+    act(s.as_mut())?;
+    let st = s.status()?;
+    println!(
+        "{section}: {done}{:?} at {:.3} µm",
+        st.state, st.position_um
+    );
+    Ok(())
+}
+
+/// Open the stage, `start` a move, wait until it settles, print where it went and how long
+/// that took.
+fn move_and_report(
+    section: &str,
+    cfg: &StageConfig,
+    start: impl FnOnce(&mut dyn Stage) -> Result<(), HwError>,
+) -> anyhow::Result<()> {
+    let mut s = open_stage(section, cfg)?;
+    let from = s.position_um()?;
+    start(s.as_mut())?;
     let t0 = Instant::now();
-    let at = s.wait_settled(timeout)?;
+    let at = s.wait_settled(cfg.move_timeout())?;
     println!(
         "{}: {:.3} -> {:.3} µm (moved {:+.3} µm in {:.2} s)",
         s.name(),

@@ -123,6 +123,7 @@ const DRAIN_QUIET: Duration = Duration::from_millis(20);
 const POLL: Duration = Duration::from_millis(1);
 
 /// A PI GCS piezo axis.
+#[derive(Debug)]
 pub struct GcsStage {
     name: String,
     opts: GcsOptions,
@@ -130,16 +131,6 @@ pub struct GcsStage {
     target_um: Option<f64>,
     idn: Option<String>,
     garbage_lines: u64,
-}
-
-impl std::fmt::Debug for GcsStage {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("GcsStage")
-            .field("name", &self.name)
-            .field("port", &self.opts.port)
-            .field("connected", &self.link.is_open())
-            .finish()
-    }
 }
 
 impl GcsStage {
@@ -167,9 +158,9 @@ impl GcsStage {
         Ok(s)
     }
 
+    /// Close and reopen the port (after `PortGone`, or to switch the servo back on).
     pub fn reconnect(&mut self) -> Result<(), HwError> {
-        self.link.close();
-        self.guard(|s| s.ensure_connected())
+        self.reopen()
     }
 
     pub fn is_connected(&self) -> bool {

@@ -229,6 +229,7 @@ struct Lock {
 }
 
 /// A GRBL-driven axis.
+#[derive(Debug)]
 pub struct GrblStage {
     name: String,
     opts: GrblOptions,
@@ -238,16 +239,6 @@ pub struct GrblStage {
     lock: Option<Lock>,
     garbage_lines: u64,
     banners_seen: u64,
-}
-
-impl std::fmt::Debug for GrblStage {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("GrblStage")
-            .field("name", &self.name)
-            .field("port", &self.opts.port)
-            .field("connected", &self.link.is_open())
-            .finish()
-    }
 }
 
 /// How long a line must stay quiet to count as drained.
@@ -283,8 +274,7 @@ impl GrblStage {
 
     /// Close and reopen the port (after `PortGone`, or to pick up a replugged adapter).
     pub fn reconnect(&mut self) -> Result<(), HwError> {
-        self.link.close();
-        self.ensure_connected()
+        self.reopen()
     }
 
     pub fn is_connected(&self) -> bool {

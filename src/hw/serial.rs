@@ -277,6 +277,15 @@ pub(crate) trait OverSerial {
         r
     }
 
+    /// Close the port and open it again, handshake included.
+    fn reopen(&mut self) -> Result<(), HwError>
+    where
+        Self: Sized,
+    {
+        self.link().close();
+        self.guard(|s| s.ensure_connected())
+    }
+
     /// Run an operation; keep the connection state consistent with its failure.
     fn guard<T>(&mut self, f: impl FnOnce(&mut Self) -> Result<T, HwError>) -> Result<T, HwError>
     where
