@@ -5,12 +5,16 @@
 //! [`write`] does one file. [`stage`] writes without renaming, for a set of files that should
 //! appear together: stage them all, then [`Staged::commit`] each (a staged file that is
 //! dropped uncommitted is removed). [`sync_dir`] makes the renames themselves durable.
+//!
+//! A failure removes the temporary file (a write that filled the disk leaves no partial file
+//! taking the space), and the error names the file that was not written, not the temporary.
 
 use std::fs;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
-/// What failed, on which path (the temporary one for writing, the final one for renaming).
+/// Which file was not written, and what failed (`cannot write`, `cannot rename into place`,
+/// `cannot sync`).
 #[derive(Debug, thiserror::Error)]
 #[error("{path}: {what}: {source}")]
 pub struct AtomicWriteError {
@@ -28,7 +32,7 @@ fn fail<'a>(path: &'a Path, what: &'static str) -> impl FnOnce(io::Error) -> Ato
 }
 
 /// The temporary name beside `path`: `dir/.NAME.tmp`.
-pub fn temp_path(path: &Path) -> PathBuf {
+fn temp_path(path: &Path) -> PathBuf {
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
     path.with_file_name(format!(".{name}.tmp"))
 }
@@ -49,15 +53,18 @@ pub fn stage(path: &Path, bytes: &[u8]) -> Result<Staged, AtomicWriteError> {
         path: path.to_path_buf(),
         committed: false,
     };
-    let mut f = fs::File::create(&staged.tmp).map_err(fail(&staged.tmp, "cannot write"))?;
-    f.write_all(bytes)
-        .and_then(|_| f.sync_all())
-        .map_err(fail(&staged.tmp, "cannot write"))?;
+    // On an error `staged` drops here, removing what was written of the temporary.
+    fs::File::create(&staged.tmp)
+        .and_then(|mut f| {
+            f.write_all(bytes)?;
+            f.sync_all()
+        })
+        .map_err(fail(path, "cannot write"))?;
     Ok(staged)
 }
 
 impl Staged {
-    /// Rename into place; returns the final path.
+    /// Rename into place; returns the final path. On failure the temporary is removed.
     pub fn commit(mut self) -> Result<PathBuf, AtomicWriteError> {
         fs::rename(&self.tmp, &self.path).map_err(fail(&self.path, "cannot rename into place"))?;
         self.committed = true;
@@ -125,7 +132,7 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         let missing = d.path().join("no").join("x.csv");
         let e = write(&missing, b"x").unwrap_err();
-        assert_eq!(e.path, d.path().join("no").join(".x.csv.tmp"));
+        assert_eq!(e.path, missing);
         assert!(e.to_string().contains("cannot write"), "{e}");
         // Renaming over a non-empty folder fails: the final path is named.
         let target = d.path().join("full");
@@ -133,6 +140,7 @@ mod tests {
         let e = write(&target, b"x").unwrap_err();
         assert_eq!(e.path, target);
         assert!(e.to_string().contains("cannot rename into place"), "{e}");
+        // The temporary is gone with the failure.
         assert_eq!(names(d.path()), ["full"]);
     }
 }

@@ -185,7 +185,7 @@ pub fn write_outputs(
         let mut png = Vec::new();
         img.image
             .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-            .map_err(|e| io(&atomic_file::temp_path(&fin), "cannot write", &e))?;
+            .map_err(|e| io(&fin, "cannot write", &e))?;
         staged.push(atomic_file::stage(&fin, &png).map_err(atomic)?);
     }
     let json = serde_json::to_string_pretty(result).expect("results serialise");
