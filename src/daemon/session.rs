@@ -34,12 +34,20 @@ pub enum SessionError {
     },
     #[error("session {path}: {message}")]
     Format { path: String, message: String },
+    #[error("session {path}: disk full ({source})")]
+    DiskFull {
+        path: String,
+        source: std::io::Error,
+    },
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SessionError + '_ {
-    move |source| SessionError::Io {
-        path: path.display().to_string(),
-        source,
+    move |source| {
+        let path = path.display().to_string();
+        match source.raw_os_error() {
+            Some(libc::ENOSPC | libc::EDQUOT) => SessionError::DiskFull { path, source },
+            _ => SessionError::Io { path, source },
+        }
     }
 }
 
@@ -105,15 +113,21 @@ pub fn unix_s(t: SystemTime) -> f64 {
         .unwrap_or(0.0)
 }
 
-/// Write `bytes` to `path` atomically: temporary file, fsync, rename.
+/// Write `bytes` to `path` atomically: temporary file, fsync, rename. On failure the
+/// temporary file is removed (a disk-full write leaves no partial file taking the space the
+/// manifest needs) and the error names `path`, the file that was not written.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
     let tmp = path.with_file_name(format!(".{name}.tmp"));
-    let mut f = fs::File::create(&tmp).map_err(io(&tmp))?;
-    f.write_all(bytes).map_err(io(&tmp))?;
-    f.sync_all().map_err(io(&tmp))?;
-    drop(f);
-    fs::rename(&tmp, path).map_err(io(path))
+    let written = fs::File::create(&tmp).and_then(|mut f| {
+        f.write_all(bytes)?;
+        f.sync_all()
+    });
+    if let Err(e) = written.and_then(|()| fs::rename(&tmp, path)) {
+        let _ = fs::remove_file(&tmp);
+        return Err(io(path)(e));
+    }
+    Ok(())
 }
 
 fn sync_dir(dir: &Path) -> Result<(), SessionError> {
