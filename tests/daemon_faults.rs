@@ -257,3 +257,22 @@ fn a_cancel_stops_the_axis_mid_move_and_the_next_job_runs() {
     );
     check_captured(&session_of(&d.data, &ev), &reported_steps(&ev));
 }
+
+#[test]
+fn fault_flags_parse_and_bad_ones_say_what_is_wrong() {
+    assert_eq!(
+        "camera-timeout@4".parse::<Fault>(),
+        Ok(Fault::CameraTimeout(4))
+    );
+    assert_eq!("alarm@1".parse::<Fault>(), Ok(Fault::Alarm(1)));
+    assert_eq!("serial-loss@2".parse::<Fault>(), Ok(Fault::SerialLoss(2)));
+    for (bad, says) in [
+        ("camera-timeout", "KIND@N"),
+        ("camera-timeout@0", "not a call number"),
+        ("alarm@x", "not a call number"),
+        ("smoke@3", "unknown kind"),
+    ] {
+        let e = bad.parse::<Fault>().unwrap_err();
+        assert!(e.contains(bad) && e.contains(says), "{bad}: {e}");
+    }
+}

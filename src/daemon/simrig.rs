@@ -44,7 +44,9 @@ impl std::str::FromStr for Fault {
             .ok_or_else(|| format!("fault {s:?}: expected KIND@N, e.g. alarm@5"))?;
         let n: u32 = n
             .parse()
-            .map_err(|_| format!("fault {s:?}: {n:?} is not a call number"))?;
+            .ok()
+            .filter(|&n| n >= 1)
+            .ok_or_else(|| format!("fault {s:?}: {n:?} is not a call number (1, 2, ...)"))?;
         match kind {
             "alarm" => Ok(Fault::Alarm(n)),
             "serial-loss" => Ok(Fault::SerialLoss(n)),
