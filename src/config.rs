@@ -118,6 +118,10 @@ pub struct StageConfig {
     /// Where `home` moves (GCS; the sim stage), µm.
     #[serde(default)]
     pub home_um: f64,
+    /// `[axis]` only: where a scan starts when a job gives no `start_um` (default: the
+    /// soft minimum, or 0 if that is negative). Must lie within the soft limits.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub default_start_um: Option<f64>,
     /// sim: kinematics of the simulated axis (defaults when absent).
     #[serde(default)]
     pub sim: Option<rigd_sim::motion::AxisParams>,
@@ -354,6 +358,16 @@ impl Config {
             }
         }
         let p = &self.pipeline;
+        let [dx, dy] = p.axis_dir;
+        if !(dx.is_finite() && dy.is_finite()) || dx.hypot(dy) == 0.0 {
+            return Err(self.invalid(
+                "pipeline.axis_dir",
+                format!(
+                    "must be a finite, non-zero [x, y] (image displacement per unit of axis \
+                     travel), got [{dx}, {dy}]"
+                ),
+            ));
+        }
         if !(p.scale_um_per_px.is_finite() && p.scale_um_per_px > 0.0) {
             return Err(self.invalid("pipeline.scale_um_per_px", "must be a positive number"));
         }
@@ -394,6 +408,23 @@ impl Config {
         }
         if s.max_step_um <= 0.0 {
             return Err(self.invalid(&key("max_step_um"), "must be positive"));
+        }
+        if let Some(v) = s.default_start_um {
+            if name != "axis" {
+                return Err(self.invalid(
+                    &key("default_start_um"),
+                    "only [axis] has a default scan start (piezo scans start at its soft_min_um)",
+                ));
+            }
+            if !(v.is_finite() && (s.soft_min_um..=s.soft_max_um).contains(&v)) {
+                return Err(self.invalid(
+                    &key("default_start_um"),
+                    format!(
+                        "{v} is outside the soft limits [{}, {}]",
+                        s.soft_min_um, s.soft_max_um
+                    ),
+                ));
+            }
         }
         if s.feed_um_s <= 0.0 {
             return Err(self.invalid(&key("feed_um_s"), "must be positive"));
@@ -507,6 +538,12 @@ impl StageConfig {
             home_um: self.home_um,
             limits: self.limits(),
         }
+    }
+
+    /// Where a scan on this stage starts when a job gives no `start_um`.
+    pub fn scan_start_um(&self) -> f64 {
+        self.default_start_um
+            .unwrap_or(self.soft_min_um.max(0.0).min(self.soft_max_um))
     }
 
     /// Deadline for a move to finish and settle.

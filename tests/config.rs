@@ -29,6 +29,8 @@ fn documented_example_loads() {
     assert_eq!(axis.port.as_deref(), Some("/dev/ttyUSB0"));
     assert_eq!(axis.baud, 115_200);
     assert_eq!(axis.soft_max_um, 250_000.0);
+    assert_eq!(axis.default_start_um, Some(1000.0));
+    assert_eq!(cfg.pipeline.axis_dir, [-1.0, 0.0]);
     assert_eq!(axis.on_alarm, OnAlarm::Fail);
     let piezo = cfg.piezo("test").unwrap();
     assert_eq!(piezo.driver, StageDriver::Gcs);
@@ -210,4 +212,72 @@ fn stage_sections_map_to_the_driver_options() {
     l.check_abs("axis", 100.0).unwrap();
     assert!(l.check_abs("axis", 250_000.5).is_err());
     assert!(l.check_rel("axis", 0.0, 50_001.0).is_err());
+}
+
+#[test]
+fn axis_dir_and_default_start_are_read_and_checked() {
+    let cfg = parse(&format!(
+        "{AXIS}default_start_um = 250.0\n[pipeline]\naxis_dir = [0.0, -1.0]\n"
+    ))
+    .unwrap();
+    let axis = cfg.axis("test").unwrap();
+    assert_eq!(axis.default_start_um, Some(250.0));
+    assert_eq!(axis.scan_start_um(), 250.0);
+    assert_eq!(cfg.pipeline.axis_dir, [0.0, -1.0]);
+    // Absent: the soft minimum (not below 0).
+    let cfg = parse(AXIS).unwrap();
+    assert_eq!(cfg.axis("test").unwrap().scan_start_um(), 0.0);
+    assert_eq!(cfg.pipeline.axis_dir, [-1.0, 0.0]);
+    let below = AXIS.replace("soft_min_um = 0.0", "soft_min_um = -500.0");
+    assert_eq!(
+        parse(&below).unwrap().axis("t").unwrap().scan_start_um(),
+        0.0
+    );
+
+    for (extra, key, says) in [
+        (
+            "default_start_um = 1500.0\n",
+            "axis.default_start_um",
+            "outside the soft limits",
+        ),
+        (
+            "default_start_um = -1.0\n",
+            "axis.default_start_um",
+            "outside the soft limits",
+        ),
+        (
+            "default_start_um = nan\n",
+            "axis.default_start_um",
+            "outside the soft limits",
+        ),
+        (
+            "[pipeline]\naxis_dir = [0.0, 0.0]\n",
+            "pipeline.axis_dir",
+            "non-zero",
+        ),
+        (
+            "[pipeline]\naxis_dir = [inf, 0.0]\n",
+            "pipeline.axis_dir",
+            "finite",
+        ),
+    ] {
+        let e = err(&format!("{AXIS}{extra}"));
+        assert!(e.starts_with("/etc/rigd/test.toml: key `"), "{e}");
+        assert!(e.contains(key) && e.contains(says), "{extra}: {e}");
+    }
+    // A wrong shape or type is toml's error, still naming the file and the key.
+    let e = err(&format!("{AXIS}[pipeline]\naxis_dir = [1.0]\n"));
+    assert!(
+        e.contains("/etc/rigd/test.toml") && e.contains("axis_dir"),
+        "{e}"
+    );
+    let e = err(&format!("{AXIS}default_start_um = \"near\"\n"));
+    assert!(e.contains("default_start_um"), "{e}");
+    // The piezo has no default start of its own.
+    let piezo = "[piezo]\ndriver = \"sim\"\nsoft_min_um = 0.0\nsoft_max_um = 100.0\nmax_step_um = 100.0\ndefault_start_um = 5.0\n";
+    let e = err(piezo);
+    assert!(
+        e.contains("piezo.default_start_um") && e.contains("only [axis]"),
+        "{e}"
+    );
 }

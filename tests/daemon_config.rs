@@ -101,3 +101,76 @@ fn a_config_without_a_camera_is_refused_naming_the_section() {
     };
     assert!(e.to_string().contains("[camera]"), "{e}");
 }
+
+/// A hardware rig: the axis is a GRBL controller (the emulator on a pseudo-terminal, driven
+/// over the real serialport path) and the camera a separate one. Its scan start and image
+/// direction come from the config, and a job without `start_um` starts there.
+#[test]
+fn a_hardware_rig_takes_its_scan_start_and_axis_direction_from_the_config() {
+    use rigd::sim::grbl::{GrblSim, GrblSimOptions};
+    use rigd::sim::motion::{Axis, AxisParams};
+    use std::sync::Arc;
+    use std::time::Instant;
+
+    let axis = Arc::new(Axis::new(AxisParams {
+        max_speed_um_s: 50_000.0,
+        accel_um_s2: 2_000_000.0,
+        position_error_rms_um: 0.0,
+        ..AxisParams::default()
+    }));
+    let grbl = GrblSim::spawn(Arc::clone(&axis), GrblSimOptions::default(), None).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let text = format!(
+        "[axis]\ndriver = \"grbl\"\nport = \"{}\"\nsoft_min_um = -2000.0\nsoft_max_um = 100000.0\n\
+         max_step_um = 100000.0\nfeed_um_s = 50000.0\ndefault_start_um = 7250.0\n\
+         [camera]\ndriver = \"sim\"\n[camera.sim]\nwidth = 48\nheight = 32\nsupersample = 2\n\
+         frame_period_ms = 2.0\nexposure_ms = 1.0\n\
+         [pipeline]\naxis_dir = [0.0, -1.0]\n",
+        grbl.path().display()
+    );
+    let rig = rig_from_config(&config(dir.path(), &text)).unwrap();
+    assert_eq!(rig.info.mode, "hardware");
+    assert_eq!(rig.info.default_start_um, 7_250.0);
+    assert_eq!(rig.info.axis_dir, [0.0, -1.0]);
+    let data = dir.path().join("data");
+    let settings = DaemonSettings {
+        socket: dir.path().join("rigd.sock"),
+        group: None,
+        data_root: data.clone(),
+    };
+    let bg = Background::start(settings, rig).unwrap();
+    let mut c = Client::connect(&bg.socket).unwrap();
+    let hello = c.request(&Request::Hello).unwrap();
+    assert_eq!(hello["rig"]["default_start_um"], 7_250.0);
+    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let job = JobSpec {
+        step_um: Some(100.0),
+        steps: Some(2),
+        settle_ms: 0,
+        process: false,
+        ..JobSpec::default()
+    };
+    let id = c.request(&Request::Submit { job }).unwrap()["job_id"]
+        .as_u64()
+        .unwrap();
+    let mut session = None;
+    loop {
+        let e = c.next_event().unwrap();
+        if e.job_id != id {
+            continue;
+        }
+        if let EventBody::Started { session: s, .. } = &e.body {
+            session = Some(s.clone());
+        }
+        if e.body.is_terminal() {
+            assert!(matches!(e.body, EventBody::Finished { .. }), "{:?}", e.body);
+            break;
+        }
+    }
+    let s = Session::open(&data.join(session.unwrap())).unwrap();
+    let commanded: Vec<f64> = s.steps.iter().map(|r| r.position_um).collect();
+    assert_eq!(commanded, vec![7_250.0, 7_350.0]);
+    assert_eq!(s.manifest.rig.axis_dir, [0.0, -1.0]);
+    // The controller really took the axis there.
+    assert!((axis.position_at(Instant::now()) - 7_350.0).abs() < 1e-6);
+}

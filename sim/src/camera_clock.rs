@@ -55,6 +55,12 @@ struct Queue {
     pending: VecDeque<Exposure>,
     dropped: u64,
     stopped: bool,
+    /// Dequeue calls so far (1-based count of the last one).
+    grabs: u64,
+    /// The dequeue call from which the stream stalls (fault injection).
+    stall_at: Option<u64>,
+    /// The stream has stalled: exposures are not queued until a restart.
+    stalled: bool,
 }
 
 struct Shared {
@@ -120,6 +126,11 @@ impl Shared {
                 continue;
             }
             let los_um = std::mem::replace(&mut los, Vec::with_capacity(n));
+            if q.stalled {
+                // A stalled stream exposes nothing anyone can dequeue.
+                seq += 1;
+                continue;
+            }
             q.pending.push_back(Exposure {
                 sequence: seq,
                 start,
@@ -175,6 +186,9 @@ impl FrameClockCamera {
                 pending: VecDeque::new(),
                 dropped: 0,
                 stopped: false,
+                grabs: 0,
+                stall_at: None,
+                stalled: false,
             }),
             ready: Condvar::new(),
         });
@@ -221,6 +235,33 @@ impl FrameClockCamera {
         }
     }
 
+    /// Fault injection: the stream stalls from the `n`-th dequeue (`next_frame` or
+    /// `fresh_frame`, 1-based, counted since streaming started) on. Queued frames are lost
+    /// and no new ones arrive, so that dequeue and every later one time out, until
+    /// [`restart_stream`](Self::restart_stream). `n` at or below the dequeues already made
+    /// stalls the next one.
+    pub fn stall_from_grab(&self, n: u64) {
+        self.shared.lock().stall_at = Some(n.max(1));
+    }
+
+    /// Whether the stream is stalled now.
+    pub fn is_stalled(&self) -> bool {
+        self.shared.lock().stalled
+    }
+
+    /// Dequeue calls so far.
+    pub fn grabs(&self) -> u64 {
+        self.shared.lock().grabs
+    }
+
+    /// Restart streaming (STREAMOFF/STREAMON): queued frames are discarded and a stalled
+    /// stream delivers again from the next exposure.
+    pub fn restart_stream(&self) {
+        let mut q = self.shared.lock();
+        q.pending.clear();
+        q.stalled = false;
+    }
+
     /// The oldest queued frame, waiting up to `timeout` for one.
     pub fn next_frame(&self, timeout: Duration) -> Result<SimFrame, ClockError> {
         self.next_matching(None, timeout)
@@ -243,6 +284,12 @@ impl FrameClockCamera {
     ) -> Result<SimFrame, ClockError> {
         let deadline = Instant::now() + timeout;
         let mut q = self.shared.lock();
+        q.grabs += 1;
+        if q.stall_at.is_some_and(|n| q.grabs >= n) {
+            q.stall_at = None;
+            q.stalled = true;
+            q.pending.clear();
+        }
         loop {
             if q.stopped {
                 return Err(ClockError::Stopped);

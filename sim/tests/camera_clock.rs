@@ -162,3 +162,34 @@ fn frames_are_numbered_timestamped_and_old_ones_dropped() {
     cam.stop();
     assert!(cam.next_frame(Duration::from_millis(50)).is_err());
 }
+
+#[test]
+fn a_stalled_stream_times_out_every_grab_until_it_is_restarted() {
+    let axis = fast_axis();
+    let cam_model = CameraModel {
+        exposure_ms: 2.0,
+        frame_period_ms: 5.0,
+        ..quiet(small_cam())
+    };
+    let (cam, _, _) = camera(cam_model, &axis);
+    cam.stall_from_grab(3);
+    let first = cam.next_frame(TIMEOUT).unwrap();
+    let second = cam.fresh_frame(Instant::now(), TIMEOUT).unwrap();
+    assert!(second.sequence > first.sequence);
+    assert!(!cam.is_stalled());
+    // Grab 3 stalls the stream: no frame, however long the clock runs.
+    let short = Duration::from_millis(60);
+    let e = cam.next_frame(short).unwrap_err();
+    assert_eq!(
+        e,
+        rigd_sim::camera_clock::ClockError::Timeout { timeout_ms: 60 }
+    );
+    assert!(cam.is_stalled());
+    assert_eq!(cam.queued(), 0, "a stalled stream queues nothing");
+    assert!(cam.fresh_frame(Instant::now(), short).is_err());
+    assert_eq!(cam.grabs(), 4);
+    // A stream restart clears it; frames come again, numbered on from the clock.
+    cam.restart_stream();
+    let again = cam.next_frame(TIMEOUT).unwrap();
+    assert!(again.sequence > second.sequence + 10, "{}", again.sequence);
+}

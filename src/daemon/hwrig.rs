@@ -49,9 +49,10 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
             let l = p.limits();
             [l.min_um, l.max_um]
         }),
-        default_start_um: axis_limits.min_um.max(0.0),
+        default_start_um: axis_cfg.scan_start_um(),
         scale_um_per_px: cfg.pipeline.scale_um_per_px,
-        axis_dir: [-1.0, 0.0],
+        // How the mount turns axis travel into image motion ([pipeline] axis_dir).
+        axis_dir: cfg.pipeline.axis_dir,
         frame_size: (cam_cfg.width, cam_cfg.height),
         board,
         config: serde_json::to_value(cfg).unwrap_or_default(),

@@ -1,13 +1,17 @@
 //! Runs one job on the rig: per step move, settle, grab a fresh frame, record it; frame i
 //! is processed on a second thread while the axis moves to i+1. Blocking code: it runs on
 //! its own thread, never on the async runtime.
+//!
+//! A cancel is seen mid-move: while the stage moves the runner polls its status in short
+//! slices and, on a cancel, stops it where it is (GRBL feed hold, GCS HLT). A shutdown
+//! (SIGTERM) lets the current step finish instead.
 
 use crate::daemon::plan::Plan;
 use crate::daemon::protocol::{process_options, EventBody, JobSpec, StepTimings};
 use crate::daemon::rig::Rig;
 use crate::daemon::session::{unix_s, Image16, SessionWriter, StepRow};
 use crate::daemon::study::{summarize, RunResult};
-use crate::hw::HwError;
+use crate::hw::{HwError, MotionState, Stage};
 use crate::pipeline::Pipeline;
 use image::RgbImage;
 use std::sync::atomic::{AtomicU8, Ordering};
@@ -21,6 +25,21 @@ pub const SHUTDOWN: u8 = 2;
 
 const MOVE_TIMEOUT: Duration = Duration::from_secs(30);
 const GRAB_TIMEOUT: Duration = Duration::from_secs(5);
+/// Between status polls of a moving stage: how late a cancel stops it, at most.
+const MOVE_POLL: Duration = Duration::from_millis(2);
+
+/// Why a step did not produce a frame.
+enum StepError {
+    Hw(HwError),
+    /// A client cancelled while the stage moved; it has been stopped.
+    Cancelled,
+}
+
+impl From<HwError> for StepError {
+    fn from(e: HwError) -> StepError {
+        StepError::Hw(e)
+    }
+}
 
 /// How a job ended.
 #[derive(Debug, Clone, PartialEq)]
@@ -94,10 +113,15 @@ fn capture(
     tx: &mpsc::SyncSender<ToProcessor>,
 ) -> Outcome {
     let total = ctx.plan.total_frames;
-    let stop_stage = |rig: &mut Rig| {
-        if let Ok(s) = rig.stage(ctx.spec.stage) {
-            let _ = s.stop();
+    // Stop the stage and say where it was left ("" if it cannot say).
+    let stop_stage = |rig: &mut Rig| -> String {
+        let Ok(s) = rig.stage(ctx.spec.stage) else {
+            return String::new();
+        };
+        if let Err(e) = s.stop() {
+            tracing::warn!(stage = s.name(), "stopping after the job: {e}");
         }
+        stopped_at(s)
     };
     let mut index = 0u32;
     for run in &ctx.plan.runs {
@@ -105,20 +129,26 @@ fn capture(
             match ctx.stop.load(Ordering::SeqCst) {
                 RUN => {}
                 CANCEL => {
-                    stop_stage(rig);
-                    return Outcome::Cancelled("cancelled by a client".into());
+                    let at = stop_stage(rig);
+                    return Outcome::Cancelled(format!("cancelled by a client{at}"));
                 }
                 _ => {
-                    stop_stage(rig);
-                    return Outcome::Cancelled("the daemon is shutting down".into());
+                    let at = stop_stage(rig);
+                    return Outcome::Cancelled(format!("the daemon is shutting down{at}"));
                 }
             }
             let step = step(ctx, rig, commanded_um);
             let (axis_um, frame, timings) = match step {
                 Ok(s) => s,
-                Err(e) => {
-                    stop_stage(rig);
-                    return Outcome::Failed(e.to_string());
+                Err(StepError::Cancelled) => {
+                    let at = stop_stage(rig);
+                    return Outcome::Cancelled(format!(
+                        "cancelled by a client during the move to {commanded_um} µm{at}"
+                    ));
+                }
+                Err(StepError::Hw(e)) => {
+                    let at = stop_stage(rig);
+                    return Outcome::Failed(format!("{e}{at}"));
                 }
             };
             let interferometer_um = rig
@@ -140,8 +170,8 @@ fn capture(
                 grab_ms: timings.grab_ms,
             };
             if let Err(e) = session.record(row, &frame.image) {
-                stop_stage(rig);
-                return Outcome::Failed(format!("disk: {e}"));
+                let at = stop_stage(rig);
+                return Outcome::Failed(format!("disk: {e}{at}"));
             }
             (ctx.emit)(EventBody::Step {
                 index,
@@ -172,16 +202,68 @@ fn capture(
     Outcome::Finished
 }
 
+/// `"; axis stopped at 123.4 µm (idle)"`: where a stopped stage reports itself.
+fn stopped_at(stage: &mut dyn Stage) -> String {
+    match stage.status() {
+        Ok(st) => format!(
+            "; {} stopped at {:.3} µm ({})",
+            stage.name(),
+            st.position_um,
+            state_name(st.state)
+        ),
+        Err(e) => format!("; {} did not report after the stop: {e}", stage.name()),
+    }
+}
+
+fn state_name(s: MotionState) -> &'static str {
+    match s {
+        MotionState::Idle => "idle",
+        MotionState::Moving => "moving",
+        MotionState::Holding => "holding",
+        MotionState::Homing => "homing",
+        MotionState::Alarm => "alarm",
+    }
+}
+
+/// Wait for the move just commanded to finish, watching for a cancel while the stage
+/// reports it moving. Returns the settled position.
+fn finish_move(ctx: &JobContext<'_>, stage: &mut dyn Stage) -> Result<f64, StepError> {
+    let deadline = Instant::now() + MOVE_TIMEOUT;
+    loop {
+        if ctx.stop.load(Ordering::SeqCst) == CANCEL {
+            return Err(StepError::Cancelled);
+        }
+        let moving = matches!(
+            stage.status()?.state,
+            MotionState::Moving | MotionState::Homing
+        );
+        if !moving {
+            break;
+        }
+        if Instant::now() >= deadline {
+            return Err(StepError::Hw(HwError::Timeout {
+                device: stage.name().into(),
+                timeout_ms: MOVE_TIMEOUT.as_millis() as u64,
+                waiting_for: "the move to finish (still moving)".into(),
+            }));
+        }
+        std::thread::sleep(MOVE_POLL);
+    }
+    // The driver's own wait confirms the end of the move (and reports alarms and timeouts).
+    let left = deadline.saturating_duration_since(Instant::now());
+    Ok(stage.wait_settled(left.max(Duration::from_millis(1)))?)
+}
+
 /// Move, settle, grab one fresh frame.
 fn step(
     ctx: &JobContext<'_>,
     rig: &mut Rig,
     commanded_um: f64,
-) -> Result<(f64, crate::hw::Frame, StepTimings), HwError> {
+) -> Result<(f64, crate::hw::Frame, StepTimings), StepError> {
     let t0 = Instant::now();
     let stage = rig.stage(ctx.spec.stage)?;
     stage.move_abs(commanded_um)?;
-    let axis_um = stage.wait_settled(MOVE_TIMEOUT)?;
+    let axis_um = finish_move(ctx, stage)?;
     let t1 = Instant::now();
     // Settle in short sleeps so a cancel is not held up by a long settle time.
     let settle = Duration::from_millis(ctx.spec.settle_ms);

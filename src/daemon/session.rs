@@ -34,12 +34,20 @@ pub enum SessionError {
     },
     #[error("session {path}: {message}")]
     Format { path: String, message: String },
+    #[error("session {path}: disk full ({source})")]
+    DiskFull {
+        path: String,
+        source: std::io::Error,
+    },
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> SessionError + '_ {
-    move |source| SessionError::Io {
-        path: path.display().to_string(),
-        source,
+    move |source| {
+        let path = path.display().to_string();
+        match source.raw_os_error() {
+            Some(libc::ENOSPC | libc::EDQUOT) => SessionError::DiskFull { path, source },
+            _ => SessionError::Io { path, source },
+        }
     }
 }
 
@@ -354,8 +362,11 @@ pub fn list(data_root: &Path) -> Vec<Session> {
     v
 }
 
-/// At daemon start: sessions left `running` by a daemon that died are marked `incomplete`.
-/// Returns the highest job id seen, so new ids do not collide with recorded ones.
+/// At daemon start: sessions left `running` by a daemon that died (or that could not write
+/// its final manifest, e.g. on a full disk) are marked `incomplete`. A session that cannot
+/// be marked now (the disk is still full) is left `running` with a warning, to be marked at
+/// a later start: it must not keep the daemon from starting. Returns the highest job id
+/// seen, so new ids do not collide with recorded ones, and the sessions marked.
 pub fn recover(data_root: &Path) -> Result<(u64, Vec<String>), SessionError> {
     let mut max_id = 0;
     let mut marked = Vec::new();
@@ -371,8 +382,10 @@ pub fn recover(data_root: &Path) -> Result<(u64, Vec<String>), SessionError> {
                 path: s.dir.display().to_string(),
                 message: e.to_string(),
             })?;
-            write_atomic(&s.dir.join(MANIFEST), &bytes)?;
-            marked.push(m.name);
+            match write_atomic(&s.dir.join(MANIFEST), &bytes) {
+                Ok(()) => marked.push(m.name),
+                Err(e) => tracing::warn!(session = %m.name, "cannot mark it incomplete yet: {e}"),
+            }
         }
     }
     Ok((max_id, marked))

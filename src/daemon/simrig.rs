@@ -6,14 +6,16 @@
 //! true position.
 //!
 //! Faults can be injected (`rigd --sim --fault alarm@5`): alarms and serial loss through the
-//! GRBL emulator's own fault injection, camera timeouts at the camera.
+//! GRBL emulator's own fault injection, camera timeouts through the frame-clock camera's
+//! (its stream stalls; the driver's deadline runs out).
 
 use crate::daemon::rig::{PositionLog, Rig, RigInfo};
 use crate::hw::gcs::{GcsOptions, GcsStage};
 use crate::hw::grbl::{GrblOptions, GrblStage};
 use crate::hw::limits::TravelLimits;
+use crate::hw::open::SimRigCamera;
 use crate::hw::sim_camera::SimCamera;
-use crate::hw::{Camera, Frame, HwError, Stage, StageStatus};
+use crate::hw::{HwError, Stage, StageStatus};
 use rigd_sim::gcs::{GcsSim, GcsSimOptions};
 use rigd_sim::grbl::{GrblSim, GrblSimOptions};
 use rigd_sim::motion::{Axis, AxisParams};
@@ -30,7 +32,7 @@ pub enum Fault {
     Alarm(u32),
     /// The axis' serial port goes away on its n-th move.
     SerialLoss(u32),
-    /// The camera stops delivering on its n-th grab.
+    /// The camera's stream stalls from its n-th grab (until the driver restarts it).
     CameraTimeout(u32),
 }
 
@@ -42,7 +44,9 @@ impl std::str::FromStr for Fault {
             .ok_or_else(|| format!("fault {s:?}: expected KIND@N, e.g. alarm@5"))?;
         let n: u32 = n
             .parse()
-            .map_err(|_| format!("fault {s:?}: {n:?} is not a call number"))?;
+            .ok()
+            .filter(|&n| n >= 1)
+            .ok_or_else(|| format!("fault {s:?}: {n:?} is not a call number (1, 2, ...)"))?;
         match kind {
             "alarm" => Ok(Fault::Alarm(n)),
             "serial-loss" => Ok(Fault::SerialLoss(n)),
@@ -113,6 +117,17 @@ fn limits(device: &str, l: [f64; 2]) -> Result<TravelLimits, HwError> {
 /// Build the simulated rig: start the `SimRig`, serve its axis and piezo on two ptys and
 /// connect rigd's drivers to them.
 pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
+    sim_rig_with_truth(s).map(|(rig, _)| rig)
+}
+
+/// What the simulated stages truly do, whatever the drivers report (for tests).
+pub struct SimTruth {
+    pub axis: Arc<Axis>,
+    pub piezo: Arc<Axis>,
+}
+
+/// [`sim_rig`], also handing out the simulated stages themselves.
+pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
     let rc = SimRigConfig {
         board_file: s.board_file.clone(),
         camera: s.camera.clone(),
@@ -165,7 +180,11 @@ pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
         }),
     };
     let log = SimInterferometer::new(Arc::clone(&rig.axis));
-    Ok(Rig {
+    let truth = SimTruth {
+        axis: Arc::clone(&rig.axis),
+        piezo: Arc::clone(&rig.piezo),
+    };
+    let rig = Rig {
         info,
         axis: Box::new(EmulatedStage {
             faults: grbl.faults().clone(),
@@ -189,17 +208,19 @@ pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
             alarm_at: None,
             loss_at: None,
         })),
-        camera: Box::new(RigCamera {
-            cam: SimCamera::new(Arc::clone(&rig.camera)),
-            grabs: 0,
-            timeout_at: fault_at(|f| match f {
+        camera: {
+            if let Some(n) = fault_at(|f| match f {
                 Fault::CameraTimeout(n) => Some(*n),
                 _ => None,
-            }),
-            _rig: rig,
-        }),
+            }) {
+                rig.camera.stall_from_grab(n.into());
+            }
+            let cam = SimCamera::new(Arc::clone(&rig.camera));
+            Box::new(SimRigCamera::new(rig, cam))
+        },
         log: Some(Box::new(log)),
-    })
+    };
+    Ok((rig, truth))
 }
 
 /// A driver connected to an emulated controller, which it keeps alive; arms the
@@ -255,47 +276,6 @@ impl Stage for EmulatedStage {
     }
     fn status(&mut self) -> Result<StageStatus, HwError> {
         self.stage.status()
-    }
-}
-
-/// The rig's frame-clock camera, keeping the whole `SimRig` alive; can be told to stop
-/// delivering from its n-th grab on.
-struct RigCamera {
-    cam: SimCamera,
-    grabs: u32,
-    timeout_at: Option<u32>,
-    _rig: SimRig,
-}
-
-impl RigCamera {
-    fn injected_timeout(&mut self, timeout: Duration) -> Result<(), HwError> {
-        self.grabs += 1;
-        if self.timeout_at.is_some_and(|t| self.grabs >= t) {
-            std::thread::sleep(timeout.min(Duration::from_millis(50)));
-            return Err(HwError::Timeout {
-                device: self.cam.name().into(),
-                timeout_ms: timeout.as_millis() as u64,
-                waiting_for: "a frame (injected)".into(),
-            });
-        }
-        Ok(())
-    }
-}
-
-impl Camera for RigCamera {
-    fn name(&self) -> &str {
-        self.cam.name()
-    }
-    fn size(&self) -> (u32, u32) {
-        self.cam.size()
-    }
-    fn grab(&mut self, timeout: Duration) -> Result<Frame, HwError> {
-        self.injected_timeout(timeout)?;
-        self.cam.grab(timeout)
-    }
-    fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError> {
-        self.injected_timeout(timeout)?;
-        self.cam.grab_fresh(not_before, timeout)
     }
 }
 

@@ -100,11 +100,17 @@ fn execute(shared: &Shared, job: &JobRecord, live: &mut Rig) {
     let out = run_job(&ctx, rig, &mut session);
     let images: Vec<_> = out.images;
     let wrote = session.write_result(&out.result, &images);
+    // A write failing while closing keeps the job's own reason first (on a full disk that
+    // names the frame that did not fit).
+    let earlier = match &out.outcome {
+        Outcome::Finished => String::new(),
+        Outcome::Failed(r) | Outcome::Cancelled(r) => format!("{r}; "),
+    };
     let (state, jstate, reason) = match (&out.outcome, wrote) {
         (_, Err(e)) => (
             SessionState::Failed,
             JobState::Failed,
-            Some(format!("disk: {e}")),
+            Some(format!("{earlier}disk: {e}")),
         ),
         (Outcome::Finished, Ok(())) => (SessionState::Finished, JobState::Finished, None),
         (Outcome::Failed(r), Ok(())) => (SessionState::Failed, JobState::Failed, Some(r.clone())),
@@ -116,7 +122,10 @@ fn execute(shared: &Shared, job: &JobRecord, live: &mut Rig) {
     };
     let closed = session.close(state, reason.clone());
     let (jstate, reason) = match closed {
-        Err(e) => (JobState::Failed, Some(format!("disk: {e}"))),
+        Err(e) => {
+            let earlier = reason.map(|r| format!("{r}; ")).unwrap_or_default();
+            (JobState::Failed, Some(format!("{earlier}disk: {e}")))
+        }
         Ok(()) => (jstate, reason),
     };
     tracing::info!(job = id, state = ?jstate, reason = ?reason, "job ended");

@@ -3,6 +3,7 @@
 //! Frames come from a V4L2-like ring: `grab` takes the oldest queued frame (which may have
 //! been exposed before the last move ended), `grab_fresh` drops queued frames exposed before
 //! `not_before` and waits for the first one exposed at or after it — the fresh-frame rule.
+//! After a timeout the stream is restarted on the next grab, as the V4L2 driver does.
 
 use super::{Camera, Frame, HwError};
 use rigd_sim::camera_clock::{ClockError, FrameClockCamera, SimFrame};
@@ -34,11 +35,15 @@ impl SimCamera {
                 sequence: f.sequence,
                 timestamp: f.timestamp,
             }),
-            Err(ClockError::Timeout { timeout_ms }) => Err(HwError::Timeout {
-                device: self.name.clone(),
-                timeout_ms,
-                waiting_for: waiting_for.into(),
-            }),
+            Err(ClockError::Timeout { timeout_ms }) => {
+                // A stalled stream stays stalled until STREAMOFF/STREAMON.
+                self.cam.restart_stream();
+                Err(HwError::Timeout {
+                    device: self.name.clone(),
+                    timeout_ms,
+                    waiting_for: waiting_for.into(),
+                })
+            }
             Err(ClockError::Stopped) => Err(HwError::PortGone {
                 device: self.name.clone(),
                 message: "the simulated camera stopped streaming".into(),

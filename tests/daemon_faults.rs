@@ -1,0 +1,278 @@
+//! Faults from the simulated rig itself, through the daemon over its real socket: the
+//! camera's stream stalling (the driver's deadline runs out) and a cancel mid-move (the
+//! controller is told to stop where it is). Each time the axis is left stopped, what was
+//! captured is kept, and the daemon runs the next job.
+
+use rigd::cli::client::Client;
+use rigd::daemon::protocol::{EventBody, JobSpec, Request};
+use rigd::daemon::server::Background;
+use rigd::daemon::session::{Session, SessionState};
+use rigd::daemon::simrig::{sim_rig_with_truth, Fault, SimSettings, SimTruth};
+use rigd::daemon::DaemonSettings;
+use rigd::sim::motion::AxisParams;
+use rigd::sim::CameraModel;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+struct Rigd {
+    bg: Background,
+    data: PathBuf,
+    truth: SimTruth,
+    _dir: tempfile::TempDir,
+}
+
+fn settings(faults: Vec<Fault>, axis: AxisParams) -> SimSettings {
+    SimSettings {
+        camera: CameraModel {
+            width: 48,
+            height: 32,
+            supersample: 2,
+            frame_period_ms: 1.0,
+            exposure_ms: 0.5,
+            ..CameraModel::default()
+        },
+        axis,
+        faults,
+        ..SimSettings::default()
+    }
+}
+
+fn start(s: SimSettings) -> Rigd {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let d = DaemonSettings {
+        socket: dir.path().join("rigd.sock"),
+        group: None,
+        data_root: data.clone(),
+    };
+    let (rig, truth) = sim_rig_with_truth(&s).unwrap();
+    let bg = Background::start(d, rig).unwrap();
+    Rigd {
+        bg,
+        data,
+        truth,
+        _dir: dir,
+    }
+}
+
+impl Rigd {
+    fn client(&self) -> Client {
+        let mut c = Client::connect(&self.bg.socket).unwrap();
+        c.request(&Request::Subscribe { job_id: None }).unwrap();
+        c
+    }
+}
+
+fn submit(c: &mut Client, job: JobSpec) -> u64 {
+    c.request(&Request::Submit { job }).unwrap()["job_id"]
+        .as_u64()
+        .unwrap()
+}
+
+fn scan(start_um: f64, step_um: f64, steps: u32) -> JobSpec {
+    JobSpec {
+        start_um: Some(start_um),
+        step_um: Some(step_um),
+        steps: Some(steps),
+        settle_ms: 0,
+        process: false,
+        ..JobSpec::default()
+    }
+}
+
+/// Events of job `id` until its terminal one.
+fn events_until_end(c: &mut Client, id: u64) -> Vec<EventBody> {
+    let mut v = Vec::new();
+    loop {
+        let e = c.next_event().unwrap();
+        if e.job_id != id {
+            continue;
+        }
+        let end = e.body.is_terminal();
+        v.push(e.body);
+        if end {
+            return v;
+        }
+    }
+}
+
+fn session_of(data: &Path, events: &[EventBody]) -> Session {
+    let name = events
+        .iter()
+        .find_map(|e| match e {
+            EventBody::Started { session, .. } => Some(session.clone()),
+            _ => None,
+        })
+        .expect("a started event");
+    Session::open(&data.join(name)).unwrap()
+}
+
+fn reported_steps(events: &[EventBody]) -> Vec<(u32, f64)> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            EventBody::Step {
+                index,
+                commanded_um,
+                ..
+            } => Some((*index, *commanded_um)),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Every frame reported captured is in steps.csv and its PNG decodes whole.
+fn check_captured(s: &Session, reported: &[(u32, f64)]) {
+    assert_eq!(s.steps.len(), reported.len(), "{:?}", s.manifest.reason);
+    assert_eq!(s.manifest.frames_captured as usize, reported.len());
+    for (row, (index, commanded)) in s.steps.iter().zip(reported) {
+        assert_eq!((row.index, row.position_um), (*index, *commanded));
+        let img = image::open(s.frame_path(row.index)).unwrap();
+        assert_eq!((img.width(), img.height()), (48, 32));
+    }
+}
+
+/// `(position_um, state)` from a reason's "axis stopped at 123.456 µm (idle)".
+fn stopped_at(reason: &str) -> (f64, String) {
+    let rest = reason
+        .split("axis stopped at ")
+        .nth(1)
+        .unwrap_or_else(|| panic!("no stop position in {reason:?}"));
+    let (pos, rest) = rest.split_once(" µm (").unwrap();
+    let state = rest.split(')').next().unwrap();
+    (pos.parse().unwrap(), state.to_string())
+}
+
+/// The true axis has stopped at what the driver reported (within its positioning error).
+fn check_axis_stopped(truth: &SimTruth, reported_um: f64) {
+    let now = Instant::now();
+    assert!(!truth.axis.is_moving(now), "the axis is still moving");
+    let at = truth.axis.position_at(now);
+    assert!(
+        (at - reported_um).abs() < 12.0,
+        "true {at} vs reported {reported_um}"
+    );
+}
+
+#[test]
+fn a_stalled_camera_fails_the_job_naming_the_camera_and_the_next_job_runs() {
+    let d = start(settings(
+        vec![Fault::CameraTimeout(4)],
+        SimSettings::default().axis,
+    ));
+    let mut c = d.client();
+    let id = submit(&mut c, scan(1_000.0, 50.0, 10));
+    let ev = events_until_end(&mut c, id);
+    let Some(EventBody::Failed { reason, .. }) = ev.last() else {
+        panic!("{ev:?}")
+    };
+    // The driver's deadline ran out: the reason names the camera and the wait.
+    assert!(
+        reason.starts_with("sim-camera: no reply within 5000 ms"),
+        "{reason}"
+    );
+    assert!(reason.contains("waiting for a frame"), "{reason}");
+    let reported = reported_steps(&ev);
+    assert_eq!(reported.len(), 3, "grabs 1-3 delivered, grab 4 stalled");
+    let s = session_of(&d.data, &ev);
+    assert_eq!(s.manifest.state, SessionState::Failed);
+    assert_eq!(s.manifest.reason.as_deref(), Some(reason.as_str()));
+    check_captured(&s, &reported);
+    // The axis was stopped where the failed step left it: at frame 4's position (the
+    // emulator's stop takes the true position, within the 2 µm RMS positioning error).
+    let (at, state) = stopped_at(reason);
+    assert!((at - 1_150.0).abs() < 12.0, "{reason}");
+    assert!(state == "idle" || state == "holding", "{reason}");
+    check_axis_stopped(&d.truth, at);
+    // The driver restarted the stalled stream: the next job captures every frame.
+    let id = submit(&mut c, scan(2_000.0, 50.0, 3));
+    let ev = events_until_end(&mut c, id);
+    assert!(
+        matches!(ev.last(), Some(EventBody::Finished { .. })),
+        "{ev:?}"
+    );
+    check_captured(&session_of(&d.data, &ev), &reported_steps(&ev));
+}
+
+#[test]
+fn a_cancel_stops_the_axis_mid_move_and_the_next_job_runs() {
+    // A slow axis: the second step is a 100 mm move of about 50 s (beyond the runner's
+    // 30 s move deadline, so only a cancel mid-move ends this job as cancelled).
+    let slow = AxisParams {
+        max_speed_um_s: 2_000.0,
+        accel_um_s2: 200_000.0,
+        ..SimSettings::default().axis
+    };
+    let d = start(settings(vec![], slow));
+    let mut c = d.client();
+    let target = 101_000.0;
+    let id = submit(&mut c, scan(1_000.0, 100_000.0, 2));
+    let mut ev = Vec::new();
+    while !matches!(ev.last(), Some(EventBody::Step { .. })) {
+        let e = c.next_event().unwrap();
+        assert!(!e.body.is_terminal(), "{:?}", e.body);
+        if e.job_id == id {
+            ev.push(e.body);
+        }
+    }
+    // Cancel once the axis is truly on its way to the second position.
+    let t = Instant::now();
+    while !(d.truth.axis.is_moving(Instant::now())
+        && d.truth.axis.position_at(Instant::now()) > 1_100.0)
+    {
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "the move never started"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let r = c.request(&Request::Cancel { job_id: id }).unwrap();
+    assert_eq!(r["state"], "cancelling");
+    ev.extend(events_until_end(&mut c, id));
+    assert!(
+        matches!(ev.last(), Some(EventBody::Cancelled { session: Some(_) })),
+        "{ev:?}"
+    );
+    let st = c.request(&Request::Status { job_id: Some(id) }).unwrap();
+    assert_eq!(st["state"], "cancelled");
+    let reason = st["reason"].as_str().unwrap();
+    assert!(reason.contains("during the move to 101000 µm"), "{reason}");
+    // Stopped by the controller short of the target, not moving.
+    let (at, state) = stopped_at(reason);
+    assert!(state == "idle" || state == "holding", "{reason}");
+    assert!(at > 1_100.0 && at < target - 1_000.0, "{reason}");
+    check_axis_stopped(&d.truth, at);
+    // The frame of the first step is kept, nothing of the interrupted one.
+    let s = session_of(&d.data, &ev);
+    assert_eq!(s.manifest.state, SessionState::Cancelled);
+    check_captured(&s, &reported_steps(&ev));
+    assert_eq!(s.steps.len(), 1);
+    // The daemon runs the next job from where the axis was left.
+    let next = scan(at.round() + 100.0, 50.0, 3);
+    let id = submit(&mut c, next);
+    let ev = events_until_end(&mut c, id);
+    assert!(
+        matches!(ev.last(), Some(EventBody::Finished { .. })),
+        "{ev:?}"
+    );
+    check_captured(&session_of(&d.data, &ev), &reported_steps(&ev));
+}
+
+#[test]
+fn fault_flags_parse_and_bad_ones_say_what_is_wrong() {
+    assert_eq!(
+        "camera-timeout@4".parse::<Fault>(),
+        Ok(Fault::CameraTimeout(4))
+    );
+    assert_eq!("alarm@1".parse::<Fault>(), Ok(Fault::Alarm(1)));
+    assert_eq!("serial-loss@2".parse::<Fault>(), Ok(Fault::SerialLoss(2)));
+    for (bad, says) in [
+        ("camera-timeout", "KIND@N"),
+        ("camera-timeout@0", "not a call number"),
+        ("alarm@x", "not a call number"),
+        ("smoke@3", "unknown kind"),
+    ] {
+        let e = bad.parse::<Fault>().unwrap_err();
+        assert!(e.contains(bad) && e.contains(says), "{bad}: {e}");
+    }
+}
