@@ -24,6 +24,7 @@ pub fn run(a: ReplayArgs) -> anyhow::Result<()> {
     let req = Request::Replay {
         session: a.session.clone(),
         processing: ProcessingOverride {
+            registration: None,
             k: a.k,
             estimator: a.estimator.map(Into::into),
             combine: a.combine.map(Into::into),

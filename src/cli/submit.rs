@@ -111,6 +111,7 @@ impl SubmitArgs {
             settle_ms: self.settle_ms,
             estimator: self.estimator.into(),
             combine: self.combine.map(Into::into),
+            registration: Default::default(),
             repeats: self.repeats,
             start_um: self.start_um,
             repeat_shift_um: self.repeat_shift_um,

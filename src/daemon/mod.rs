@@ -12,6 +12,7 @@ pub mod commands;
 pub mod connection;
 pub mod events;
 pub mod hwrig;
+pub mod interferometer;
 pub mod jobs;
 pub mod plan;
 pub mod protocol;

@@ -2,8 +2,9 @@
 //! is processed on a second thread while the axis moves to i+1. Blocking code: it runs on
 //! its own thread, never on the async runtime.
 
+use crate::daemon::interferometer;
 use crate::daemon::plan::Plan;
-use crate::daemon::protocol::{process_options, EventBody, JobSpec, StepTimings};
+use crate::daemon::protocol::{process_options, EventBody, JobRegistration, JobSpec, StepTimings};
 use crate::daemon::rig::Rig;
 use crate::daemon::session::{unix_s, Image16, SessionWriter, StepRow};
 use crate::daemon::study::{summarize, RunResult};
@@ -99,6 +100,9 @@ fn capture(
             let _ = s.stop();
         }
     };
+    if let Err(e) = interferometer::begin_job(rig.log.as_deref_mut(), session) {
+        return Outcome::Failed(format!("disk: {e}"));
+    }
     let mut index = 0u32;
     for run in &ctx.plan.runs {
         for &commanded_um in &run.positions_um {
@@ -121,10 +125,14 @@ fn capture(
                     return Outcome::Failed(e.to_string());
                 }
             };
-            let interferometer_um = rig
-                .log
-                .as_mut()
-                .and_then(|l| l.position_at(frame.timestamp));
+            let interferometer_um =
+                match interferometer::at_frame(rig.log.as_deref_mut(), session, frame.timestamp) {
+                    Ok(x) => x,
+                    Err(e) => {
+                        stop_stage(rig);
+                        return Outcome::Failed(format!("disk: {e}"));
+                    }
+                };
             let row = StepRow {
                 index,
                 position_um: commanded_um,
@@ -155,12 +163,23 @@ fn capture(
                 total_frames: total,
             });
             if ctx.spec.process {
+                let position_um = match (ctx.spec.registration, interferometer_um) {
+                    (JobRegistration::Interferometer, Some(x)) => x,
+                    (JobRegistration::Interferometer, None) => {
+                        stop_stage(rig);
+                        return Outcome::Failed(format!(
+                            "frame {index}: no interferometer reading at its time \
+                             (registration: interferometer needs one)"
+                        ));
+                    }
+                    _ => commanded_um,
+                };
                 // Blocks only if processing falls four frames behind the capture.
                 let _ = tx.send(ToProcessor::Frame {
                     run: run.run,
                     index,
                     image: frame.image,
-                    position_um: commanded_um,
+                    position_um,
                 });
             }
             index += 1;

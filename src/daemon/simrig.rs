@@ -2,26 +2,28 @@
 //! drivers a real rig uses. The axis is moved by rigd's GRBL driver over the real serialport
 //! path to the GRBL emulator on a pseudo-terminal, the piezo by the GCS driver to the PI GCS
 //! emulator; the camera is the rig's frame-clock camera (frames show where the line of sight
-//! truly was during the exposure, motion blur included); the interferometer reads the axis'
-//! true position.
+//! truly was during the exposure, motion blur included); the simulated XL-80 writes its live
+//! log to a file that the daemon follows as it would a real one (`daemon::interferometer`).
 //!
 //! Faults can be injected (`rigd --sim --fault alarm@5`): alarms and serial loss through the
 //! GRBL emulator's own fault injection, camera timeouts at the camera.
 
-use crate::daemon::rig::{PositionLog, Rig, RigInfo};
+use crate::daemon::interferometer::sim_log;
+use crate::daemon::rig::{Rig, RigInfo};
 use crate::hw::gcs::{GcsOptions, GcsStage};
 use crate::hw::grbl::{GrblOptions, GrblStage};
 use crate::hw::limits::TravelLimits;
 use crate::hw::sim_camera::SimCamera;
 use crate::hw::{Camera, Frame, HwError, Stage, StageStatus};
+use crate::xl80::Xl80Format;
 use rigd_sim::gcs::{GcsSim, GcsSimOptions};
 use rigd_sim::grbl::{GrblSim, GrblSimOptions};
-use rigd_sim::motion::{Axis, AxisParams};
+use rigd_sim::motion::AxisParams;
 use rigd_sim::serve::Faults;
 use rigd_sim::{CameraModel, SimRig, SimRigConfig};
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::{Duration, Instant, SystemTime};
+use std::time::{Duration, SystemTime};
 
 /// A fault to inject: what fails, and on which call (1-based) of the device.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -121,7 +123,8 @@ pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
         ..SimRigConfig::default()
     };
     let board = rc.board().map_err(|e| sim_error("sim-rig", e))?;
-    let rig = SimRig::start(rc.clone()).map_err(|e| sim_error("sim-rig", e))?;
+    let mut rig = SimRig::start(rc.clone()).map_err(|e| sim_error("sim-rig", e))?;
+    let log = sim_log(&mut rig, None, Xl80Format::Csv, 1000.0)?;
 
     let grbl = GrblSim::spawn(Arc::clone(&rig.axis), GrblSimOptions::default(), None)
         .map_err(|e| sim_error("sim-grbl", e))?;
@@ -161,10 +164,11 @@ pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
             "board": board.name,
             "axis_driver": "grbl (emulated, pty)",
             "piezo_driver": "gcs (emulated, pty)",
+            "xl80": rc.xl80,
+            "xl80_log": "live CSV in a temporary file, followed",
             "faults": s.faults.iter().map(|f| format!("{f:?}")).collect::<Vec<_>>(),
         }),
     };
-    let log = SimInterferometer::new(Arc::clone(&rig.axis));
     Ok(Rig {
         info,
         axis: Box::new(EmulatedStage {
@@ -296,29 +300,5 @@ impl Camera for RigCamera {
     fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError> {
         self.injected_timeout(timeout)?;
         self.cam.grab_fresh(not_before, timeout)
-    }
-}
-
-/// The interferometer of the simulated rig: the axis' true position.
-pub struct SimInterferometer {
-    axis: Arc<Axis>,
-}
-
-impl SimInterferometer {
-    pub fn new(axis: Arc<Axis>) -> SimInterferometer {
-        SimInterferometer { axis }
-    }
-}
-
-impl PositionLog for SimInterferometer {
-    fn position_at(&mut self, t: SystemTime) -> Option<f64> {
-        // Map the wall-clock instant onto the monotonic clock the axis runs on.
-        let now_sys = SystemTime::now();
-        let now = Instant::now();
-        let at = match now_sys.duration_since(t) {
-            Ok(ago) => now.checked_sub(ago)?,
-            Err(e) => now + e.duration(),
-        };
-        Some(self.axis.position_at(at))
     }
 }

@@ -79,6 +79,12 @@ impl CsvParser {
         &self.log
     }
 
+    /// Drop the readings parsed so far (a follower that has handed them on), keeping the
+    /// metadata and the parsing state.
+    pub fn forget_readings(&mut self) {
+        self.log.readings = Vec::new();
+    }
+
     /// Whether the header row has been seen.
     pub fn has_table(&self) -> bool {
         self.table.is_some()
@@ -120,6 +126,7 @@ impl CsvParser {
         let sep = guess_separator(text);
         let fields = split(text, sep);
         if let Some(table) = header(&fields, sep) {
+            self.log.um_per_unit = Some(table.position_um_per_unit);
             self.table = Some(table);
             return;
         }
