@@ -147,8 +147,12 @@ impl CsvParser {
             }
         };
         note_metadata(&mut self.log.meta, &key, &value);
-        if self.log.start.is_none() && key.trim().to_ascii_lowercase().starts_with("date") {
+        let k = key.trim().to_ascii_lowercase();
+        if self.log.start.is_none() && k.starts_with("date") {
             self.log.start = parse_datetime(&value);
+        }
+        if k.contains("sample rate") || k.contains("sampling rate") {
+            self.log.sample_rate_hz = parse_number(&value).filter(|hz| *hz > 0.0);
         }
     }
 
