@@ -177,13 +177,17 @@ fn a_sim_job_records_the_live_log_and_reads_each_frame_from_it() {
     let src = s.manifest.interferometer.as_ref().expect("a log source");
     assert_eq!(src.format, "csv");
     assert_eq!(src.um_per_unit, Some(1000.0), "the sim's CSV is in mm");
-    assert_eq!(src.sample_rate_hz, Some(100.0));
+    assert_eq!(src.sample_rate_hz, Some(1000.0));
     assert!(
         src.date.is_some() && src.path.contains("rigd-sim-xl80"),
         "{src:?}"
     );
     assert!(src.fields.iter().any(|(k, _)| k == "Serial No"), "{src:?}");
-    let samples = check_log(&s, 100.0);
+    // The sim dates its capture on a whole second: the log clock is the PC's, and the
+    // estimate says so (less the writer's delay of a few ms).
+    assert!(src.clock.starts_with("estimated"), "{src:?}");
+    assert!((-0.03..=0.001).contains(&src.log_minus_pc_s), "{src:?}");
+    let samples = check_log(&s, 1000.0);
     // Events carry the same reading as steps.csv.
     let from_events: Vec<Option<f64>> = ev
         .iter()
@@ -241,7 +245,7 @@ fn registration_interferometer_uses_the_readings_and_replays_the_same() {
         "{ev:?}"
     );
     let live_s = session_of(&d.data, &ev);
-    let live_log = check_log(&live_s, 100.0);
+    let live_log = check_log(&live_s, 1000.0);
     let result = |c: &mut Client, id| c.request(&Request::Result { job_id: id }).unwrap();
     let a = result(&mut c, live);
     let objects = &a["result"]["runs"][0]["result"]["objects"];
@@ -305,7 +309,9 @@ fn registration_interferometer_uses_the_readings_and_replays_the_same() {
 }
 
 /// The hardware path: GRBL over a pty, and `[xl80]` pointing at a log the sim's XL-80
-/// writes live, as the laser software would (RTX, flushed ten times a second).
+/// writes live, as the laser software would (RTX, flushed ten times a second, dated on the
+/// whole second before its start: the log clock lags the PC's by the start's fraction of a
+/// second, which the daemon must estimate to put the readings at the frames).
 #[test]
 fn a_config_rig_follows_an_rtx_log_written_live() {
     let dir = tempfile::tempdir().unwrap();
@@ -327,15 +333,8 @@ fn a_config_rig_follows_an_rtx_log_written_live() {
     .unwrap();
     let grbl = GrblSim::spawn(Arc::clone(&sim.axis), GrblSimOptions::default(), None).unwrap();
     let log = dir.path().join("capture.rtx");
-    sim.start_xl80_log_with(
-        &log,
-        LogFormat::Rtx,
-        LiveOptions {
-            start_on_whole_second: true,
-            ..LiveOptions::default()
-        },
-    )
-    .unwrap();
+    sim.start_xl80_log_with(&log, LogFormat::Rtx, LiveOptions::default())
+        .unwrap();
     let text = format!(
         r#"
 [axis]
@@ -400,7 +399,19 @@ poll_ms = 5
     let noise = settled_noise_um(&samples, &s, 0.04);
     assert!((0.5 * NOISE_UM..1.6 * NOISE_UM).contains(&noise), "{noise}");
     drop(d);
-    sim.finish_xl80_log().unwrap();
+    let started = sim.finish_xl80_log().unwrap().unwrap().started_sys;
+    let frac = started
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .subsec_nanos() as f64
+        * 1e-9;
+    assert!(src.clock.starts_with("estimated"), "{src:?}");
+    let est = src.log_minus_pc_s;
+    assert!(
+        (est + frac).abs() < 0.03 && est < -frac + 0.002,
+        "log clock - PC clock estimated {est} s, true {}",
+        -frac
+    );
 }
 
 /// Kills the daemon if a test fails before it does.

@@ -3,8 +3,9 @@
 //! devices are one `SimRig` (`open_sim_rig`), so the camera sees the stages move.
 
 use crate::config::{CameraDriver, Config, StageDriver};
-use crate::daemon::interferometer::{sim_log, FollowedLog};
+use crate::daemon::interferometer::FollowedLog;
 use crate::daemon::rig::{PositionLog, Rig, RigInfo};
+use crate::daemon::simxl80::SimXl80;
 use crate::hw::open::{open_camera, open_sim_rig, open_stage, SimRigCamera};
 use crate::hw::{Camera, HwError};
 use crate::xl80::follow::Follower;
@@ -57,17 +58,12 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
         config: serde_json::to_value(cfg).unwrap_or_default(),
     };
     if all_sim {
-        let mut hw = open_sim_rig(cfg)?;
+        let hw = open_sim_rig(cfg)?;
         let size = hw.camera.size();
         // The sim's XL-80 writes `[xl80] path` (or a temporary file), followed as on hardware.
         let log = match &cfg.xl80 {
-            Some(x) => sim_log(
-                &mut hw.rig,
-                Some(x.path.clone()),
-                x.format,
-                x.rtx_um_per_unit(),
-            )?,
-            None => sim_log(&mut hw.rig, None, Xl80Format::Csv, 1000.0)?,
+            Some(x) => SimXl80::new(&hw.rig, Some(x.path.clone()), x.format, x.rtx_um_per_unit())?,
+            None => SimXl80::new(&hw.rig, None, Xl80Format::Csv, 1000.0)?,
         };
         return Ok(Rig {
             info: RigInfo {

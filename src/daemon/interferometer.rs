@@ -8,22 +8,26 @@
 //! reading is interpolated linearly between the two samples around it. Every sample read
 //! from the job's start on is handed to the session (`interferometer.csv`).
 //!
-//! Sample times are the log's start date plus the sample's time, minus `log_minus_pc_s`
-//! (the log clock minus the PC clock; 0 when the laser software runs on the rig PC and its
-//! capture date is exact). No offset is estimated: the formats' dates have whole seconds,
-//! so a capture started mid-second is up to 1 s early on the PC clock (docs/xl80.md).
+//! Sample times are the log's start date plus the sample's time, minus `log_minus_pc_s`,
+//! the log clock minus the PC clock. That offset is estimated while the log grows: a sample
+//! cannot be read before it was taken, so each sample that appears between two polls bounds
+//! it from below (`log time - read time`), and the largest bound is kept. It converges to
+//! the true offset less the writer's shortest delay (a few ms when the writer flushes
+//! promptly). It absorbs the formats' whole-second dates (a capture started mid-second is
+//! up to 1 s off otherwise) and a log written in local time. The backlog read on the first
+//! poll says nothing (it may be an old file), so until the log has grown under observation
+//! the offset is 0: the date is taken as written.
 
 use crate::daemon::rig::{LogSample, LogSource, PositionLog};
 use crate::daemon::session::{unix_s, SessionError, SessionWriter};
-use crate::hw::HwError;
-use crate::xl80::{Follower, Xl80Format};
-use rigd_sim::xl80::{LiveOptions, LogFormat};
-use rigd_sim::SimRig;
+use crate::xl80::Follower;
 use std::collections::VecDeque;
-use std::path::PathBuf;
-use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant, SystemTime};
 
+/// At a job's start, watch the log grow this many times (for the clock offset), for at
+/// most `WARM_UP`.
+const WARM_UP_GROWTHS: usize = 3;
+const WARM_UP: Duration = Duration::from_millis(300);
 /// Samples kept behind the newest one for interpolation.
 const KEEP_S: f64 = 2.0;
 /// Two samples further apart than this (or one this far from `t`) do not say where the
@@ -35,7 +39,11 @@ pub struct FollowedLog {
     follower: Follower,
     poll: Duration,
     max_wait: Duration,
-    log_minus_pc_s: f64,
+    /// Log clock minus PC clock (s): the estimate, once the log has grown under observation.
+    log_minus_pc_s: Option<f64>,
+    /// Growth observations behind the estimate.
+    growths: usize,
+    restarts: usize,
     /// Recent samples, oldest first, for interpolation.
     recent: VecDeque<LogSample>,
     /// Samples from the job's start not yet taken by the session.
@@ -46,16 +54,6 @@ pub struct FollowedLog {
     stalled: bool,
     untimed: usize,
     last_error: Option<String>,
-    /// A temporary log file this follower owns (the sim's), removed on drop.
-    owned_file: Option<PathBuf>,
-}
-
-impl Drop for FollowedLog {
-    fn drop(&mut self) {
-        if let Some(p) = &self.owned_file {
-            let _ = std::fs::remove_file(p);
-        }
-    }
 }
 
 impl FollowedLog {
@@ -66,25 +64,41 @@ impl FollowedLog {
             follower,
             poll,
             max_wait: (poll * 5).max(Duration::from_secs(1)),
-            log_minus_pc_s: 0.0,
+            log_minus_pc_s: None,
+            growths: 0,
+            restarts: 0,
             recent: VecDeque::new(),
             pending: Vec::new(),
             from_unix_s: f64::INFINITY,
             stalled: false,
             untimed: 0,
             last_error: None,
-            owned_file: None,
         }
     }
 
-    /// The log's clock minus the PC's, seconds (default 0).
-    pub fn with_log_minus_pc_s(mut self, s: f64) -> FollowedLog {
-        self.log_minus_pc_s = s;
-        self
+    /// The log clock minus the PC clock in use, seconds (0 until estimated).
+    pub fn log_minus_pc_s(&self) -> f64 {
+        self.log_minus_pc_s.unwrap_or(0.0)
+    }
+
+    /// Take a lower bound of the clock offset; re-time the samples held in memory.
+    fn bound_offset(&mut self, bound_s: f64) {
+        let old = self.log_minus_pc_s();
+        let new = self.log_minus_pc_s.map_or(bound_s, |o| o.max(bound_s));
+        self.log_minus_pc_s = Some(new);
+        self.growths += 1;
+        let shift = old - new;
+        if shift != 0.0 {
+            for x in self.recent.iter_mut().chain(self.pending.iter_mut()) {
+                x.t_unix_s += shift;
+            }
+        }
     }
 
     /// Read what the file gained; true if it gained samples.
     fn catch_up(&mut self) -> bool {
+        // Bytes appearing now were written since the last poll only if that poll read the file.
+        let watching = self.follower.offset() > 0;
         let new = match self.follower.poll() {
             Ok(n) => {
                 self.last_error = None;
@@ -99,6 +113,24 @@ impl FollowedLog {
                 return false;
             }
         };
+        let read_at = unix_s(SystemTime::now());
+        let restarted = self.follower.restarts() != self.restarts;
+        if restarted {
+            // A new capture replaced the file: a new date, a new offset.
+            self.restarts = self.follower.restarts();
+            self.log_minus_pc_s = None;
+            self.growths = 0;
+            self.recent.clear();
+        }
+        let newest_log_s = new
+            .iter()
+            .rev()
+            .find_map(|r| self.follower.log().time_of(r))
+            .map(unix_s);
+        if let (true, false, Some(l)) = (watching, restarted, newest_log_s) {
+            self.bound_offset(l - read_at);
+        }
+        let offset = self.log_minus_pc_s();
         let log = self.follower.log();
         for r in &new {
             let Some(at) = log.time_of(r) else {
@@ -113,7 +145,7 @@ impl FollowedLog {
                 continue;
             };
             let s = LogSample {
-                t_unix_s: unix_s(at) - self.log_minus_pc_s,
+                t_unix_s: unix_s(at) - offset,
                 position_um: r.position_um,
                 sample: r.line,
             };
@@ -137,54 +169,6 @@ impl FollowedLog {
     fn newest_s(&self) -> Option<f64> {
         self.recent.back().map(|s| s.t_unix_s)
     }
-}
-
-/// How often the daemon polls the sim's log while waiting for a frame's sample.
-const SIM_POLL: Duration = Duration::from_millis(2);
-
-/// The simulated XL-80 of `rig` run the way the real one runs: it writes its live log (CSV
-/// or RTX) to `path` — a temporary file when `None`, removed with the returned log — and
-/// the daemon follows that file like a real rig's. The capture is dated on a whole second
-/// and flushed after every sample, so the log's clock is the PC's.
-pub fn sim_log(
-    rig: &mut SimRig,
-    path: Option<PathBuf>,
-    format: Xl80Format,
-    rtx_um_per_unit: f64,
-) -> Result<FollowedLog, HwError> {
-    static N: AtomicU32 = AtomicU32::new(0);
-    let (path, owned) = match path {
-        Some(p) => (p, false),
-        None => {
-            let n = N.fetch_add(1, Ordering::Relaxed);
-            let ext = if format == Xl80Format::Rtx {
-                "rtx"
-            } else {
-                "csv"
-            };
-            let name = format!("rigd-sim-xl80-{}-{n}.{ext}", std::process::id());
-            (std::env::temp_dir().join(name), true)
-        }
-    };
-    let opts = LiveOptions {
-        flush_period: Duration::ZERO,
-        start_on_whole_second: true,
-    };
-    let sim_format = match format {
-        Xl80Format::Csv => LogFormat::Csv,
-        Xl80Format::Rtx => LogFormat::Rtx,
-    };
-    rig.start_xl80_log_with(&path, sim_format, opts)
-        .map_err(|e| HwError::Other {
-            device: "sim-xl80".into(),
-            message: e.to_string(),
-        })?;
-    let follower = Follower::new(&path, format).with_rtx_unit_um(rtx_um_per_unit);
-    let mut log = FollowedLog::new(follower, SIM_POLL);
-    if owned {
-        log.owned_file = Some(path);
-    }
-    Ok(log)
 }
 
 /// The reading at `t` from samples sorted by time: linear between the two around it, or the
@@ -217,6 +201,13 @@ impl PositionLog for FollowedLog {
         self.from_unix_s = unix_s(from);
         self.pending.clear();
         self.catch_up();
+        // Watch the log grow a few times before the first frame, so the clock offset is
+        // settled before samples are recorded (once per log: later jobs reuse it).
+        let until = Instant::now() + WARM_UP;
+        while self.growths < WARM_UP_GROWTHS && Instant::now() < until {
+            std::thread::sleep(self.poll);
+            self.catch_up();
+        }
         let from = self.from_unix_s;
         self.pending.retain(|s| s.t_unix_s >= from);
     }
@@ -258,7 +249,15 @@ impl PositionLog for FollowedLog {
             um_per_unit: log.um_per_unit,
             sample_rate_hz: log.sample_rate_hz,
             date: log.meta.date.clone(),
-            log_minus_pc_s: self.log_minus_pc_s,
+            log_minus_pc_s: self.log_minus_pc_s(),
+            clock: if self.log_minus_pc_s.is_some() {
+                format!(
+                    "estimated from {} growths of the log under observation",
+                    self.growths
+                )
+            } else {
+                "the log's date as written (it has not grown under observation)".into()
+            },
             fields: log.meta.fields.clone(),
             garbled: log.garbled.count,
             replayed_from: None,
@@ -291,6 +290,8 @@ pub fn at_frame(
     };
     let at = log.position_at(t);
     session.append_interferometer(&log.take_samples())?;
+    // The clock estimate may have moved: the manifest's final write records the last one.
+    session.note_interferometer(log.source());
     Ok(at)
 }
 

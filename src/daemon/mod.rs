@@ -22,6 +22,7 @@ pub mod runner;
 pub mod server;
 pub mod session;
 pub mod simrig;
+pub mod simxl80;
 pub mod study;
 pub mod worker;
 

@@ -50,8 +50,11 @@ pub struct LogSource {
     /// The log's start date as written (whole seconds in both formats).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub date: Option<String>,
-    /// Log clock minus PC clock, seconds, applied to every sample time.
+    /// Log clock minus PC clock, seconds, subtracted from every sample time.
     pub log_minus_pc_s: f64,
+    /// Where `log_minus_pc_s` comes from.
+    #[serde(default)]
+    pub clock: String,
     /// Every header `key: value` pair, in file order.
     #[serde(default)]
     pub fields: Vec<(String, String)>,

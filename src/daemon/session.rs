@@ -246,6 +246,12 @@ impl SessionWriter {
         self.write_manifest()
     }
 
+    /// Update the log's source facts (written with the manifest's next write, at the latest
+    /// when the session is closed).
+    pub fn note_interferometer(&mut self, source: LogSource) {
+        self.manifest.interferometer = Some(source);
+    }
+
     /// Append interferometer samples and fsync them. Call before recording the frame they
     /// cover, so a reported frame's samples are on disk.
     pub fn append_interferometer(&mut self, samples: &[LogSample]) -> Result<(), SessionError> {

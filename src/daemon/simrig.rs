@@ -8,8 +8,8 @@
 //! Faults can be injected (`rigd --sim --fault alarm@5`): alarms and serial loss through the
 //! GRBL emulator's own fault injection, camera timeouts at the camera.
 
-use crate::daemon::interferometer::sim_log;
 use crate::daemon::rig::{Rig, RigInfo};
+use crate::daemon::simxl80::SimXl80;
 use crate::hw::gcs::{GcsOptions, GcsStage};
 use crate::hw::grbl::{GrblOptions, GrblStage};
 use crate::hw::limits::TravelLimits;
@@ -123,8 +123,8 @@ pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
         ..SimRigConfig::default()
     };
     let board = rc.board().map_err(|e| sim_error("sim-rig", e))?;
-    let mut rig = SimRig::start(rc.clone()).map_err(|e| sim_error("sim-rig", e))?;
-    let log = sim_log(&mut rig, None, Xl80Format::Csv, 1000.0)?;
+    let rig = SimRig::start(rc.clone()).map_err(|e| sim_error("sim-rig", e))?;
+    let log = SimXl80::new(&rig, None, Xl80Format::Csv, 1000.0)?;
 
     let grbl = GrblSim::spawn(Arc::clone(&rig.axis), GrblSimOptions::default(), None)
         .map_err(|e| sim_error("sim-grbl", e))?;
@@ -164,8 +164,11 @@ pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
             "board": board.name,
             "axis_driver": "grbl (emulated, pty)",
             "piezo_driver": "gcs (emulated, pty)",
-            "xl80": rc.xl80,
-            "xl80_log": "live CSV in a temporary file, followed",
+            "xl80": rigd_sim::xl80::Xl80Params {
+                sample_rate_hz: crate::daemon::simxl80::SIM_RATE_HZ,
+                ..rc.xl80.clone()
+            },
+            "xl80_log": "live CSV in a temporary file, a new capture per job, followed",
             "faults": s.faults.iter().map(|f| format!("{f:?}")).collect::<Vec<_>>(),
         }),
     };
