@@ -9,7 +9,8 @@
 //!   samples as little-endian f64 (in `rtx_unit`, mm by default), then `EOF::`, all CRLF.
 //!
 //! `LiveLog` writes either file while the job runs: a thread samples the position at the
-//! sample rate and appends and flushes, as the real software does. While it grows, a `.rtx`
+//! sample rate and appends and flushes (about ten times a second, as the real software does,
+//! or as `LiveOptions` say). While it grows, a `.rtx`
 //! has no `EOF::` yet and its `Sample no` is 0; on `finish` the count is patched in (the
 //! field is padded with spaces so the header keeps its length) and `EOF::` appended.
 
