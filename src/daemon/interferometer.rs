@@ -321,4 +321,39 @@ mod tests {
         assert_eq!(interpolate(&v, 12.0), None);
         assert_eq!(interpolate(&VecDeque::new(), 1.0), None);
     }
+
+    #[test]
+    fn an_old_log_that_does_not_grow_is_not_taken_for_a_live_one() {
+        use rigd_sim::xl80::{write_log, LogFormat, Xl80Params};
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("old.csv");
+        let an_hour_ago = SystemTime::now() - Duration::from_secs(3600);
+        let readings: Vec<f64> = (0..500).map(|i| i as f64).collect();
+        write_log(
+            &path,
+            LogFormat::Csv,
+            &Xl80Params::default(),
+            an_hour_ago,
+            &readings,
+        )
+        .unwrap();
+        let f = Follower::new(&path, crate::xl80::Xl80Format::Csv);
+        let mut log = FollowedLog::new(f, Duration::from_millis(1));
+        log.begin(SystemTime::now());
+        // No growth seen: the date is taken as written, so nothing covers now...
+        assert_eq!(log.position_at(SystemTime::now()), None);
+        let src = log.source();
+        assert_eq!(src.log_minus_pc_s, 0.0);
+        assert!(src.clock.contains("as written"), "{}", src.clock);
+        // ...no sample is handed to the session as the job's...
+        assert!(log.take_samples().is_empty());
+        // ...but its own times still place its readings: 100 Hz from its whole-second date.
+        let secs = an_hour_ago
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap()
+            .as_secs();
+        let at = std::time::UNIX_EPOCH + Duration::from_secs(secs) + Duration::from_millis(4_505);
+        let x = log.position_at(at).unwrap();
+        assert!((x - 450.5).abs() < 1.0, "{x}");
+    }
 }
