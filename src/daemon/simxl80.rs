@@ -48,12 +48,13 @@ impl SimXl80 {
         let (path, owned) = match path {
             Some(p) => (p, false),
             None => {
+                sweep_dead_logs(&std::env::temp_dir());
                 let n = N.fetch_add(1, Ordering::Relaxed);
                 let ext = match format {
                     Xl80Format::Csv => "csv",
                     Xl80Format::Rtx => "rtx",
                 };
-                let name = format!("rigd-sim-xl80-{}-{n}.{ext}", std::process::id());
+                let name = format!("{PREFIX}{}-{n}.{ext}", std::process::id());
                 (std::env::temp_dir().join(name), true)
             }
         };
@@ -118,6 +119,30 @@ impl SimXl80 {
             Follower::new(&self.path, self.format).with_rtx_unit_um(self.rtx_um_per_unit);
         self.log = FollowedLog::new(follower, SIM_POLL);
         Ok(())
+    }
+}
+
+const PREFIX: &str = "rigd-sim-xl80-";
+
+/// Remove temporary logs left by daemons that died without dropping their rig (`kill -9`):
+/// `rigd-sim-xl80-<pid>-<n>.*` whose process is gone.
+fn sweep_dead_logs(dir: &std::path::Path) {
+    let Ok(rd) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in rd.flatten() {
+        let name = e.file_name();
+        let Some(pid) = name
+            .to_str()
+            .and_then(|n| n.strip_prefix(PREFIX))
+            .and_then(|rest| rest.split('-').next())
+            .and_then(|pid| pid.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if !std::path::Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_file(e.path());
+        }
     }
 }
 
