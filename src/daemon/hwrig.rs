@@ -54,6 +54,8 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
         scale_um_per_px: cfg.pipeline.scale_um_per_px,
         axis_dir: [-1.0, 0.0],
         frame_size: (cam_cfg.width, cam_cfg.height),
+        // An all-sim rig runs the sim's XL-80; otherwise `[xl80]` names the log.
+        interferometer: all_sim || cfg.xl80.is_some(),
         board,
         config: serde_json::to_value(cfg).unwrap_or_default(),
     };

@@ -57,6 +57,8 @@ pub fn replay_rig(session: &Session) -> Result<Rig, SessionError> {
     let rows = Arc::new(Mutex::new(VecDeque::from(session.steps.clone())));
     let mut info: RigInfo = session.manifest.rig.clone();
     info.mode = "replay".into();
+    // The recorded readings stand in for the interferometer.
+    info.interferometer = true;
     let stage = || -> Box<dyn Stage> {
         Box::new(ReplayStage {
             rows: session.steps.clone().into(),

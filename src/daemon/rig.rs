@@ -80,6 +80,9 @@ pub struct RigInfo {
     /// Image displacement per unit of axis travel (the camera rides the axis).
     pub axis_dir: [f64; 2],
     pub frame_size: (u32, u32),
+    /// Whether the rig has an interferometer log (`registration: interferometer` needs one).
+    #[serde(default)]
+    pub interferometer: bool,
     /// The board the camera looks at, to name targets.
     pub board: Option<Board>,
     /// A snapshot of the configuration this rig was built from (recorded in sessions).

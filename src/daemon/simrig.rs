@@ -155,6 +155,7 @@ pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
         // The camera rides the axis: the board moves the other way in the image.
         axis_dir: [-rc.axis_dir[0], -rc.axis_dir[1]],
         frame_size: (s.camera.width, s.camera.height),
+        interferometer: true,
         board: Some(board.clone()),
         config: serde_json::json!({
             "sim": true,
