@@ -1,7 +1,7 @@
 //! `rigctl submit`: queue a capture job and follow it with a progress bar.
 
 use crate::cli::client::{follow, report_end, SocketArg};
-use crate::daemon::protocol::{JobSpec, PaperCase, Request, StageKind};
+use crate::daemon::protocol::{JobRegistration, JobSpec, PaperCase, Request, StageKind};
 use crate::pipeline::{Combine, Estimator};
 
 #[derive(clap::Args, Debug)]
@@ -29,6 +29,10 @@ pub struct SubmitArgs {
     pub estimator: EstimatorArg,
     #[arg(long, value_enum)]
     pub combine: Option<CombineArg>,
+    /// Where frame displacements come from: the image, the commanded positions or the
+    /// interferometer's readings.
+    #[arg(long, value_enum, default_value = "image")]
+    pub registration: RegistrationArg,
     #[arg(long, default_value_t = 1)]
     pub repeats: u32,
     /// Absolute start position (µm); default: the rig's.
@@ -63,6 +67,23 @@ pub enum EstimatorArg {
     Paper,
     Fit,
 }
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum RegistrationArg {
+    Image,
+    Commanded,
+    Interferometer,
+}
+
+impl From<RegistrationArg> for JobRegistration {
+    fn from(r: RegistrationArg) -> Self {
+        match r {
+            RegistrationArg::Image => JobRegistration::Image,
+            RegistrationArg::Commanded => JobRegistration::Commanded,
+            RegistrationArg::Interferometer => JobRegistration::Interferometer,
+        }
+    }
+}
+
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
 pub enum CombineArg {
     Interp,
@@ -111,6 +132,7 @@ impl SubmitArgs {
             settle_ms: self.settle_ms,
             estimator: self.estimator.into(),
             combine: self.combine.map(Into::into),
+            registration: self.registration.into(),
             repeats: self.repeats,
             start_um: self.start_um,
             repeat_shift_um: self.repeat_shift_um,

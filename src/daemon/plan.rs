@@ -1,6 +1,6 @@
 //! A job spec checked against the rig and expanded into runs, before anything moves.
 
-use crate::daemon::protocol::{CaseScan, ErrorCode, JobSpec, ProtoError};
+use crate::daemon::protocol::{CaseScan, ErrorCode, JobRegistration, JobSpec, ProtoError};
 use crate::daemon::rig::RigInfo;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -65,6 +65,12 @@ pub fn plan(spec: &JobSpec, rig: &RigInfo, data_root: &Path) -> Result<Plan, Pro
     let cases = cases(spec)?;
     if spec.repeats == 0 {
         return Err(rejected("`repeats` must be at least 1"));
+    }
+    if spec.registration == JobRegistration::Interferometer && !rig.interferometer {
+        return Err(rejected(
+            "`registration`: \"interferometer\" needs an interferometer, and this rig has none \
+             (no [xl80] section in its configuration)",
+        ));
     }
     let limits = rig
         .limits_um(spec.stage)
@@ -168,6 +174,7 @@ mod tests {
             scale_um_per_px: 774.0,
             axis_dir: [-1.0, 0.0],
             frame_size: (64, 48),
+            interferometer: false,
             board: None,
             config: serde_json::Value::Null,
         }
@@ -231,5 +238,16 @@ mod tests {
             .message
             .contains("MB free"));
         assert!(plan(&base, &r, t).is_ok());
+        let by_laser = JobSpec {
+            registration: JobRegistration::Interferometer,
+            ..base.clone()
+        };
+        let e = plan(&by_laser, &r, t).unwrap_err();
+        assert!(e.message.contains("[xl80]"), "{}", e.message);
+        let with_laser = RigInfo {
+            interferometer: true,
+            ..rig()
+        };
+        assert!(plan(&by_laser, &with_laser, t).is_ok());
     }
 }

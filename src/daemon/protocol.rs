@@ -5,7 +5,7 @@
 //! Decoding is strict (unknown fields and kinds are errors) and never panics: every bad line
 //! gets an error reply naming what was wrong.
 
-use crate::pipeline::{Combine, Estimator, ProcessOptions};
+use crate::pipeline::{Combine, Estimator, ProcessOptions, Registration};
 use serde::{Deserialize, Serialize};
 
 /// Version of this protocol; requests may carry `"v"` and must match it.
@@ -54,6 +54,19 @@ impl PaperCase {
     }
 }
 
+/// Where a job's per-frame displacements come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum JobRegistration {
+    /// Measured in the image (the paper's).
+    #[default]
+    Image,
+    /// From the commanded positions.
+    Commanded,
+    /// From the interferometer's reading at each frame (the job fails at a frame without one).
+    Interferometer,
+}
+
 /// One scan of a job: `frames` frames `step_um` apart, reconstructed at `k`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CaseScan {
@@ -99,6 +112,8 @@ pub struct JobSpec {
     pub estimator: Estimator,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub combine: Option<Combine>,
+    #[serde(default)]
+    pub registration: JobRegistration,
     #[serde(default = "default_one")]
     pub repeats: u32,
     /// Absolute start of the first scan; default: where the stage is.
@@ -125,6 +140,7 @@ impl Default for JobSpec {
             settle_ms: default_settle_ms(),
             estimator: Estimator::default(),
             combine: None,
+            registration: JobRegistration::default(),
             repeats: 1,
             start_um: None,
             repeat_shift_um: 0.0,
@@ -144,6 +160,8 @@ pub struct ProcessingOverride {
     pub estimator: Option<Estimator>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub combine: Option<Combine>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub registration: Option<JobRegistration>,
 }
 
 /// What a client asks. Tagged by `kind`.
@@ -426,6 +444,10 @@ pub fn process_options(
         k,
         estimator: spec.estimator,
         axis_dir,
+        registration: match spec.registration {
+            JobRegistration::Image => Registration::Image,
+            JobRegistration::Commanded | JobRegistration::Interferometer => Registration::Positions,
+        },
         ..ProcessOptions::default()
     };
     if let Some(c) = spec.combine {
