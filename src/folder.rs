@@ -144,23 +144,63 @@ pub fn read_steps(path: &Path) -> Result<Vec<f64>, FolderError> {
 
 /// Read one frame: a PNG holding 8-bit RGB.
 pub fn load_frame(path: &Path) -> Result<RgbImage, FolderError> {
-    let bytes = std::fs::read(path).map_err(|e| FolderError::Io {
-        path: path.to_path_buf(),
-        message: format!("cannot read: {e}"),
-    })?;
-    let img =
-        image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).map_err(|e| {
-            FolderError::BadPng {
+    FrameReader::default().read(path, None)
+}
+
+/// Reads frames one after another, reusing its buffers: the file's bytes here, the
+/// pixels in the image handed back in (a 1280x720 frame is 2.7 MB: allocating it afresh
+/// every frame costs page faults comparable to part of the decoding).
+#[derive(Default)]
+pub struct FrameReader {
+    bytes: Vec<u8>,
+}
+
+impl FrameReader {
+    /// Read the frame at `path`, into `reuse`'s pixel buffer when given.
+    pub fn read(&mut self, path: &Path, reuse: Option<RgbImage>) -> Result<RgbImage, FolderError> {
+        use std::io::Read;
+        self.bytes.clear();
+        std::fs::File::open(path)
+            .and_then(|mut f| f.read_to_end(&mut self.bytes))
+            .map_err(|e| FolderError::Io {
                 path: path.to_path_buf(),
-                message: e.to_string(),
-            }
-        })?;
-    match img {
-        image::DynamicImage::ImageRgb8(rgb) => Ok(rgb),
-        other => Err(FolderError::NotRgb8 {
+                message: format!("cannot read: {e}"),
+            })?;
+        let bad = |e: png::DecodingError| FolderError::BadPng {
             path: path.to_path_buf(),
-            found: format!("{:?}", other.color()),
-        }),
+            message: e.to_string(),
+        };
+        let mut dec = png::Decoder::new(std::io::Cursor::new(&self.bytes[..]));
+        // As `image` decodes: palette and low bit depths expanded to 8 bits.
+        dec.set_transformations(png::Transformations::EXPAND);
+        let mut reader = dec.read_info().map_err(bad)?;
+        let found = match reader.output_color_type() {
+            (png::ColorType::Rgb, png::BitDepth::Eight) => None,
+            // Named as `image` names them (`is L8`), the message docs/folder-format.md shows.
+            (ct, bd) => Some(format!(
+                "{}{}",
+                match ct {
+                    png::ColorType::Grayscale => "L",
+                    png::ColorType::GrayscaleAlpha => "La",
+                    png::ColorType::Rgb => "Rgb",
+                    png::ColorType::Rgba => "Rgba",
+                    png::ColorType::Indexed => "Indexed",
+                },
+                bd as u8
+            )),
+        };
+        if let Some(found) = found {
+            return Err(FolderError::NotRgb8 {
+                path: path.to_path_buf(),
+                found,
+            });
+        }
+        let (w, h) = reader.info().size();
+        let mut px = reuse.map(RgbImage::into_raw).unwrap_or_default();
+        // A reused buffer of the same size is not written here (its pages stay mapped).
+        px.resize(w as usize * h as usize * 3, 0);
+        reader.next_frame(&mut px).map_err(bad)?;
+        Ok(RgbImage::from_raw(w, h, px).expect("buffer matches the size"))
     }
 }
 

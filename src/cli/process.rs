@@ -110,31 +110,40 @@ pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
     };
     let dir = folder::open(&args.dir, args.frames)?;
     let mut pipeline = Pipeline::new(args.options(), board)?;
-    // PNG decoding is most of a frame's cost: a scoped thread decodes batches of frames in
-    // parallel while this one pushes the previous ones, in order (a bad frame is reported
-    // when its turn comes, so the first bad frame in order is the one named).
-    let batch = rayon::current_num_threads().max(1) * 2;
-    let items: Vec<_> = dir.frames.iter().zip(&dir.positions_um).collect();
+    // PNG decoding is most of a frame's cost: decoder threads (one per core) take every
+    // W-th frame each and decode ahead while this thread pushes the frames in order (a bad
+    // frame is reported when its turn comes, so the first bad frame in order is named).
+    // Pushed frames go back to a pool whose buffers the decoders reuse.
+    let workers = std::thread::available_parallelism().map_or(1, |n| n.get().min(4));
+    let pool = std::sync::Mutex::new(Vec::<image::RgbImage>::new());
     std::thread::scope(|scope| -> anyhow::Result<()> {
-        let (tx, rx) = std::sync::mpsc::sync_channel(batch);
-        let paths: Vec<&std::path::PathBuf> = items.iter().map(|(p, _)| *p).collect();
-        scope.spawn(move || {
-            use rayon::prelude::*;
-            for chunk in paths.chunks(batch) {
-                let decoded: Vec<_> = chunk.par_iter().map(|p| folder::load_frame(p)).collect();
-                for frame in decoded {
+        let mut queues = Vec::with_capacity(workers);
+        for w in 0..workers {
+            let (tx, rx) = std::sync::mpsc::sync_channel(1);
+            queues.push(rx);
+            let (frames, pool) = (&dir.frames, &pool);
+            scope.spawn(move || {
+                let mut reader = folder::FrameReader::default();
+                for path in frames.iter().skip(w).step_by(workers) {
+                    let reuse = pool.lock().ok().and_then(|mut p| p.pop());
                     // The receiver stops early on the first error: nothing left to do.
-                    if tx.send(frame).is_err() {
+                    if tx.send(reader.read(path, reuse)).is_err() {
                         return;
                     }
                 }
-            }
-        });
-        for ((path, &pos), frame) in items.iter().zip(rx) {
+            });
+        }
+        for (i, (path, &pos)) in dir.frames.iter().zip(&dir.positions_um).enumerate() {
+            let frame = queues[i % workers]
+                .recv()
+                .context("a frame decoder stopped")??;
             let rep = pipeline
-                .push(&frame?, pos)
+                .push(&frame, pos)
                 .with_context(|| path.display().to_string())?;
             tracing::debug!(?rep, "frame");
+            if let Ok(mut p) = pool.lock() {
+                p.push(frame);
+            }
         }
         Ok(())
     })?;

@@ -3,8 +3,9 @@
 //! Frame 0 is searched for targets ([`detect`]); later frames are not: each target is
 //! measured where the previous frame's displacement predicts it, on a small window of the
 //! measurement channel, which keeps a frame to a few milliseconds while the axis moves.
-//! When a reconstruction is asked for, every frame's measurement channel is kept (one f32
-//! plane per frame) for `finish`, which runs once the displacements are known.
+//! When a reconstruction is asked for, each frame's window around every target is cut out
+//! as it is pushed (its displacement is known by then) and kept for `finish`; only the
+//! whole-frame reconstruction keeps whole planes.
 
 use super::detect::{self, Candidate, DetectConfig};
 use super::estimate::{estimate, CentreEstimate};
@@ -55,7 +56,10 @@ pub struct Pipeline {
     channel: usize,
     targets: Vec<Candidate>,
     skipped: Vec<Skipped>,
-    /// The measurement channel of every frame.
+    /// `[target]`: the reconstruction window in frame 0 and every frame's crop of it
+    /// (moved by the frame's whole-pixel displacement), or why it cannot be reconstructed.
+    windows: Vec<Result<TargetWindow, String>>,
+    /// The measurement channel of every frame, for the whole-frame reconstruction only.
     planes: Vec<Plane>,
     positions_um: Vec<f64>,
     /// `[frame][target]`: the per-frame estimate, in frame coordinates.
@@ -90,6 +94,7 @@ impl Pipeline {
             channel: 1,
             targets: Vec::new(),
             skipped: Vec::new(),
+            windows: Vec::new(),
             planes: Vec::new(),
             positions_um: Vec::new(),
             per_frame: Vec::new(),
@@ -102,9 +107,52 @@ impl Pipeline {
         self.positions_um.len()
     }
 
-    /// Whether `finish` reconstructs, and so needs every frame's plane.
-    fn keeps_planes(&self) -> bool {
-        self.opts.combine != Combine::Mean || self.opts.whole_frame
+    /// The displacement a reconstruction uses for a frame: the image's, or the positions'.
+    fn recon_shift_px(&self, position_um: f64, image_shift_px: [f64; 2]) -> [f64; 2] {
+        match (self.opts.registration, self.positions_um.first()) {
+            (Registration::Positions, Some(&p0)) => register::position_shift_px(
+                position_um,
+                p0,
+                self.opts.scale_um_per_px,
+                self.opts.axis_dir,
+            ),
+            (Registration::Positions, None) => register::position_shift_px(
+                position_um,
+                position_um,
+                self.opts.scale_um_per_px,
+                self.opts.axis_dir,
+            ),
+            (Registration::Image, _) => image_shift_px,
+        }
+    }
+
+    /// Cut this frame's reconstruction window of every target still reconstructable.
+    fn keep_windows(&mut self, frame: &RgbImage, shift_px: [f64; 2]) {
+        let (w, h) = (frame.width() as usize, frame.height() as usize);
+        let ch = self.channel;
+        // The integer part of the displacement moves the window, the rest is resampled.
+        let (cx, cy) = (shift_px[0].round(), shift_px[1].round());
+        self.windows.par_iter_mut().for_each(|win| {
+            let Ok(tw) = win else { return };
+            let (rx, ry) = (tw.x0 + cx, tw.y0 + cy);
+            let side = tw.side as usize;
+            if rx < 0.0 || ry < 0.0 || rx as usize + side > w || ry as usize + side > h {
+                *win = Err(format!(
+                    "its window ({rx}, {ry}, {side}x{side} px) leaves the frame during the scan"
+                ));
+                return;
+            }
+            tw.crops.push(Plane::from_channel_roi(
+                frame,
+                ch,
+                Roi {
+                    x: rx as u32,
+                    y: ry as u32,
+                    w: tw.side,
+                    h: tw.side,
+                },
+            ));
+        });
     }
 
     pub fn push(
@@ -134,7 +182,6 @@ impl Pipeline {
             Some(want) if want != got => return Err(PipelineError::FrameSize { index, got, want }),
             Some(_) => {}
         }
-        let plane = Plane::from_channel(frame, self.channel);
         // Where the targets should be: the last frame's displacement, or the positions'.
         let predicted = match (self.opts.registration, self.positions_um.first()) {
             (Registration::Positions, Some(&p0)) => register::position_shift_px(
@@ -148,7 +195,7 @@ impl Pipeline {
         let est: Vec<Option<CentreEstimate>> = self
             .targets
             .par_iter()
-            .map(|c| measure_in_frame(&plane, c, predicted, self.opts.estimator))
+            .map(|c| measure_in_frame(frame, self.channel, c, predicted, self.opts.estimator))
             .collect();
         let found = est.iter().filter(|e| e.is_some()).count();
         let shift = if index == 0 {
@@ -164,8 +211,29 @@ impl Pipeline {
                 .collect();
             register::image_shift_px(&pairs).ok_or(PipelineError::NoTarget { index })?
         };
-        if self.keeps_planes() {
-            self.planes.push(plane);
+        if index == 0 && self.opts.combine != Combine::Mean {
+            self.windows = self
+                .targets
+                .iter()
+                .zip(&est)
+                .map(|(c, e)| {
+                    let first = e.as_ref().ok_or("not measurable in frame 0")?;
+                    let reach = first.outer_radius_px.max(c.outer_radii_px[1]) + WINDOW_MARGIN_PX;
+                    Ok(TargetWindow {
+                        x0: (first.outer_px[0] - reach).floor(),
+                        y0: (first.outer_px[1] - reach).floor(),
+                        side: (2.0 * reach).ceil() as u32 + 1,
+                        crops: Vec::new(),
+                    })
+                })
+                .collect();
+        }
+        if self.opts.combine != Combine::Mean {
+            let d = self.recon_shift_px(position_um, shift);
+            self.keep_windows(frame, d);
+        }
+        if self.opts.whole_frame {
+            self.planes.push(Plane::from_channel(frame, self.channel));
         }
         self.positions_um.push(position_um);
         self.per_frame.push(est);
@@ -348,35 +416,15 @@ impl Pipeline {
             .as_ref()
             .ok_or("not measurable in frame 0")?;
         let c = &self.targets[t];
-        let reach = first.outer_radius_px.max(c.outer_radii_px[1]) + WINDOW_MARGIN_PX;
-        let side = (2.0 * reach).ceil() as u32 + 1;
-        let x0 = (first.outer_px[0] - reach).floor();
-        let y0 = (first.outer_px[1] - reach).floor();
-        let (w, h) = (self.planes[0].width, self.planes[0].height);
-        let mut crops = Vec::with_capacity(self.planes.len());
-        let mut fine_shifts = Vec::with_capacity(self.planes.len());
-        for (p, d) in self.planes.iter().zip(shifts_px) {
-            // The integer part of the displacement moves the window, the rest is resampled.
-            let (cx, cy) = (d[0].round(), d[1].round());
-            let (rx, ry) = (x0 + cx, y0 + cy);
-            let roi_ok = rx >= 0.0
-                && ry >= 0.0
-                && rx as usize + side as usize <= w
-                && ry as usize + side as usize <= h;
-            if !roi_ok {
-                return Err(format!(
-                    "its window ({rx}, {ry}, {side}x{side} px) leaves the frame during the scan"
-                ));
-            }
-            crops.push(p.crop(Roi {
-                x: rx as u32,
-                y: ry as u32,
-                w: side,
-                h: side,
-            }));
-            fine_shifts.push(reconstruct::fine_shift([d[0] - cx, d[1] - cy], k));
-        }
-        let views: Vec<View> = crops
+        let tw = self.windows[t].as_ref().map_err(String::clone)?;
+        let (x0, y0) = (tw.x0, tw.y0);
+        // The crops were cut at the whole-pixel displacement; the rest is resampled.
+        let fine_shifts: Vec<[i64; 2]> = shifts_px
+            .iter()
+            .map(|d| reconstruct::fine_shift([d[0] - d[0].round(), d[1] - d[1].round()], k))
+            .collect();
+        let views: Vec<View> = tw
+            .crops
             .iter()
             .map(|p| View::new(&p.data, p.width, p.height))
             .collect();
@@ -384,10 +432,11 @@ impl Pipeline {
             Combine::Splat => reconstruct::splat(&views, &fine_shifts, k),
             _ => reconstruct::interp(&views, &fine_shifts, k),
         };
+        let (fine_w, fine_h) = (fine.width, fine.height);
         let plane = Plane {
             width: fine.width,
             height: fine.height,
-            data: fine.data.clone(),
+            data: fine.data,
         };
         // The guess on the fine grid: camera coordinate x maps to fine (x + 0.5) k - 0.5.
         let kf = k as f64;
@@ -400,8 +449,8 @@ impl Pipeline {
             roi: Roi {
                 x: 0,
                 y: 0,
-                w: fine.width as u32,
-                h: fine.height as u32,
+                w: fine_w as u32,
+                h: fine_h as u32,
             },
         };
         let e = estimate(&plane, &guess, self.opts.estimator, kf)
@@ -416,14 +465,29 @@ impl Pipeline {
                 .offset_cov_px2
                 .map(|c| c.map(|r| r.map(|v| v / (kf * kf)))),
         };
+        let fine = Fine {
+            width: fine_w,
+            height: fine_h,
+            k,
+            data: plane.data,
+        };
         Ok((back, fine))
     }
 }
 
+/// A target's reconstruction window: its place in frame 0 and each frame's crop of it.
+struct TargetWindow {
+    x0: f64,
+    y0: f64,
+    side: u32,
+    crops: Vec<Plane>,
+}
+
 /// Measure one target in a frame at its frame-0 place moved by `shift_px`, on a window of
-/// the plane. `None` when it cannot be measured (out of frame, estimator failure).
+/// channel `ch`. `None` when it cannot be measured (out of frame, estimator failure).
 fn measure_in_frame(
-    plane: &Plane,
+    frame: &RgbImage,
+    ch: usize,
     c: &Candidate,
     shift_px: [f64; 2],
     estimator: Estimator,
@@ -434,12 +498,16 @@ fn measure_in_frame(
     let x0 = (cx - reach).floor().max(0.0);
     let y0 = (cy - reach).floor().max(0.0);
     let side = (2.0 * reach).ceil() as u32 + 1;
-    let crop = plane.crop(Roi {
-        x: x0 as u32,
-        y: y0 as u32,
-        w: side,
-        h: side,
-    });
+    let crop = Plane::from_channel_roi(
+        frame,
+        ch,
+        Roi {
+            x: x0 as u32,
+            y: y0 as u32,
+            w: side,
+            h: side,
+        },
+    );
     let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
     let guess = Candidate {
         outer_centre_px: mv(c.outer_centre_px),
