@@ -110,6 +110,8 @@ pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
     };
     let dir = folder::open(&args.dir, args.frames)?;
     let mut pipeline = Pipeline::new(args.options(), board)?;
+    // The reconstructions are written only with --out: otherwise not converted at all.
+    pipeline.keep_images(args.out.is_some());
     // PNG decoding is most of a frame's cost: decoder threads (one per core) take every
     // W-th frame each and decode ahead while this thread pushes the frames in order (a bad
     // frame is reported when its turn comes, so the first bad frame in order is named).

@@ -65,6 +65,8 @@ pub struct Pipeline {
     /// `[frame][target]`: the per-frame estimate, in frame coordinates.
     per_frame: Vec<Vec<Option<CentreEstimate>>>,
     image_shifts_px: Vec<[f64; 2]>,
+    /// Whether `finish` hands back the reconstructions as images.
+    keep_images: bool,
 }
 
 impl Pipeline {
@@ -99,7 +101,14 @@ impl Pipeline {
             positions_um: Vec::new(),
             per_frame: Vec::new(),
             image_shifts_px: Vec::new(),
+            keep_images: true,
         })
+    }
+
+    /// Whether `finish` hands back the reconstructions as 16-bit images (the default). A
+    /// caller that writes no images saves their conversion (tens of megapixels at k = 10).
+    pub fn keep_images(&mut self, keep: bool) {
+        self.keep_images = keep;
     }
 
     /// Frames pushed so far.
@@ -285,7 +294,7 @@ impl Pipeline {
         for (t, m) in measured.into_iter().enumerate() {
             match m {
                 Ok((o, fine)) => {
-                    if let Some(f) = fine {
+                    if let Some(f) = fine.filter(|_| self.keep_images) {
                         images.push((objects.len(), f));
                     }
                     objects.push(o);
@@ -320,7 +329,7 @@ impl Pipeline {
                 image: f.to_png16(),
             })
             .collect();
-        if opts.whole_frame {
+        if opts.whole_frame && self.keep_images {
             let views: Vec<View> = self
                 .planes
                 .iter()

@@ -195,8 +195,12 @@ impl Window {
         let n = v.len();
         let lo = n / 10;
         let hi = (n * 9 / 10).min(n - 1);
-        let (_, &mut a, _) = v.select_nth_unstable_by(lo, f32::total_cmp);
-        let (_, &mut b, _) = v.select_nth_unstable_by(hi, f32::total_cmp);
+        let (_, &mut a, above) = v.select_nth_unstable_by(lo, f32::total_cmp);
+        // Everything past the lo-th is at least as large: the hi-th is among them.
+        let b = match hi.checked_sub(lo + 1) {
+            Some(i) => *above.select_nth_unstable_by(i, f32::total_cmp).1,
+            None => a,
+        };
         (b as f64, a as f64)
     }
 }
