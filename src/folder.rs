@@ -158,6 +158,18 @@ pub struct FrameReader {
 impl FrameReader {
     /// Read the frame at `path`, into `reuse`'s pixel buffer when given.
     pub fn read(&mut self, path: &Path, reuse: Option<RgbImage>) -> Result<RgbImage, FolderError> {
+        self.read_rows(path, reuse, u32::MAX).map(|(img, _)| img)
+    }
+
+    /// [`FrameReader::read`] decoding only the first `max_rows` rows (PNG rows come in
+    /// order: the rest are never inflated); the rows below hold whatever the buffer held.
+    /// Returns the image and how many rows are decoded. An interlaced PNG is decoded whole.
+    pub fn read_rows(
+        &mut self,
+        path: &Path,
+        reuse: Option<RgbImage>,
+        max_rows: u32,
+    ) -> Result<(RgbImage, u32), FolderError> {
         use std::io::Read;
         self.bytes.clear();
         std::fs::File::open(path)
@@ -199,8 +211,17 @@ impl FrameReader {
         let mut px = reuse.map(RgbImage::into_raw).unwrap_or_default();
         // A reused buffer of the same size is not written here (its pages stay mapped).
         px.resize(w as usize * h as usize * 3, 0);
-        reader.next_frame(&mut px).map_err(bad)?;
-        Ok(RgbImage::from_raw(w, h, px).expect("buffer matches the size"))
+        let rows = if max_rows < h && !reader.info().interlaced {
+            for row in px.chunks_exact_mut(w as usize * 3).take(max_rows as usize) {
+                reader.read_row(row).map_err(bad)?;
+            }
+            max_rows
+        } else {
+            reader.next_frame(&mut px).map_err(bad)?;
+            h
+        };
+        let img = RgbImage::from_raw(w, h, px).expect("buffer matches the size");
+        Ok((img, rows))
     }
 }
 

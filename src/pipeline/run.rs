@@ -169,7 +169,62 @@ impl Pipeline {
         frame: &RgbImage,
         position_um: f64,
     ) -> Result<FrameReport, PipelineError> {
+        let rows = frame.height();
+        self.push_rows(frame, rows, position_um)
+            .map(|r| r.expect("a whole frame has every row"))
+    }
+
+    /// How many leading rows of the next frame [`Pipeline::push_rows`] will read, if the
+    /// frame moves at most `margin_rows` further down than the last one; `None` when it
+    /// needs every row (no frame pushed yet, or a whole-frame reconstruction). A reader can
+    /// stop decoding there: PNG rows come in order, so the rest is never inflated.
+    pub fn rows_needed(&self, margin_rows: u32) -> Option<u32> {
+        let (_, h) = self.size?;
+        if self.opts.whole_frame {
+            return None;
+        }
+        let mut shifts = vec![self.image_shifts_px.last().copied().unwrap_or([0.0; 2])];
+        if let Some(&p) = self.positions_um.last() {
+            shifts.push(self.recon_shift_px(p, shifts[0]));
+        }
+        let bottom = shifts
+            .iter()
+            .map(|&d| self.rows_read(d, Some(d)))
+            .fold(0.0, f64::max);
+        Some(((bottom.max(0.0) as u32).saturating_add(margin_rows)).min(h))
+    }
+
+    /// The last row (exclusive) a frame's windows reach: the measurement windows at
+    /// `measure_px`, the reconstruction windows (if given) at `recon_px`.
+    fn rows_read(&self, measure_px: [f64; 2], recon_px: Option<[f64; 2]>) -> f64 {
+        let h = self.size.map_or(f64::INFINITY, |(_, h)| h as f64);
+        let measured = self.targets.iter().map(|c| {
+            let (_, y0, side) = measure_window(c, measure_px);
+            (y0 + side as f64).min(h)
+        });
+        let kept = recon_px.into_iter().flat_map(|d| {
+            self.windows
+                .iter()
+                .filter_map(|w| w.as_ref().ok())
+                .map(move |w| w.y0 + d[1].round() + w.side as f64)
+        });
+        measured.chain(kept).fold(0.0, f64::max)
+    }
+
+    /// [`Pipeline::push`] for a frame of which only the first `valid_rows` rows are decoded.
+    /// `Ok(None)` (and the pipeline unchanged) when it would read past them: push the whole
+    /// frame then. Frame 0 and whole-frame runs always need the whole frame.
+    pub fn push_rows(
+        &mut self,
+        frame: &RgbImage,
+        valid_rows: u32,
+        position_um: f64,
+    ) -> Result<Option<FrameReport>, PipelineError> {
         let t0 = Instant::now();
+        let partial = valid_rows < frame.height();
+        if partial && (self.size.is_none() || self.opts.whole_frame) {
+            return Ok(None);
+        }
         let index = self.positions_um.len();
         if !position_um.is_finite() {
             return Err(PipelineError::Other(format!(
@@ -201,6 +256,9 @@ impl Pipeline {
             ),
             _ => self.image_shifts_px.last().copied().unwrap_or([0.0, 0.0]),
         };
+        if partial && self.rows_read(predicted, None) > valid_rows as f64 {
+            return Ok(None);
+        }
         let est: Vec<Option<CentreEstimate>> = self
             .targets
             .par_iter()
@@ -220,6 +278,10 @@ impl Pipeline {
                 .collect();
             register::image_shift_px(&pairs).ok_or(PipelineError::NoTarget { index })?
         };
+        let recon_px = self.recon_shift_px(position_um, shift);
+        if partial && self.rows_read(predicted, Some(recon_px)) > valid_rows as f64 {
+            return Ok(None);
+        }
         if index == 0 && self.opts.combine != Combine::Mean {
             self.windows = self
                 .targets
@@ -238,8 +300,7 @@ impl Pipeline {
                 .collect();
         }
         if self.opts.combine != Combine::Mean {
-            let d = self.recon_shift_px(position_um, shift);
-            self.keep_windows(frame, d);
+            self.keep_windows(frame, recon_px);
         }
         if self.opts.whole_frame {
             self.planes.push(Plane::from_channel(frame, self.channel));
@@ -247,12 +308,12 @@ impl Pipeline {
         self.positions_um.push(position_um);
         self.per_frame.push(est);
         self.image_shifts_px.push(shift);
-        Ok(FrameReport {
+        Ok(Some(FrameReport {
             index,
             targets_found: found,
             image_shift_px: shift,
             process_ms: t0.elapsed().as_secs_f64() * 1e3,
-        })
+        }))
     }
 
     pub fn finish(self) -> Result<Finished, PipelineError> {
@@ -492,6 +553,19 @@ struct TargetWindow {
     crops: Vec<Plane>,
 }
 
+/// The window a target is measured in (left, top, side) at its frame-0 place moved by
+/// `shift_px`; it may reach past the right and bottom edges (the crop clips it).
+fn measure_window(c: &Candidate, shift_px: [f64; 2]) -> (f64, f64, u32) {
+    let reach = c.outer_radii_px[1] + WINDOW_MARGIN_PX;
+    let cx = c.outer_centre_px[0] + shift_px[0];
+    let cy = c.outer_centre_px[1] + shift_px[1];
+    (
+        (cx - reach).floor().max(0.0),
+        (cy - reach).floor().max(0.0),
+        (2.0 * reach).ceil() as u32 + 1,
+    )
+}
+
 /// Measure one target in a frame at its frame-0 place moved by `shift_px`, on a window of
 /// channel `ch`. `None` when it cannot be measured (out of frame, estimator failure).
 fn measure_in_frame(
@@ -501,12 +575,7 @@ fn measure_in_frame(
     shift_px: [f64; 2],
     estimator: Estimator,
 ) -> Option<CentreEstimate> {
-    let reach = c.outer_radii_px[1] + WINDOW_MARGIN_PX;
-    let cx = c.outer_centre_px[0] + shift_px[0];
-    let cy = c.outer_centre_px[1] + shift_px[1];
-    let x0 = (cx - reach).floor().max(0.0);
-    let y0 = (cy - reach).floor().max(0.0);
-    let side = (2.0 * reach).ceil() as u32 + 1;
+    let (x0, y0, side) = measure_window(c, shift_px);
     let crop = Plane::from_channel_roi(
         frame,
         ch,
