@@ -281,6 +281,30 @@ mod tests {
     }
 
     #[test]
+    fn frame_reader_reads_rows_into_a_reused_buffer() {
+        let d = tempfile::tempdir().unwrap();
+        let img = RgbImage::from_fn(7, 5, |x, y| image::Rgb([x as u8, y as u8, 9]));
+        let p = d.path().join("a.png");
+        img.save(&p).unwrap();
+        let mut r = FrameReader::default();
+        let whole = r.read(&p, None).unwrap();
+        assert_eq!(whole, img);
+        // A buffer of another size is reused; rows past the asked ones keep what it held.
+        let junk = RgbImage::from_pixel(5, 7, image::Rgb([200, 200, 200]));
+        let (part, rows) = r.read_rows(&p, Some(junk), 2).unwrap();
+        assert_eq!((rows, part.dimensions()), (2, (7, 5)));
+        assert_eq!(part.get_pixel(3, 1), img.get_pixel(3, 1));
+        assert_eq!(part.get_pixel(3, 4), &image::Rgb([200, 200, 200]));
+        let grey = d.path().join("g.png");
+        image::GrayImage::new(4, 4).save(&grey).unwrap();
+        let e = load_frame(&grey).unwrap_err().to_string();
+        assert!(e.ends_with("must be 8-bit RGB, is L8"), "{e}");
+        std::fs::write(&grey, b"not a png").unwrap();
+        let e = r.read(&grey, None).unwrap_err().to_string();
+        assert!(e.contains("not a readable PNG"), "{e}");
+    }
+
+    #[test]
     fn steps_with_extra_columns_parse() {
         let v = steps("index,position_um,xl80_um\n0,0,0.4\n1,50,50.2\n2, 100 ,99.1\n").unwrap();
         assert_eq!(v, vec![0.0, 50.0, 100.0]);
