@@ -187,7 +187,9 @@ impl Window {
     /// of it, paper most of the rest).
     pub fn levels(&self, plane: &Plane, step: usize) -> (f64, f64) {
         let step = step.max(1);
-        let mut v: Vec<f32> = Vec::new();
+        let mut v: Vec<f32> = Vec::with_capacity(
+            (self.y1 - self.y0).div_ceil(step) * (self.x1 - self.x0).div_ceil(step),
+        );
         for y in (self.y0..self.y1).step_by(step) {
             let row = &plane.data[y * plane.width + self.x0..y * plane.width + self.x1];
             v.extend(row.iter().step_by(step));
