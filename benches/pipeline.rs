@@ -3,7 +3,10 @@
 //! - `frame/first`: frame 0 of a job, 1280x720: detect every target and measure it.
 //! - `frame/next`: a later frame: measure the targets where registration predicts them.
 //! - `job/20x50um_k10`: a 20-frame k = 10 job from a PNG folder, end to end (read, decode,
-//!   detect, register, reconstruct and measure the 12 targets).
+//!   detect, register, reconstruct and measure the 12 targets) on one thread, the way
+//!   `rigctl process` does it without `--out`: buffers reused, later frames decoded down to
+//!   the last row the pipeline reads, no images made. (`rigctl process` also decodes on
+//!   every core: its whole-process figure is in docs/performance.md.)
 //! - `whole_frame/interp_k10_20` and `whole_frame/splat_k10_20`: the whole-frame k = 10
 //!   reconstruction of 20 frames.
 //!
@@ -85,8 +88,21 @@ fn bench_job(c: &mut Criterion) {
             b.iter(|| {
                 let folder = rigd::folder::open(dir.path(), None).unwrap();
                 let mut p = Pipeline::new(opts(10, Combine::Interp, est), None).unwrap();
+                p.keep_images(false);
+                let mut reader = rigd::folder::FrameReader::default();
+                let mut buf = None;
                 for (path, &x) in folder.frames.iter().zip(&folder.positions_um) {
-                    p.push(&rigd::folder::load_frame(path).unwrap(), x).unwrap();
+                    let rows = p.rows_needed(24).unwrap_or(u32::MAX);
+                    let (f, rows) = reader.read_rows(path, buf.take(), rows).unwrap();
+                    let f = match p.push_rows(&f, rows, x).unwrap() {
+                        Some(_) => f,
+                        None => {
+                            let f = reader.read(path, Some(f)).unwrap();
+                            p.push(&f, x).unwrap();
+                            f
+                        }
+                    };
+                    buf = Some(f);
                 }
                 black_box(p.finish().unwrap())
             })

@@ -145,23 +145,84 @@ pub fn read_steps(path: &Path) -> Result<Vec<f64>, FolderError> {
 
 /// Read one frame: a PNG holding 8-bit RGB.
 pub fn load_frame(path: &Path) -> Result<RgbImage, FolderError> {
-    let bytes = std::fs::read(path).map_err(|e| FolderError::Io {
-        path: path.to_path_buf(),
-        message: format!("cannot read: {e}"),
-    })?;
-    let img =
-        image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).map_err(|e| {
-            FolderError::BadPng {
+    FrameReader::default().read(path, None)
+}
+
+/// Reads frames one after another, reusing its buffers: the file's bytes here, the
+/// pixels in the image handed back in (a 1280x720 frame is 2.7 MB: allocating it afresh
+/// every frame costs page faults comparable to part of the decoding).
+#[derive(Default)]
+pub struct FrameReader {
+    bytes: Vec<u8>,
+}
+
+impl FrameReader {
+    /// Read the frame at `path`, into `reuse`'s pixel buffer when given.
+    pub fn read(&mut self, path: &Path, reuse: Option<RgbImage>) -> Result<RgbImage, FolderError> {
+        self.read_rows(path, reuse, u32::MAX).map(|(img, _)| img)
+    }
+
+    /// [`FrameReader::read`] decoding only the first `max_rows` rows (PNG rows come in
+    /// order: the rest are never inflated); the rows below hold whatever the buffer held.
+    /// Returns the image and how many rows are decoded. An interlaced PNG is decoded whole.
+    pub fn read_rows(
+        &mut self,
+        path: &Path,
+        reuse: Option<RgbImage>,
+        max_rows: u32,
+    ) -> Result<(RgbImage, u32), FolderError> {
+        use std::io::Read;
+        self.bytes.clear();
+        std::fs::File::open(path)
+            .and_then(|mut f| f.read_to_end(&mut self.bytes))
+            .map_err(|e| FolderError::Io {
                 path: path.to_path_buf(),
-                message: e.to_string(),
-            }
-        })?;
-    match img {
-        image::DynamicImage::ImageRgb8(rgb) => Ok(rgb),
-        other => Err(FolderError::NotRgb8 {
+                message: format!("cannot read: {e}"),
+            })?;
+        let bad = |e: png::DecodingError| FolderError::BadPng {
             path: path.to_path_buf(),
-            found: format!("{:?}", other.color()),
-        }),
+            message: e.to_string(),
+        };
+        let mut dec = png::Decoder::new(std::io::Cursor::new(&self.bytes[..]));
+        // As `image` decodes: palette and low bit depths expanded to 8 bits.
+        dec.set_transformations(png::Transformations::EXPAND);
+        let mut reader = dec.read_info().map_err(bad)?;
+        let found = match reader.output_color_type() {
+            (png::ColorType::Rgb, png::BitDepth::Eight) => None,
+            // Named as `image` names them (`is L8`), the message docs/folder-format.md shows.
+            (ct, bd) => Some(format!(
+                "{}{}",
+                match ct {
+                    png::ColorType::Grayscale => "L",
+                    png::ColorType::GrayscaleAlpha => "La",
+                    png::ColorType::Rgb => "Rgb",
+                    png::ColorType::Rgba => "Rgba",
+                    png::ColorType::Indexed => "Indexed",
+                },
+                bd as u8
+            )),
+        };
+        if let Some(found) = found {
+            return Err(FolderError::NotRgb8 {
+                path: path.to_path_buf(),
+                found,
+            });
+        }
+        let (w, h) = reader.info().size();
+        let mut px = reuse.map(RgbImage::into_raw).unwrap_or_default();
+        // A reused buffer of the same size is not written here (its pages stay mapped).
+        px.resize(w as usize * h as usize * 3, 0);
+        let rows = if max_rows < h && !reader.info().interlaced {
+            for row in px.chunks_exact_mut(w as usize * 3).take(max_rows as usize) {
+                reader.read_row(row).map_err(bad)?;
+            }
+            max_rows
+        } else {
+            reader.next_frame(&mut px).map_err(bad)?;
+            h
+        };
+        let img = RgbImage::from_raw(w, h, px).expect("buffer matches the size");
+        Ok((img, rows))
     }
 }
 
@@ -207,6 +268,30 @@ mod tests {
         let p = d.path().join("steps.csv");
         std::fs::write(&p, text).unwrap();
         read_steps(&p)
+    }
+
+    #[test]
+    fn frame_reader_reads_rows_into_a_reused_buffer() {
+        let d = tempfile::tempdir().unwrap();
+        let img = RgbImage::from_fn(7, 5, |x, y| image::Rgb([x as u8, y as u8, 9]));
+        let p = d.path().join("a.png");
+        img.save(&p).unwrap();
+        let mut r = FrameReader::default();
+        let whole = r.read(&p, None).unwrap();
+        assert_eq!(whole, img);
+        // A buffer of another size is reused; rows past the asked ones keep what it held.
+        let junk = RgbImage::from_pixel(5, 7, image::Rgb([200, 200, 200]));
+        let (part, rows) = r.read_rows(&p, Some(junk), 2).unwrap();
+        assert_eq!((rows, part.dimensions()), (2, (7, 5)));
+        assert_eq!(part.get_pixel(3, 1), img.get_pixel(3, 1));
+        assert_eq!(part.get_pixel(3, 4), &image::Rgb([200, 200, 200]));
+        let grey = d.path().join("g.png");
+        image::GrayImage::new(4, 4).save(&grey).unwrap();
+        let e = load_frame(&grey).unwrap_err().to_string();
+        assert!(e.ends_with("must be 8-bit RGB, is L8"), "{e}");
+        std::fs::write(&grey, b"not a png").unwrap();
+        let e = r.read(&grey, None).unwrap_err().to_string();
+        assert!(e.contains("not a readable PNG"), "{e}");
     }
 
     #[test]

@@ -100,6 +100,10 @@ impl ProcessArgs {
     }
 }
 
+/// Rows decoded below the last one the pipeline reads: room for the frames decoded ahead
+/// (up to ~2 per decoder) to move down before a frame has to be decoded again.
+const ROWS_MARGIN: u32 = 24;
+
 pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
     if args.frames == Some(0) {
         anyhow::bail!("--frames must be at least 1");
@@ -110,31 +114,57 @@ pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
     };
     let dir = folder::open(&args.dir, args.frames)?;
     let mut pipeline = Pipeline::new(args.options(), board)?;
-    // PNG decoding is most of a frame's cost: a scoped thread decodes batches of frames in
-    // parallel while this one pushes the previous ones, in order (a bad frame is reported
-    // when its turn comes, so the first bad frame in order is the one named).
-    let batch = rayon::current_num_threads().max(1) * 2;
-    let items: Vec<_> = dir.frames.iter().zip(&dir.positions_um).collect();
+    // The reconstructions are written only with --out: otherwise not converted at all.
+    pipeline.keep_images(args.out.is_some());
+    // PNG decoding is most of a frame's cost: decoder threads (one per core) take every
+    // W-th frame each and decode ahead while this thread pushes the frames in order (a bad
+    // frame is reported when its turn comes, so the first bad frame in order is named).
+    // Pushed frames go back to a pool whose buffers the decoders reuse. Once frame 0 has
+    // placed the targets, the decoders stop at the last row the pipeline will read (plus
+    // room for the frames decoded ahead to move); a frame that moved further is decoded
+    // again whole.
+    let workers = std::thread::available_parallelism().map_or(1, |n| n.get().min(4));
+    let pool = std::sync::Mutex::new(Vec::<image::RgbImage>::new());
+    let rows_wanted = std::sync::atomic::AtomicU32::new(u32::MAX);
     std::thread::scope(|scope| -> anyhow::Result<()> {
-        let (tx, rx) = std::sync::mpsc::sync_channel(batch);
-        let paths: Vec<&std::path::PathBuf> = items.iter().map(|(p, _)| *p).collect();
-        scope.spawn(move || {
-            use rayon::prelude::*;
-            for chunk in paths.chunks(batch) {
-                let decoded: Vec<_> = chunk.par_iter().map(|p| folder::load_frame(p)).collect();
-                for frame in decoded {
+        let mut queues = Vec::with_capacity(workers);
+        for w in 0..workers {
+            let (tx, rx) = std::sync::mpsc::sync_channel(1);
+            queues.push(rx);
+            let (frames, pool, rows_wanted) = (&dir.frames, &pool, &rows_wanted);
+            scope.spawn(move || {
+                let mut reader = folder::FrameReader::default();
+                for path in frames.iter().skip(w).step_by(workers) {
+                    let reuse = pool.lock().ok().and_then(|mut p| p.pop());
+                    let rows = rows_wanted.load(std::sync::atomic::Ordering::Relaxed);
                     // The receiver stops early on the first error: nothing left to do.
-                    if tx.send(frame).is_err() {
+                    if tx.send(reader.read_rows(path, reuse, rows)).is_err() {
                         return;
                     }
                 }
-            }
-        });
-        for ((path, &pos), frame) in items.iter().zip(rx) {
-            let rep = pipeline
-                .push(&frame?, pos)
-                .with_context(|| path.display().to_string())?;
+            });
+        }
+        let mut again = folder::FrameReader::default();
+        for (i, (path, &pos)) in dir.frames.iter().zip(&dir.positions_um).enumerate() {
+            let (frame, rows) = queues[i % workers]
+                .recv()
+                .context("a frame decoder stopped")??;
+            let ctx = || path.display().to_string();
+            let (frame, rep) = match pipeline.push_rows(&frame, rows, pos).with_context(ctx)? {
+                Some(rep) => (frame, rep),
+                None => {
+                    let whole = again.read(path, Some(frame))?;
+                    let rep = pipeline.push(&whole, pos).with_context(ctx)?;
+                    (whole, rep)
+                }
+            };
             tracing::debug!(?rep, "frame");
+            if let Some(rows) = pipeline.rows_needed(ROWS_MARGIN) {
+                rows_wanted.store(rows, std::sync::atomic::Ordering::Relaxed);
+            }
+            if let Ok(mut p) = pool.lock() {
+                p.push(frame);
+            }
         }
         Ok(())
     })?;

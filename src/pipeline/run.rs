@@ -3,8 +3,9 @@
 //! Frame 0 is searched for targets ([`detect`]); later frames are not: each target is
 //! measured where the previous frame's displacement predicts it, on a small window of the
 //! measurement channel, which keeps a frame to a few milliseconds while the axis moves.
-//! When a reconstruction is asked for, every frame's measurement channel is kept (one f32
-//! plane per frame) for `finish`, which runs once the displacements are known.
+//! When a reconstruction is asked for, each frame's window around every target is cut out
+//! as it is pushed (its displacement is known by then) and kept for `finish`; only the
+//! whole-frame reconstruction keeps whole planes.
 
 use super::detect::{self, Candidate, DetectConfig};
 use super::estimate::{estimate, CentreEstimate};
@@ -55,12 +56,17 @@ pub struct Pipeline {
     channel: usize,
     targets: Vec<Candidate>,
     skipped: Vec<Skipped>,
-    /// The measurement channel of every frame.
+    /// `[target]`: the reconstruction window in frame 0 and every frame's crop of it
+    /// (moved by the frame's whole-pixel displacement), or why it cannot be reconstructed.
+    windows: Vec<Result<TargetWindow, String>>,
+    /// The measurement channel of every frame, for the whole-frame reconstruction only.
     planes: Vec<Plane>,
     positions_um: Vec<f64>,
     /// `[frame][target]`: the per-frame estimate, in frame coordinates.
     per_frame: Vec<Vec<Option<CentreEstimate>>>,
     image_shifts_px: Vec<[f64; 2]>,
+    /// Whether `finish` hands back the reconstructions as images.
+    keep_images: bool,
 }
 
 impl Pipeline {
@@ -90,11 +96,19 @@ impl Pipeline {
             channel: 1,
             targets: Vec::new(),
             skipped: Vec::new(),
+            windows: Vec::new(),
             planes: Vec::new(),
             positions_um: Vec::new(),
             per_frame: Vec::new(),
             image_shifts_px: Vec::new(),
+            keep_images: true,
         })
+    }
+
+    /// Whether `finish` hands back the reconstructions as 16-bit images (the default). A
+    /// caller that writes no images saves their conversion (tens of megapixels at k = 10).
+    pub fn keep_images(&mut self, keep: bool) {
+        self.keep_images = keep;
     }
 
     /// Frames pushed so far.
@@ -102,9 +116,52 @@ impl Pipeline {
         self.positions_um.len()
     }
 
-    /// Whether `finish` reconstructs, and so needs every frame's plane.
-    fn keeps_planes(&self) -> bool {
-        self.opts.combine != Combine::Mean || self.opts.whole_frame
+    /// The displacement a reconstruction uses for a frame: the image's, or the positions'.
+    fn recon_shift_px(&self, position_um: f64, image_shift_px: [f64; 2]) -> [f64; 2] {
+        match (self.opts.registration, self.positions_um.first()) {
+            (Registration::Positions, Some(&p0)) => register::position_shift_px(
+                position_um,
+                p0,
+                self.opts.scale_um_per_px,
+                self.opts.axis_dir,
+            ),
+            (Registration::Positions, None) => register::position_shift_px(
+                position_um,
+                position_um,
+                self.opts.scale_um_per_px,
+                self.opts.axis_dir,
+            ),
+            (Registration::Image, _) => image_shift_px,
+        }
+    }
+
+    /// Cut this frame's reconstruction window of every target still reconstructable.
+    fn keep_windows(&mut self, frame: &RgbImage, shift_px: [f64; 2]) {
+        let (w, h) = (frame.width() as usize, frame.height() as usize);
+        let ch = self.channel;
+        // The integer part of the displacement moves the window, the rest is resampled.
+        let (cx, cy) = (shift_px[0].round(), shift_px[1].round());
+        self.windows.par_iter_mut().for_each(|win| {
+            let Ok(tw) = win else { return };
+            let (rx, ry) = (tw.x0 + cx, tw.y0 + cy);
+            let side = tw.side as usize;
+            if rx < 0.0 || ry < 0.0 || rx as usize + side > w || ry as usize + side > h {
+                *win = Err(format!(
+                    "its window ({rx}, {ry}, {side}x{side} px) leaves the frame during the scan"
+                ));
+                return;
+            }
+            tw.crops.push(Plane::from_channel_roi(
+                frame,
+                ch,
+                Roi {
+                    x: rx as u32,
+                    y: ry as u32,
+                    w: tw.side,
+                    h: tw.side,
+                },
+            ));
+        });
     }
 
     pub fn push(
@@ -112,7 +169,62 @@ impl Pipeline {
         frame: &RgbImage,
         position_um: f64,
     ) -> Result<FrameReport, PipelineError> {
+        let rows = frame.height();
+        self.push_rows(frame, rows, position_um)
+            .map(|r| r.expect("a whole frame has every row"))
+    }
+
+    /// How many leading rows of the next frame [`Pipeline::push_rows`] will read, if the
+    /// frame moves at most `margin_rows` further down than the last one; `None` when it
+    /// needs every row (no frame pushed yet, or a whole-frame reconstruction). A reader can
+    /// stop decoding there: PNG rows come in order, so the rest is never inflated.
+    pub fn rows_needed(&self, margin_rows: u32) -> Option<u32> {
+        let (_, h) = self.size?;
+        if self.opts.whole_frame {
+            return None;
+        }
+        let mut shifts = vec![self.image_shifts_px.last().copied().unwrap_or([0.0; 2])];
+        if let Some(&p) = self.positions_um.last() {
+            shifts.push(self.recon_shift_px(p, shifts[0]));
+        }
+        let bottom = shifts
+            .iter()
+            .map(|&d| self.rows_read(d, Some(d)))
+            .fold(0.0, f64::max);
+        Some(((bottom.max(0.0) as u32).saturating_add(margin_rows)).min(h))
+    }
+
+    /// The last row (exclusive) a frame's windows reach: the measurement windows at
+    /// `measure_px`, the reconstruction windows (if given) at `recon_px`.
+    fn rows_read(&self, measure_px: [f64; 2], recon_px: Option<[f64; 2]>) -> f64 {
+        let h = self.size.map_or(f64::INFINITY, |(_, h)| h as f64);
+        let measured = self.targets.iter().map(|c| {
+            let (_, y0, side) = measure_window(c, measure_px);
+            (y0 + side as f64).min(h)
+        });
+        let kept = recon_px.into_iter().flat_map(|d| {
+            self.windows
+                .iter()
+                .filter_map(|w| w.as_ref().ok())
+                .map(move |w| w.y0 + d[1].round() + w.side as f64)
+        });
+        measured.chain(kept).fold(0.0, f64::max)
+    }
+
+    /// [`Pipeline::push`] for a frame of which only the first `valid_rows` rows are decoded.
+    /// `Ok(None)` (and the pipeline unchanged) when it would read past them: push the whole
+    /// frame then. Frame 0 and whole-frame runs always need the whole frame.
+    pub fn push_rows(
+        &mut self,
+        frame: &RgbImage,
+        valid_rows: u32,
+        position_um: f64,
+    ) -> Result<Option<FrameReport>, PipelineError> {
         let t0 = Instant::now();
+        let partial = valid_rows < frame.height();
+        if partial && (self.size.is_none() || self.opts.whole_frame) {
+            return Ok(None);
+        }
         let index = self.positions_um.len();
         if !position_um.is_finite() {
             return Err(PipelineError::Other(format!(
@@ -134,7 +246,6 @@ impl Pipeline {
             Some(want) if want != got => return Err(PipelineError::FrameSize { index, got, want }),
             Some(_) => {}
         }
-        let plane = Plane::from_channel(frame, self.channel);
         // Where the targets should be: the last frame's displacement, or the positions'.
         let predicted = match (self.opts.registration, self.positions_um.first()) {
             (Registration::Positions, Some(&p0)) => register::position_shift_px(
@@ -145,10 +256,13 @@ impl Pipeline {
             ),
             _ => self.image_shifts_px.last().copied().unwrap_or([0.0, 0.0]),
         };
+        if partial && self.rows_read(predicted, None) > valid_rows as f64 {
+            return Ok(None);
+        }
         let est: Vec<Option<CentreEstimate>> = self
             .targets
             .par_iter()
-            .map(|c| measure_in_frame(&plane, c, predicted, self.opts.estimator))
+            .map(|c| measure_in_frame(frame, self.channel, c, predicted, self.opts.estimator))
             .collect();
         let found = est.iter().filter(|e| e.is_some()).count();
         let shift = if index == 0 {
@@ -164,18 +278,42 @@ impl Pipeline {
                 .collect();
             register::image_shift_px(&pairs).ok_or(PipelineError::NoTarget { index })?
         };
-        if self.keeps_planes() {
-            self.planes.push(plane);
+        let recon_px = self.recon_shift_px(position_um, shift);
+        if partial && self.rows_read(predicted, Some(recon_px)) > valid_rows as f64 {
+            return Ok(None);
+        }
+        if index == 0 && self.opts.combine != Combine::Mean {
+            self.windows = self
+                .targets
+                .iter()
+                .zip(&est)
+                .map(|(c, e)| {
+                    let first = e.as_ref().ok_or("not measurable in frame 0")?;
+                    let reach = first.outer_radius_px.max(c.outer_radii_px[1]) + WINDOW_MARGIN_PX;
+                    Ok(TargetWindow {
+                        x0: (first.outer_px[0] - reach).floor(),
+                        y0: (first.outer_px[1] - reach).floor(),
+                        side: (2.0 * reach).ceil() as u32 + 1,
+                        crops: Vec::new(),
+                    })
+                })
+                .collect();
+        }
+        if self.opts.combine != Combine::Mean {
+            self.keep_windows(frame, recon_px);
+        }
+        if self.opts.whole_frame {
+            self.planes.push(Plane::from_channel(frame, self.channel));
         }
         self.positions_um.push(position_um);
         self.per_frame.push(est);
         self.image_shifts_px.push(shift);
-        Ok(FrameReport {
+        Ok(Some(FrameReport {
             index,
             targets_found: found,
             image_shift_px: shift,
             process_ms: t0.elapsed().as_secs_f64() * 1e3,
-        })
+        }))
     }
 
     pub fn finish(self) -> Result<Finished, PipelineError> {
@@ -217,7 +355,7 @@ impl Pipeline {
         for (t, m) in measured.into_iter().enumerate() {
             match m {
                 Ok((o, fine)) => {
-                    if let Some(f) = fine {
+                    if let Some(f) = fine.filter(|_| self.keep_images) {
                         images.push((objects.len(), f));
                     }
                     objects.push(o);
@@ -252,7 +390,7 @@ impl Pipeline {
                 image: f.to_png16(),
             })
             .collect();
-        if opts.whole_frame {
+        if opts.whole_frame && self.keep_images {
             let views: Vec<View> = self
                 .planes
                 .iter()
@@ -348,35 +486,15 @@ impl Pipeline {
             .as_ref()
             .ok_or("not measurable in frame 0")?;
         let c = &self.targets[t];
-        let reach = first.outer_radius_px.max(c.outer_radii_px[1]) + WINDOW_MARGIN_PX;
-        let side = (2.0 * reach).ceil() as u32 + 1;
-        let x0 = (first.outer_px[0] - reach).floor();
-        let y0 = (first.outer_px[1] - reach).floor();
-        let (w, h) = (self.planes[0].width, self.planes[0].height);
-        let mut crops = Vec::with_capacity(self.planes.len());
-        let mut fine_shifts = Vec::with_capacity(self.planes.len());
-        for (p, d) in self.planes.iter().zip(shifts_px) {
-            // The integer part of the displacement moves the window, the rest is resampled.
-            let (cx, cy) = (d[0].round(), d[1].round());
-            let (rx, ry) = (x0 + cx, y0 + cy);
-            let roi_ok = rx >= 0.0
-                && ry >= 0.0
-                && rx as usize + side as usize <= w
-                && ry as usize + side as usize <= h;
-            if !roi_ok {
-                return Err(format!(
-                    "its window ({rx}, {ry}, {side}x{side} px) leaves the frame during the scan"
-                ));
-            }
-            crops.push(p.crop(Roi {
-                x: rx as u32,
-                y: ry as u32,
-                w: side,
-                h: side,
-            }));
-            fine_shifts.push(reconstruct::fine_shift([d[0] - cx, d[1] - cy], k));
-        }
-        let views: Vec<View> = crops
+        let tw = self.windows[t].as_ref().map_err(String::clone)?;
+        let (x0, y0) = (tw.x0, tw.y0);
+        // The crops were cut at the whole-pixel displacement; the rest is resampled.
+        let fine_shifts: Vec<[i64; 2]> = shifts_px
+            .iter()
+            .map(|d| reconstruct::fine_shift([d[0] - d[0].round(), d[1] - d[1].round()], k))
+            .collect();
+        let views: Vec<View> = tw
+            .crops
             .iter()
             .map(|p| View::new(&p.data, p.width, p.height))
             .collect();
@@ -384,10 +502,11 @@ impl Pipeline {
             Combine::Splat => reconstruct::splat(&views, &fine_shifts, k),
             _ => reconstruct::interp(&views, &fine_shifts, k),
         };
+        let (fine_w, fine_h) = (fine.width, fine.height);
         let plane = Plane {
             width: fine.width,
             height: fine.height,
-            data: fine.data.clone(),
+            data: fine.data,
         };
         // The guess on the fine grid: camera coordinate x maps to fine (x + 0.5) k - 0.5.
         let kf = k as f64;
@@ -400,8 +519,8 @@ impl Pipeline {
             roi: Roi {
                 x: 0,
                 y: 0,
-                w: fine.width as u32,
-                h: fine.height as u32,
+                w: fine_w as u32,
+                h: fine_h as u32,
             },
         };
         let e = estimate(&plane, &guess, self.opts.estimator, kf)
@@ -416,30 +535,57 @@ impl Pipeline {
                 .offset_cov_px2
                 .map(|c| c.map(|r| r.map(|v| v / (kf * kf)))),
         };
+        let fine = Fine {
+            width: fine_w,
+            height: fine_h,
+            k,
+            data: plane.data,
+        };
         Ok((back, fine))
     }
 }
 
+/// A target's reconstruction window: its place in frame 0 and each frame's crop of it.
+struct TargetWindow {
+    x0: f64,
+    y0: f64,
+    side: u32,
+    crops: Vec<Plane>,
+}
+
+/// The window a target is measured in (left, top, side) at its frame-0 place moved by
+/// `shift_px`; it may reach past the right and bottom edges (the crop clips it).
+fn measure_window(c: &Candidate, shift_px: [f64; 2]) -> (f64, f64, u32) {
+    let reach = c.outer_radii_px[1] + WINDOW_MARGIN_PX;
+    let cx = c.outer_centre_px[0] + shift_px[0];
+    let cy = c.outer_centre_px[1] + shift_px[1];
+    (
+        (cx - reach).floor().max(0.0),
+        (cy - reach).floor().max(0.0),
+        (2.0 * reach).ceil() as u32 + 1,
+    )
+}
+
 /// Measure one target in a frame at its frame-0 place moved by `shift_px`, on a window of
-/// the plane. `None` when it cannot be measured (out of frame, estimator failure).
+/// channel `ch`. `None` when it cannot be measured (out of frame, estimator failure).
 fn measure_in_frame(
-    plane: &Plane,
+    frame: &RgbImage,
+    ch: usize,
     c: &Candidate,
     shift_px: [f64; 2],
     estimator: Estimator,
 ) -> Option<CentreEstimate> {
-    let reach = c.outer_radii_px[1] + WINDOW_MARGIN_PX;
-    let cx = c.outer_centre_px[0] + shift_px[0];
-    let cy = c.outer_centre_px[1] + shift_px[1];
-    let x0 = (cx - reach).floor().max(0.0);
-    let y0 = (cy - reach).floor().max(0.0);
-    let side = (2.0 * reach).ceil() as u32 + 1;
-    let crop = plane.crop(Roi {
-        x: x0 as u32,
-        y: y0 as u32,
-        w: side,
-        h: side,
-    });
+    let (x0, y0, side) = measure_window(c, shift_px);
+    let crop = Plane::from_channel_roi(
+        frame,
+        ch,
+        Roi {
+            x: x0 as u32,
+            y: y0 as u32,
+            w: side,
+            h: side,
+        },
+    );
     let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
     let guess = Candidate {
         outer_centre_px: mv(c.outer_centre_px),

@@ -187,7 +187,9 @@ impl Window {
     /// of it, paper most of the rest).
     pub fn levels(&self, plane: &Plane, step: usize) -> (f64, f64) {
         let step = step.max(1);
-        let mut v: Vec<f32> = Vec::new();
+        let mut v: Vec<f32> = Vec::with_capacity(
+            (self.y1 - self.y0).div_ceil(step) * (self.x1 - self.x0).div_ceil(step),
+        );
         for y in (self.y0..self.y1).step_by(step) {
             let row = &plane.data[y * plane.width + self.x0..y * plane.width + self.x1];
             v.extend(row.iter().step_by(step));
@@ -195,8 +197,12 @@ impl Window {
         let n = v.len();
         let lo = n / 10;
         let hi = (n * 9 / 10).min(n - 1);
-        let (_, &mut a, _) = v.select_nth_unstable_by(lo, f32::total_cmp);
-        let (_, &mut b, _) = v.select_nth_unstable_by(hi, f32::total_cmp);
+        let (_, &mut a, above) = v.select_nth_unstable_by(lo, f32::total_cmp);
+        // Everything past the lo-th is at least as large: the hi-th is among them.
+        let b = match hi.checked_sub(lo + 1) {
+            Some(i) => *above.select_nth_unstable_by(i, f32::total_cmp).1,
+            None => a,
+        };
         (b as f64, a as f64)
     }
 }

@@ -64,6 +64,11 @@ pub(super) fn estimate(
     // Split the paper gap between the inner shape and the ring's hole in the middle.
     let reach_inner = (co[0] - ci[0]).hypot(co[1] - ci[1]) + inner_rim;
     let split = ((hole - reach_inner) / 2.0).max(0.0);
+    // Distances compared squared: no square root per pixel (the fine grid has ~10⁵).
+    let reach2 = win.reach * win.reach;
+    let inner2 = (inner_rim + split) * (inner_rim + split);
+    let ring_from = (hole - split).max(0.0);
+    let ring2 = ring_from * ring_from;
     let (mut ring, mut inner) = (Moments::default(), Moments::default());
     for y in win.y0..win.y1 {
         let row = &plane.data[y * plane.width + win.x0..y * plane.width + win.x1];
@@ -73,13 +78,13 @@ pub(super) fn estimate(
                 continue;
             }
             let fx = x as f64;
-            let ro = (fx - co[0]).hypot(fy - co[1]);
-            if ro > win.reach {
+            let ro2 = (fx - co[0]).powi(2) + (fy - co[1]).powi(2);
+            if ro2 > reach2 {
                 continue;
             }
-            if (fx - ci[0]).hypot(fy - ci[1]) <= inner_rim + split {
+            if (fx - ci[0]).powi(2) + (fy - ci[1]).powi(2) <= inner2 {
                 inner.add(fx, fy);
-            } else if ro >= hole - split {
+            } else if ro2 >= ring2 {
                 ring.add(fx, fy);
             }
         }
