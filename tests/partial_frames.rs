@@ -5,16 +5,17 @@
 mod support;
 
 use rigd::pipeline::{Combine, Estimator, Pipeline, ProcessOptions, ProcessResult};
+use rigd::sim::render::SceneRenderer;
 use rigd::sim::View;
 use support::*;
 
 fn scan(n: usize) -> (Vec<image::RgbImage>, Vec<f64>) {
-    let (board, cam) = (small_board(), small_camera());
+    let scene = SceneRenderer::new(small_board(), small_camera());
     (0..n)
         .map(|i| {
             let pos = 50.0 * i as f64;
             let view = View::at([123.0 + pos, 456.0]);
-            (render_rois(&board, &cam, &view, 1.0, 70 + i as u64), pos)
+            (frame(&scene, view, 70 + i as u64), pos)
         })
         .unzip()
 }
