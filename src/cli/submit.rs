@@ -25,8 +25,9 @@ pub struct SubmitArgs {
     pub study: Vec<CaseArg>,
     #[arg(long, default_value_t = 20)]
     pub settle_ms: u64,
-    #[arg(long, value_enum, default_value = "fit")]
-    pub estimator: EstimatorArg,
+    /// Default: the rig's ([pipeline] estimator), else fit.
+    #[arg(long, value_enum)]
+    pub estimator: Option<EstimatorArg>,
     #[arg(long, value_enum)]
     pub combine: Option<CombineArg>,
     #[arg(long, default_value_t = 1)]
@@ -109,8 +110,11 @@ impl SubmitArgs {
                     .collect()
             }),
             settle_ms: self.settle_ms,
-            estimator: self.estimator.into(),
+            estimator: self.estimator.map(Into::into),
             combine: self.combine.map(Into::into),
+            // The rig's [pipeline] defaults apply.
+            registration: None,
+            whole_frame: None,
             repeats: self.repeats,
             start_um: self.start_um,
             repeat_shift_um: self.repeat_shift_um,

@@ -2,7 +2,7 @@
 //! only queued for the worker.
 
 use crate::daemon::jobs::{JobSource, JobState};
-use crate::daemon::plan::plan;
+use crate::daemon::plan::{plan, resolve_defaults};
 use crate::daemon::protocol::{ErrorCode, EventBody, ProtoError, Request, PROTOCOL_VERSION};
 use crate::daemon::replay::{replay_plan, replay_spec};
 use crate::daemon::session::{self, Session};
@@ -29,12 +29,16 @@ pub fn handle(shared: &Shared, req: Request) -> Result<Value, ProtoError> {
                     "default_start_um": i.default_start_um,
                     "scale_um_per_px": i.scale_um_per_px,
                     "frame_size": i.frame_size,
+                    "job_defaults": i.job_defaults,
                 },
                 "data_root": shared.settings.data_root,
             }))
         }
         Request::Submit { job } => {
             refuse_if_stopping(shared)?;
+            // What the client leaves out, the rig's configuration decides; the job is
+            // recorded and echoed as resolved.
+            let job = resolve_defaults(&job, &shared.rig_info.job_defaults);
             let plan = plan(&job, &shared.rig_info, &shared.settings.data_root)?;
             let total = plan.total_frames;
             Ok(enqueue(shared, job, plan, JobSource::Live, total))
@@ -166,16 +170,18 @@ fn enqueue(
     source: JobSource,
     total: u32,
 ) -> Value {
-    let (id, ahead) = shared.jobs().submit(spec, plan, source);
+    let job = serde_json::to_value(&spec).expect("plain data");
+    let (id, ahead) = shared.jobs().submit(spec.clone(), plan, source);
     shared.events.emit(
         id,
         EventBody::Accepted {
             queue_position: ahead,
             total_frames: total,
+            job: Some(Box::new(spec)),
         },
     );
     shared.wake.notify_one();
-    json!({ "job_id": id, "queue_position": ahead, "total_frames": total })
+    json!({ "job_id": id, "queue_position": ahead, "total_frames": total, "job": job })
 }
 
 /// A job's status: from the table, else from its session on disk.

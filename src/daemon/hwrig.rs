@@ -56,6 +56,8 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
         frame_size: (cam_cfg.width, cam_cfg.height),
         board,
         config: serde_json::to_value(cfg).unwrap_or_default(),
+        job_defaults: cfg.job_defaults,
+        grab_timeout_ms: cfg.frame_timeout_ms(),
     };
     if all_sim {
         let hw = open_sim_rig(cfg)?;

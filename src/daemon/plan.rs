@@ -1,7 +1,9 @@
 //! A job spec checked against the rig and expanded into runs, before anything moves.
 
+use crate::config::JobDefaults;
 use crate::daemon::protocol::{CaseScan, ErrorCode, JobSpec, ProtoError};
 use crate::daemon::rig::RigInfo;
+use crate::pipeline::{Combine, Estimator, Registration};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -26,6 +28,30 @@ pub struct Plan {
 
 fn rejected(msg: impl Into<String>) -> ProtoError {
     ProtoError::new(ErrorCode::Rejected, msg)
+}
+
+/// `spec` with every processing field it leaves out filled in: from the rig's `[pipeline]`
+/// defaults where the config sets them, else the protocol's own. A study's cases keep their
+/// own k, and without a configured `combine` each case combines by its k (interp above 1,
+/// else mean), so a study's `k` and possibly `combine` stay unset.
+pub fn resolve_defaults(spec: &JobSpec, d: &JobDefaults) -> JobSpec {
+    let mut s = spec.clone();
+    s.estimator = s.estimator.or(d.estimator).or(Some(Estimator::default()));
+    s.combine = s.combine.or(d.combine);
+    if s.study.is_none() {
+        let k = *s.k.get_or_insert(d.k.unwrap_or(1));
+        s.combine.get_or_insert(if k > 1 {
+            Combine::Interp
+        } else {
+            Combine::Mean
+        });
+    }
+    s.registration = s
+        .registration
+        .or(d.registration)
+        .or(Some(Registration::default()));
+    s.whole_frame = s.whole_frame.or(d.whole_frame).or(Some(false));
+    s
 }
 
 /// The scans a job asks for, checked for shape.
@@ -170,7 +196,88 @@ mod tests {
             frame_size: (64, 48),
             board: None,
             config: serde_json::Value::Null,
+            job_defaults: JobDefaults::default(),
+            grab_timeout_ms: 5000,
         }
+    }
+
+    #[test]
+    fn omitted_processing_takes_the_rigs_defaults_and_explicit_values_win() {
+        let scan = JobSpec {
+            steps: Some(3),
+            step_um: Some(10.0),
+            ..JobSpec::default()
+        };
+        // No configured defaults (rigd --sim): the protocol's own, k-dependent combine.
+        let r = resolve_defaults(&scan, &JobDefaults::default());
+        assert_eq!(
+            (r.k, r.estimator, r.combine, r.registration, r.whole_frame),
+            (
+                Some(1),
+                Some(Estimator::Fit),
+                Some(Combine::Mean),
+                Some(Registration::Image),
+                Some(false)
+            )
+        );
+        let k4 = resolve_defaults(
+            &JobSpec {
+                k: Some(4),
+                ..scan.clone()
+            },
+            &JobDefaults::default(),
+        );
+        assert_eq!(k4.combine, Some(Combine::Interp));
+        let rig = JobDefaults {
+            k: Some(6),
+            estimator: Some(Estimator::Paper),
+            combine: None,
+            registration: Some(Registration::Positions),
+            whole_frame: Some(true),
+        };
+        let r = resolve_defaults(&scan, &rig);
+        assert_eq!(
+            (r.k, r.estimator, r.combine, r.registration, r.whole_frame),
+            (
+                Some(6),
+                Some(Estimator::Paper),
+                Some(Combine::Interp),
+                Some(Registration::Positions),
+                Some(true)
+            )
+        );
+        // ...and processing runs with them.
+        let o = crate::daemon::protocol::process_options(&r, 6, 774.0, [-1.0, 0.0]);
+        assert_eq!(
+            (o.k, o.estimator, o.combine, o.registration, o.whole_frame),
+            (
+                6,
+                Estimator::Paper,
+                Combine::Interp,
+                Registration::Positions,
+                true
+            )
+        );
+        let explicit = JobSpec {
+            k: Some(1),
+            estimator: Some(Estimator::Fit),
+            combine: Some(Combine::Splat),
+            registration: Some(Registration::Image),
+            whole_frame: Some(false),
+            ..scan.clone()
+        };
+        assert_eq!(resolve_defaults(&explicit, &rig), explicit);
+        // A study's cases keep their own k (and combine by it when nothing is configured).
+        let study = JobSpec {
+            study: Some(PaperCase::ALL.to_vec()),
+            ..JobSpec::default()
+        };
+        let s = resolve_defaults(&study, &rig);
+        assert_eq!(
+            (s.k, s.combine, s.estimator),
+            (None, None, Some(Estimator::Paper))
+        );
+        assert!(plan(&s, &super::tests::rig(), Path::new("/tmp")).is_ok());
     }
 
     #[test]

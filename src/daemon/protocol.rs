@@ -5,7 +5,7 @@
 //! Decoding is strict (unknown fields and kinds are errors) and never panics: every bad line
 //! gets an error reply naming what was wrong.
 
-use crate::pipeline::{Combine, Estimator, ProcessOptions};
+use crate::pipeline::{Combine, Estimator, ProcessOptions, Registration};
 use serde::{Deserialize, Serialize};
 
 /// Version of this protocol; requests may carry `"v"` and must match it.
@@ -95,10 +95,16 @@ pub struct JobSpec {
     /// Wait after each move before grabbing.
     #[serde(default = "default_settle_ms")]
     pub settle_ms: u64,
-    #[serde(default)]
-    pub estimator: Estimator,
+    /// Processing left out (None) takes the rig's `[pipeline]` default, else the protocol's;
+    /// the daemon records the values it resolved (docs/protocol.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub estimator: Option<Estimator>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub combine: Option<Combine>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub registration: Option<Registration>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub whole_frame: Option<bool>,
     #[serde(default = "default_one")]
     pub repeats: u32,
     /// Absolute start of the first scan; default: where the stage is.
@@ -123,8 +129,10 @@ impl Default for JobSpec {
             k: None,
             study: None,
             settle_ms: default_settle_ms(),
-            estimator: Estimator::default(),
+            estimator: None,
             combine: None,
+            registration: None,
+            whole_frame: None,
             repeats: 1,
             start_um: None,
             repeat_shift_um: 0.0,
@@ -348,6 +356,9 @@ pub enum EventBody {
     Accepted {
         queue_position: usize,
         total_frames: u32,
+        /// The job as it will run: every processing default resolved.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        job: Option<Box<JobSpec>>,
     },
     Started {
         session: String,
@@ -424,7 +435,9 @@ pub fn process_options(
     let mut o = ProcessOptions {
         scale_um_per_px,
         k,
-        estimator: spec.estimator,
+        estimator: spec.estimator.unwrap_or_default(),
+        registration: spec.registration.unwrap_or_default(),
+        whole_frame: spec.whole_frame.unwrap_or(false),
         axis_dir,
         ..ProcessOptions::default()
     };

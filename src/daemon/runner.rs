@@ -24,7 +24,6 @@ pub const CANCEL: u8 = 1;
 pub const SHUTDOWN: u8 = 2;
 
 const MOVE_TIMEOUT: Duration = Duration::from_secs(30);
-const GRAB_TIMEOUT: Duration = Duration::from_secs(5);
 /// Between status polls of a moving stage: how late a cancel stops it, at most.
 const MOVE_POLL: Duration = Duration::from_millis(2);
 
@@ -271,7 +270,9 @@ fn step(
         std::thread::sleep((settle - t1.elapsed()).min(Duration::from_millis(20)));
     }
     let t2 = Instant::now();
-    let frame = rig.camera.grab_fresh(SystemTime::now(), GRAB_TIMEOUT)?;
+    // The rig's deadline ([camera] frame_timeout_ms; the sim's 5 s unless rigd is told).
+    let grab_timeout = Duration::from_millis(rig.info.grab_timeout_ms);
+    let frame = rig.camera.grab_fresh(SystemTime::now(), grab_timeout)?;
     let t3 = Instant::now();
     Ok((
         axis_um,

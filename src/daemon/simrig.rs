@@ -178,6 +178,9 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
             "piezo_driver": "gcs (emulated, pty)",
             "faults": s.faults.iter().map(|f| format!("{f:?}")).collect::<Vec<_>>(),
         }),
+        // The protocol's own defaults; `rigd --sim --grab-timeout-ms` may shorten the grab's.
+        job_defaults: Default::default(),
+        grab_timeout_ms: crate::daemon::rig::DEFAULT_GRAB_TIMEOUT_MS,
     };
     let log = SimInterferometer::new(Arc::clone(&rig.axis));
     let truth = SimTruth {
