@@ -126,3 +126,19 @@ fn pipeline_defaults_fill_what_a_job_omits_and_explicit_values_win() {
     assert_eq!(got(&job), want);
     assert_eq!(got(&s.manifest.job), want);
 }
+
+#[test]
+fn the_grab_deadline_flag_is_for_the_sim_and_positive() {
+    let rigd = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigd"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{args:?} was accepted");
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let e = rigd(&["--grab-timeout-ms", "100"]);
+    assert!(e.contains("--grab-timeout-ms needs --sim"), "{e}");
+    let e = rigd(&["--sim", "--grab-timeout-ms", "0"]);
+    assert!(e.contains("--grab-timeout-ms") && e.contains('0'), "{e}");
+}
