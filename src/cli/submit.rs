@@ -1,8 +1,9 @@
 //! `rigctl submit`: queue a capture job and follow it with a progress bar.
 
 use crate::cli::client::{follow, report_end, SocketArg};
+use crate::cli::process::RegistrationArg;
 use crate::daemon::protocol::{JobSpec, PaperCase, Request, StageKind};
-use crate::pipeline::{Combine, Estimator};
+use crate::pipeline::{Combine, Estimator, Registration};
 
 #[derive(clap::Args, Debug)]
 pub struct SubmitArgs {
@@ -28,8 +29,16 @@ pub struct SubmitArgs {
     /// Default: the rig's ([pipeline] estimator), else fit.
     #[arg(long, value_enum)]
     pub estimator: Option<EstimatorArg>,
+    /// Default: the rig's ([pipeline] combine), else interp if k > 1, else mean.
     #[arg(long, value_enum)]
     pub combine: Option<CombineArg>,
+    /// Where frame displacements come from. Default: the rig's ([pipeline] registration),
+    /// else image.
+    #[arg(long, value_enum)]
+    pub registration: Option<RegistrationArg>,
+    /// Also reconstruct the whole frame (default: the rig's [pipeline] whole_frame).
+    #[arg(long)]
+    pub whole_frame: bool,
     #[arg(long, default_value_t = 1)]
     pub repeats: u32,
     /// Absolute start position (µm); default: the rig's.
@@ -112,9 +121,12 @@ impl SubmitArgs {
             settle_ms: self.settle_ms,
             estimator: self.estimator.map(Into::into),
             combine: self.combine.map(Into::into),
-            // The rig's [pipeline] defaults apply.
-            registration: None,
-            whole_frame: None,
+            // Left out: the rig's [pipeline] defaults apply.
+            registration: self.registration.map(|r| match r {
+                RegistrationArg::Image => Registration::Image,
+                RegistrationArg::Positions => Registration::Positions,
+            }),
+            whole_frame: self.whole_frame.then_some(true),
             repeats: self.repeats,
             start_um: self.start_um,
             repeat_shift_um: self.repeat_shift_um,
@@ -150,4 +162,49 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
 pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
     let req = Request::Submit { job: a.spec() };
     submit_and_follow(&a.socket, req, a.detach).map(|_| ())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        submit: SubmitArgs,
+    }
+
+    fn spec(args: &[&str]) -> JobSpec {
+        let argv = ["rigctl"].iter().chain(args).copied();
+        Cli::try_parse_from(argv).unwrap().submit.spec()
+    }
+
+    #[test]
+    fn processing_left_out_is_left_to_the_rig_and_given_flags_are_sent() {
+        let s = spec(&["--steps", "3", "--step-um", "50"]);
+        assert_eq!(
+            (s.k, s.estimator, s.combine, s.registration, s.whole_frame),
+            (None, None, None, None, None)
+        );
+        let s = spec(&[
+            "--steps",
+            "3",
+            "--step-um",
+            "50",
+            "--estimator",
+            "paper",
+            "--registration",
+            "positions",
+            "--whole-frame",
+        ]);
+        assert_eq!(
+            (s.estimator, s.registration, s.whole_frame),
+            (
+                Some(Estimator::Paper),
+                Some(Registration::Positions),
+                Some(true)
+            )
+        );
+    }
 }
