@@ -37,7 +37,11 @@ impl Stage for HoldOnMove {
         self.inner.move_abs(target_um)?;
         self.moves += 1;
         if self.moves == self.hold_on {
-            // `!` is a realtime byte: the controller holds whatever line it comes in.
+            // Well into the move: the emulated axis runs at its 50 mm/s (the emulator does not
+            // slow to the F word), so the 40 mm move lasts 0.8 s and this lands ~4-5 mm in...
+            std::thread::sleep(Duration::from_millis(100));
+            // ...feed hold: `!` is a realtime byte, the controller holds whatever line it
+            // comes in.
             self.inner.send_line("!")?;
         }
         Ok(())
@@ -85,14 +89,10 @@ fn a_feed_hold_mid_move_fails_the_job_at_once_naming_the_hold_and_position() {
         ..AxisParams::default()
     }));
     let grbl = GrblSim::spawn(Arc::clone(&axis), GrblSimOptions::default(), None).unwrap();
-    let opts = GrblOptions {
-        // 20 mm/s: the held 40 mm move would take 2 s, so the hold lands mid-move.
-        feed_um_s: 20_000.0,
-        ..GrblOptions::new(
-            grbl.path().to_str().unwrap(),
-            TravelLimits::new(0.0, 100_000.0, 100_000.0).unwrap(),
-        )
-    };
+    let opts = GrblOptions::new(
+        grbl.path().to_str().unwrap(),
+        TravelLimits::new(0.0, 100_000.0, 100_000.0).unwrap(),
+    );
     let grbl_stage = GrblStage::connect("axis", opts).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let cfg = Config::from_toml_str(CAMERA, &dir.path().join("rig.toml")).unwrap();
@@ -149,7 +149,7 @@ fn a_feed_hold_mid_move_fails_the_job_at_once_naming_the_hold_and_position() {
             _ => {}
         }
     };
-    // "axis: feed hold at 1234.5 µm during the move to 41100 µm (…); axis stopped at …"
+    // "axis: feed hold at 5482.0 µm during the move to 41100 µm (…); axis stopped at …"
     let prefix = "axis: feed hold at ";
     assert!(reason.starts_with(prefix), "{reason}");
     let held_um: f64 = reason[prefix.len()..]
@@ -159,7 +159,7 @@ fn a_feed_hold_mid_move_fails_the_job_at_once_naming_the_hold_and_position() {
         .parse()
         .unwrap_or_else(|e| panic!("{reason}: {e}"));
     assert!(
-        held_um > 1_100.0 && held_um < 41_100.0,
+        held_um > 1_500.0 && held_um < 41_100.0,
         "held mid-move: {reason}"
     );
     assert!(reason.contains("during the move to 41100 µm"), "{reason}");
