@@ -4,11 +4,11 @@
 use rigd::cli::client::Client;
 use rigd::config::Config;
 use rigd::daemon::hwrig::rig_from_config;
-use rigd::daemon::protocol::{EventBody, JobSpec, Request};
+use rigd::daemon::protocol::{EventBody, JobRegistration, JobSpec, Request};
 use rigd::daemon::server::Background;
 use rigd::daemon::session::{Session, SessionState};
 use rigd::daemon::DaemonSettings;
-use rigd::pipeline::{Combine, Estimator, Registration};
+use rigd::pipeline::{Combine, Estimator};
 use std::path::Path;
 
 const SIM_RIG: &str = r#"
@@ -98,7 +98,7 @@ fn pipeline_defaults_fill_what_a_job_omits_and_explicit_values_win() {
         Some(3),
         Some(Estimator::Paper),
         Some(Combine::Splat),
-        Some(Registration::Positions),
+        Some(JobRegistration::Commanded),
         Some(true),
     );
     assert_eq!(got(&job), configured);
@@ -120,7 +120,7 @@ fn pipeline_defaults_fill_what_a_job_omits_and_explicit_values_win() {
         Some(1),
         Some(Estimator::Fit),
         Some(Combine::Mean),
-        Some(Registration::Positions),
+        Some(JobRegistration::Commanded),
         Some(true),
     );
     assert_eq!(got(&job), want);

@@ -10,7 +10,7 @@ use crate::camera::{CameraError, CameraModel};
 use crate::camera_clock::FrameClockCamera;
 use crate::frames::FrameRenderer;
 use crate::motion::{Axis, AxisParams, TruePosition};
-use crate::xl80::{LiveLog, LogFormat, LogSummary, Xl80Error, Xl80Params};
+use crate::xl80::{LiveLog, LiveOptions, LogFormat, LogSummary, Xl80Error, Xl80Params};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -162,12 +162,23 @@ impl SimRig {
         path: impl Into<PathBuf>,
         format: LogFormat,
     ) -> Result<Option<LogSummary>, RigError> {
+        self.start_xl80_log_with(path, format, LiveOptions::default())
+    }
+
+    /// [`SimRig::start_xl80_log`] with [`LiveOptions`] (flush period, whole-second start).
+    pub fn start_xl80_log_with(
+        &mut self,
+        path: impl Into<PathBuf>,
+        format: LogFormat,
+        opts: LiveOptions,
+    ) -> Result<Option<LogSummary>, RigError> {
         let previous = self.finish_xl80_log()?;
-        self.xl80 = Some(LiveLog::start(
+        self.xl80 = Some(LiveLog::start_with(
             path,
             format,
             self.config.xl80.clone(),
             Arc::clone(&self.line_of_sight) as Arc<dyn TruePosition>,
+            opts,
         )?);
         Ok(previous)
     }

@@ -9,7 +9,8 @@
 //!   samples as little-endian f64 (in `rtx_unit`, mm by default), then `EOF::`, all CRLF.
 //!
 //! `LiveLog` writes either file while the job runs: a thread samples the position at the
-//! sample rate and appends and flushes, as the real software does. While it grows, a `.rtx`
+//! sample rate and appends and flushes (about ten times a second, as the real software does,
+//! or as `LiveOptions` say). While it grows, a `.rtx`
 //! has no `EOF::` yet and its `Sample no` is 0; on `finish` the count is patched in (the
 //! field is padded with spaces so the header keeps its length) and `EOF::` appended.
 
@@ -449,6 +450,27 @@ pub struct LogSummary {
     pub started_sys: SystemTime,
 }
 
+/// How a live log is written.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LiveOptions {
+    /// Flush at least this often (zero: after every sample). The capture software updates
+    /// its file about ten times a second; a daemon that waits for the sample at a frame's
+    /// time wants it sooner.
+    pub flush_period: Duration,
+    /// Date the capture on the whole second before it starts and synthesise the samples
+    /// since then, so the log's whole-second `Date` plus the sample times is exact.
+    pub start_on_whole_second: bool,
+}
+
+impl Default for LiveOptions {
+    fn default() -> Self {
+        LiveOptions {
+            flush_period: Duration::from_millis(100),
+            start_on_whole_second: false,
+        }
+    }
+}
+
 /// A log written live by a sampling thread; `finish` stops it and completes the file.
 pub struct LiveLog {
     stop: Arc<AtomicBool>,
@@ -464,6 +486,17 @@ impl LiveLog {
         params: Xl80Params,
         source: Arc<dyn TruePosition>,
     ) -> Result<LiveLog, Xl80Error> {
+        Self::start_with(path, format, params, source, LiveOptions::default())
+    }
+
+    /// [`LiveLog::start`] with [`LiveOptions`].
+    pub fn start_with(
+        path: impl Into<PathBuf>,
+        format: LogFormat,
+        params: Xl80Params,
+        source: Arc<dyn TruePosition>,
+        opts: LiveOptions,
+    ) -> Result<LiveLog, Xl80Error> {
         let path = path.into();
         let mut xl = Xl80::new(params)?;
         let io = {
@@ -474,8 +507,7 @@ impl LiveLog {
             }
         };
         let mut file = File::create(&path).map_err(&io)?;
-        let started_at = Instant::now();
-        let started_sys = SystemTime::now();
+        let (started_at, started_sys) = capture_start(opts.start_on_whole_second);
         let date = xl.params.date_or(started_sys);
         let sample_no_at = {
             let mut head = Vec::new();
@@ -497,8 +529,9 @@ impl LiveLog {
             .name("sim-xl80".into())
             .spawn(move || {
                 let period = xl.params.period();
-                // Flush about ten times a second, as the capture software updates its file.
-                let flush_every = ((0.1 / period.as_secs_f64()).ceil() as usize).max(1);
+                let flush_every = ((opts.flush_period.as_secs_f64() / period.as_secs_f64()).ceil()
+                    as usize)
+                    .max(1);
                 let mut w = BufWriter::new(file);
                 let mut n = 0usize;
                 let mut since_flush = 0usize;
@@ -577,6 +610,22 @@ impl LiveLog {
                 source: std::io::Error::other("already finished"),
             }),
         }
+    }
+}
+
+/// When sample 1 is taken, on both clocks: now, or the whole second before now.
+fn capture_start(whole_second: bool) -> (Instant, SystemTime) {
+    let (at, sys) = (Instant::now(), SystemTime::now());
+    if !whole_second {
+        return (at, sys);
+    }
+    let frac = sys
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| Duration::from_nanos(u64::from(d.subsec_nanos())))
+        .unwrap_or_default();
+    match at.checked_sub(frac) {
+        Some(back) => (back, sys - frac),
+        None => (at, sys),
     }
 }
 

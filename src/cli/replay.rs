@@ -1,7 +1,7 @@
 //! `rigctl replay SESSION`: run a recorded session again through the job path.
 
 use crate::cli::client::SocketArg;
-use crate::cli::submit::{submit_and_follow, CombineArg, EstimatorArg};
+use crate::cli::submit::{submit_and_follow, CombineArg, EstimatorArg, RegistrationArg};
 use crate::daemon::protocol::{ProcessingOverride, Request};
 
 #[derive(clap::Args, Debug)]
@@ -16,6 +16,8 @@ pub struct ReplayArgs {
     pub estimator: Option<EstimatorArg>,
     #[arg(long, value_enum)]
     pub combine: Option<CombineArg>,
+    #[arg(long, value_enum)]
+    pub registration: Option<RegistrationArg>,
     #[arg(long)]
     pub detach: bool,
 }
@@ -24,6 +26,7 @@ pub fn run(a: ReplayArgs) -> anyhow::Result<()> {
     let req = Request::Replay {
         session: a.session.clone(),
         processing: ProcessingOverride {
+            registration: a.registration.map(Into::into),
             k: a.k,
             estimator: a.estimator.map(Into::into),
             combine: a.combine.map(Into::into),

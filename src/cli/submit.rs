@@ -1,9 +1,8 @@
 //! `rigctl submit`: queue a capture job and follow it with a progress bar.
 
 use crate::cli::client::{follow, report_end, SocketArg};
-use crate::cli::process::RegistrationArg;
-use crate::daemon::protocol::{JobSpec, PaperCase, Request, StageKind};
-use crate::pipeline::{Combine, Estimator, Registration};
+use crate::daemon::protocol::{JobRegistration, JobSpec, PaperCase, Request, StageKind};
+use crate::pipeline::{Combine, Estimator};
 
 #[derive(clap::Args, Debug)]
 pub struct SubmitArgs {
@@ -32,8 +31,8 @@ pub struct SubmitArgs {
     /// Default: the rig's ([pipeline] combine), else interp if k > 1, else mean.
     #[arg(long, value_enum)]
     pub combine: Option<CombineArg>,
-    /// Where frame displacements come from. Default: the rig's ([pipeline] registration),
-    /// else image.
+    /// Where frame displacements come from: the image, the commanded positions or the
+    /// interferometer's readings. Default: the rig's ([pipeline] registration), else image.
     #[arg(long, value_enum)]
     pub registration: Option<RegistrationArg>,
     /// Also reconstruct the whole frame (default: the rig's [pipeline] whole_frame).
@@ -73,6 +72,23 @@ pub enum EstimatorArg {
     Paper,
     Fit,
 }
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum RegistrationArg {
+    Image,
+    Commanded,
+    Interferometer,
+}
+
+impl From<RegistrationArg> for JobRegistration {
+    fn from(r: RegistrationArg) -> Self {
+        match r {
+            RegistrationArg::Image => JobRegistration::Image,
+            RegistrationArg::Commanded => JobRegistration::Commanded,
+            RegistrationArg::Interferometer => JobRegistration::Interferometer,
+        }
+    }
+}
+
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
 pub enum CombineArg {
     Interp,
@@ -122,10 +138,7 @@ impl SubmitArgs {
             estimator: self.estimator.map(Into::into),
             combine: self.combine.map(Into::into),
             // Left out: the rig's [pipeline] defaults apply.
-            registration: self.registration.map(|r| match r {
-                RegistrationArg::Image => Registration::Image,
-                RegistrationArg::Positions => Registration::Positions,
-            }),
+            registration: self.registration.map(Into::into),
             whole_frame: self.whole_frame.then_some(true),
             repeats: self.repeats,
             start_um: self.start_um,
@@ -195,14 +208,14 @@ mod tests {
             "--estimator",
             "paper",
             "--registration",
-            "positions",
+            "interferometer",
             "--whole-frame",
         ]);
         assert_eq!(
             (s.estimator, s.registration, s.whole_frame),
             (
                 Some(Estimator::Paper),
-                Some(Registration::Positions),
+                Some(JobRegistration::Interferometer),
                 Some(true)
             )
         );

@@ -3,13 +3,14 @@
 //! devices are one `SimRig` (`open_sim_rig`), so the camera sees the stages move.
 
 use crate::config::{CameraDriver, Config, StageDriver};
+use crate::daemon::interferometer::FollowedLog;
 use crate::daemon::rig::{PositionLog, Rig, RigInfo};
-use crate::daemon::simrig::SimInterferometer;
+use crate::daemon::simxl80::SimXl80;
 use crate::hw::open::{open_camera, open_sim_rig, open_stage, SimRigCamera};
 use crate::hw::{Camera, HwError};
 use crate::xl80::follow::Follower;
-use std::sync::Arc;
-use std::time::{Duration, SystemTime};
+use crate::xl80::Xl80Format;
+use std::time::Duration;
 
 fn missing(section: &str, cfg: &Config) -> HwError {
     HwError::Other {
@@ -54,6 +55,8 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
         // How the mount turns axis travel into image motion ([pipeline] axis_dir).
         axis_dir: cfg.pipeline.axis_dir,
         frame_size: (cam_cfg.width, cam_cfg.height),
+        // An all-sim rig runs the sim's XL-80; otherwise `[xl80]` names the log.
+        interferometer: all_sim || cfg.xl80.is_some(),
         board,
         config: serde_json::to_value(cfg).unwrap_or_default(),
         job_defaults: cfg.job_defaults,
@@ -62,7 +65,11 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
     if all_sim {
         let hw = open_sim_rig(cfg)?;
         let size = hw.camera.size();
-        let log = SimInterferometer::new(Arc::clone(&hw.rig.axis));
+        // The sim's XL-80 writes `[xl80] path` (or a temporary file), followed as on hardware.
+        let log = match &cfg.xl80 {
+            Some(x) => SimXl80::new(&hw.rig, Some(x.path.clone()), x.format, x.rtx_um_per_unit())?,
+            None => SimXl80::new(&hw.rig, None, Xl80Format::Csv, 1000.0)?,
+        };
         return Ok(Rig {
             info: RigInfo {
                 frame_size: size,
@@ -84,11 +91,8 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
     };
     let camera = open_camera(cam_cfg, cfg.board.as_ref().map(|b| b.path.as_path()))?;
     let log = cfg.xl80.as_ref().map(|x| -> Box<dyn PositionLog> {
-        let mut f = Follower::new(&x.path, x.format);
-        if let Some(u) = crate::xl80::length_unit_um(&x.rtx_unit) {
-            f = f.with_rtx_unit_um(u);
-        }
-        Box::new(FollowedLog { follower: f })
+        let f = Follower::new(&x.path, x.format).with_rtx_unit_um(x.rtx_um_per_unit());
+        Box::new(FollowedLog::new(f, Duration::from_millis(x.poll_ms)))
     });
     Ok(Rig {
         info,
@@ -97,32 +101,4 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
         camera,
         log,
     })
-}
-
-/// The XL-80's live log, followed as the laser software writes it.
-struct FollowedLog {
-    follower: Follower,
-}
-
-impl PositionLog for FollowedLog {
-    fn position_at(&mut self, t: SystemTime) -> Option<f64> {
-        if let Err(e) = self.follower.poll() {
-            tracing::warn!("xl80 log {}: {e}", self.follower.path().display());
-        }
-        let log = self.follower.log();
-        let gap = |r: &crate::xl80::Reading| {
-            let at = log.time_of(r)?;
-            Some(match at.duration_since(t) {
-                Ok(d) => d,
-                Err(e) => e.duration(),
-            })
-        };
-        // Only a reading within a second of `t` says where the stage was then.
-        log.readings
-            .iter()
-            .filter_map(|r| Some((gap(r)?, r.position_um)))
-            .filter(|(d, _)| *d <= Duration::from_secs(1))
-            .min_by_key(|(d, _)| *d)
-            .map(|(_, p)| p)
-    }
 }

@@ -12,6 +12,7 @@ pub mod commands;
 pub mod connection;
 pub mod events;
 pub mod hwrig;
+pub mod interferometer;
 pub mod jobs;
 pub mod plan;
 pub mod protocol;
@@ -21,6 +22,7 @@ pub mod runner;
 pub mod server;
 pub mod session;
 pub mod simrig;
+pub mod simxl80;
 pub mod study;
 pub mod worker;
 

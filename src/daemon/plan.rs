@@ -1,7 +1,7 @@
 //! A job spec checked against the rig and expanded into runs, before anything moves.
 
 use crate::config::JobDefaults;
-use crate::daemon::protocol::{CaseScan, ErrorCode, JobSpec, ProtoError};
+use crate::daemon::protocol::{CaseScan, ErrorCode, JobRegistration, JobSpec, ProtoError};
 use crate::daemon::rig::RigInfo;
 use crate::pipeline::{Combine, Estimator, Registration};
 use serde::{Deserialize, Serialize};
@@ -46,10 +46,14 @@ pub fn resolve_defaults(spec: &JobSpec, d: &JobDefaults) -> JobSpec {
             Combine::Mean
         });
     }
+    // The config's "positions" are the commanded ones (it has no interferometer choice).
     s.registration = s
         .registration
-        .or(d.registration)
-        .or(Some(Registration::default()));
+        .or(d.registration.map(|r| match r {
+            Registration::Image => JobRegistration::Image,
+            Registration::Positions => JobRegistration::Commanded,
+        }))
+        .or(Some(JobRegistration::Image));
     s.whole_frame = s.whole_frame.or(d.whole_frame).or(Some(false));
     s
 }
@@ -130,6 +134,12 @@ pub fn plan(
     let cases = cases(spec)?;
     if spec.repeats == 0 {
         return Err(rejected("`repeats` must be at least 1"));
+    }
+    if spec.registration == Some(JobRegistration::Interferometer) && !rig.interferometer {
+        return Err(rejected(
+            "`registration`: \"interferometer\" needs an interferometer, and this rig has none \
+             (no [xl80] section in its configuration)",
+        ));
     }
     let limits = rig
         .limits_um(spec.stage)
@@ -231,6 +241,7 @@ mod tests {
             scale_um_per_px: 774.0,
             axis_dir: [-1.0, 0.0],
             frame_size: (64, 48),
+            interferometer: false,
             board: None,
             config: serde_json::Value::Null,
             job_defaults: JobDefaults::default(),
@@ -253,7 +264,7 @@ mod tests {
                 Some(1),
                 Some(Estimator::Fit),
                 Some(Combine::Mean),
-                Some(Registration::Image),
+                Some(JobRegistration::Image),
                 Some(false)
             )
         );
@@ -279,7 +290,7 @@ mod tests {
                 Some(6),
                 Some(Estimator::Paper),
                 Some(Combine::Interp),
-                Some(Registration::Positions),
+                Some(JobRegistration::Commanded),
                 Some(true)
             )
         );
@@ -299,7 +310,7 @@ mod tests {
             k: Some(1),
             estimator: Some(Estimator::Fit),
             combine: Some(Combine::Splat),
-            registration: Some(Registration::Image),
+            registration: Some(JobRegistration::Interferometer),
             whole_frame: Some(false),
             ..scan.clone()
         };
@@ -422,5 +433,16 @@ mod tests {
             .message
             .contains("MB free"));
         assert!(plan(&base, &r, t, 0).is_ok());
+        let by_laser = JobSpec {
+            registration: Some(JobRegistration::Interferometer),
+            ..base.clone()
+        };
+        let e = plan(&by_laser, &r, t, 0).unwrap_err();
+        assert!(e.message.contains("[xl80]"), "{}", e.message);
+        let with_laser = RigInfo {
+            interferometer: true,
+            ..rig()
+        };
+        assert!(plan(&by_laser, &with_laser, t, 0).is_ok());
     }
 }

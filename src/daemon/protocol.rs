@@ -54,6 +54,19 @@ impl PaperCase {
     }
 }
 
+/// Where a job's per-frame displacements come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum JobRegistration {
+    /// Measured in the image (the paper's).
+    #[default]
+    Image,
+    /// From the commanded positions.
+    Commanded,
+    /// From the interferometer's reading at each frame (the job fails at a frame without one).
+    Interferometer,
+}
+
 /// One scan of a job: `frames` frames `step_um` apart, reconstructed at `k`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CaseScan {
@@ -102,7 +115,7 @@ pub struct JobSpec {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub combine: Option<Combine>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub registration: Option<Registration>,
+    pub registration: Option<JobRegistration>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub whole_frame: Option<bool>,
     #[serde(default = "default_one")]
@@ -152,6 +165,8 @@ pub struct ProcessingOverride {
     pub estimator: Option<Estimator>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub combine: Option<Combine>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub registration: Option<JobRegistration>,
 }
 
 /// What a client asks. Tagged by `kind`.
@@ -436,9 +451,12 @@ pub fn process_options(
         scale_um_per_px,
         k,
         estimator: spec.estimator.unwrap_or_default(),
-        registration: spec.registration.unwrap_or_default(),
         whole_frame: spec.whole_frame.unwrap_or(false),
         axis_dir,
+        registration: match spec.registration.unwrap_or_default() {
+            JobRegistration::Image => Registration::Image,
+            JobRegistration::Commanded | JobRegistration::Interferometer => Registration::Positions,
+        },
         ..ProcessOptions::default()
     };
     if let Some(c) = spec.combine {

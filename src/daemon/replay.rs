@@ -4,8 +4,8 @@
 //! pipeline and gets the same result (or another, with other processing settings).
 
 use crate::daemon::protocol::{JobSpec, ProcessingOverride};
-use crate::daemon::rig::{PositionLog, Rig, RigInfo};
-use crate::daemon::session::{Session, StepRow};
+use crate::daemon::rig::{LogSample, LogSource, PositionLog, Rig, RigInfo};
+use crate::daemon::session::{Session, SessionError, StepRow, INTERFEROMETER};
 use crate::hw::{Camera, Frame, HwError, MotionState, Stage, StageStatus};
 use std::collections::VecDeque;
 use std::path::PathBuf;
@@ -21,6 +21,9 @@ pub fn replay_spec(session: &Session, ov: &ProcessingOverride) -> JobSpec {
     }
     if let Some(c) = ov.combine {
         spec.combine = Some(c);
+    }
+    if let Some(r) = ov.registration {
+        spec.registration = Some(r);
     }
     spec.process = true;
     // The frames are already settled: replay as fast as the pipeline goes.
@@ -49,18 +52,20 @@ pub fn replay_plan(session: &Session, ov: &ProcessingOverride) -> crate::daemon:
     plan
 }
 
-/// Build the replay rig for `session`.
-pub fn replay_rig(session: &Session) -> Rig {
+/// Build the replay rig for `session` (fails on an unreadable `interferometer.csv`).
+pub fn replay_rig(session: &Session) -> Result<Rig, SessionError> {
     let rows = Arc::new(Mutex::new(VecDeque::from(session.steps.clone())));
     let mut info: RigInfo = session.manifest.rig.clone();
     info.mode = "replay".into();
+    // The recorded readings stand in for the interferometer.
+    info.interferometer = true;
     let stage = || -> Box<dyn Stage> {
         Box::new(ReplayStage {
             rows: session.steps.clone().into(),
             position_um: 0.0,
         })
     };
-    Rig {
+    Ok(Rig {
         info,
         axis: stage(),
         piezo: Some(stage()),
@@ -69,10 +74,8 @@ pub fn replay_rig(session: &Session) -> Rig {
             rows: rows.clone(),
             size: session.manifest.rig.frame_size,
         }),
-        log: Some(Box::new(ReplayLog {
-            rows: session.steps.clone(),
-        })),
-    }
+        log: Some(Box::new(ReplayLog::new(session)?)),
+    })
 }
 
 /// Reports the recorded axis position of each step in turn.
@@ -165,17 +168,63 @@ impl Camera for ReplayCamera {
     }
 }
 
-/// The recorded interferometer readings, looked up by the frame's recorded time.
+/// The recorded interferometer: each frame gets the reading the live job recorded for it
+/// (so `registration: interferometer` replays exactly), and the replay session gets the
+/// recorded samples of `interferometer.csv` as far as its frames reach.
 struct ReplayLog {
     rows: Vec<StepRow>,
+    samples: VecDeque<LogSample>,
+    taken: Vec<LogSample>,
+    source: LogSource,
+}
+
+impl ReplayLog {
+    fn new(session: &Session) -> Result<ReplayLog, SessionError> {
+        let source = match &session.manifest.interferometer {
+            Some(s) => LogSource {
+                replayed_from: Some(session.manifest.name.clone()),
+                ..s.clone()
+            },
+            None => LogSource {
+                path: session.dir.join(INTERFEROMETER).display().to_string(),
+                format: "rigd-session".into(),
+                replayed_from: Some(session.manifest.name.clone()),
+                ..LogSource::default()
+            },
+        };
+        Ok(ReplayLog {
+            rows: session.steps.clone(),
+            samples: session.interferometer_samples()?.into(),
+            taken: Vec::new(),
+            source,
+        })
+    }
 }
 
 impl PositionLog for ReplayLog {
+    fn begin(&mut self, _from: SystemTime) {}
+
     fn position_at(&mut self, t: SystemTime) -> Option<f64> {
         let t = crate::daemon::session::unix_s(t);
+        // Hand on the samples up to the first one at or after the frame, as the live job
+        // had read them.
+        while let Some(s) = self.samples.pop_front() {
+            self.taken.push(s);
+            if s.t_unix_s >= t {
+                break;
+            }
+        }
         self.rows
             .iter()
             .min_by(|a, b| (a.t_unix_s - t).abs().total_cmp(&(b.t_unix_s - t).abs()))
             .and_then(|r| r.interferometer_um)
+    }
+
+    fn take_samples(&mut self) -> Vec<LogSample> {
+        std::mem::take(&mut self.taken)
+    }
+
+    fn source(&self) -> LogSource {
+        self.source.clone()
     }
 }

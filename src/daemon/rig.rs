@@ -10,11 +10,61 @@ use rigd_sim::Board;
 use serde::{Deserialize, Serialize};
 use std::time::SystemTime;
 
-/// Where the interferometer says the stage is. The sim reads the axis' true position; a real
-/// rig follows the XL-80's live log.
+/// Where the interferometer says the stage is: the XL-80's live log, followed as it grows
+/// (`daemon::interferometer::FollowedLog`, on the sim rig and on hardware alike), or a
+/// recorded session's log on replay.
 pub trait PositionLog: Send {
-    /// The reading closest to `t`, if the log covers it.
+    /// A job starts at `from`: catch up with the log and hand on only samples from then on.
+    fn begin(&mut self, from: SystemTime);
+    /// The reading at `t` (µm, the laser's own datum and sign), waiting briefly for the log
+    /// to reach `t`; `None` if it does not cover `t`.
     fn position_at(&mut self, t: SystemTime) -> Option<f64>;
+    /// Samples read since the last call (since `begin` at first), oldest first, for the
+    /// session's `interferometer.csv`.
+    fn take_samples(&mut self) -> Vec<LogSample>;
+    /// What the source log says about itself, for the session's manifest.
+    fn source(&self) -> LogSource;
+}
+
+/// One interferometer sample on the PC clock.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LogSample {
+    pub t_unix_s: f64,
+    /// The laser's reading, µm (its own datum and sign).
+    pub position_um: f64,
+    /// Line (CSV) or sample number (RTX) in the source log.
+    pub sample: usize,
+}
+
+/// The source log's facts, recorded in the manifest (`interferometer`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LogSource {
+    /// The log file followed.
+    pub path: String,
+    /// "csv" or "rtx".
+    pub format: String,
+    /// µm per unit of the file's positions (its header's unit, else the assumed one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub um_per_unit: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sample_rate_hz: Option<f64>,
+    /// The log's start date as written (whole seconds in both formats).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub date: Option<String>,
+    /// Log clock minus PC clock, seconds, subtracted from every sample time.
+    pub log_minus_pc_s: f64,
+    /// Where `log_minus_pc_s` comes from.
+    #[serde(default)]
+    pub clock: String,
+    /// Every header `key: value` pair, in file order.
+    #[serde(default)]
+    pub fields: Vec<(String, String)>,
+    /// Garbled lines/samples seen in the source so far.
+    #[serde(default)]
+    pub garbled: usize,
+    /// Set on replay: the session whose recorded log this is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub replayed_from: Option<String>,
 }
 
 /// Static facts about a rig, known before a job starts.
@@ -31,6 +81,9 @@ pub struct RigInfo {
     /// Image displacement per unit of axis travel (the camera rides the axis).
     pub axis_dir: [f64; 2],
     pub frame_size: (u32, u32),
+    /// Whether the rig has an interferometer log (`registration: interferometer` needs one).
+    #[serde(default)]
+    pub interferometer: bool,
     /// The board the camera looks at, to name targets.
     pub board: Option<Board>,
     /// A snapshot of the configuration this rig was built from (recorded in sessions).

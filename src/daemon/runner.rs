@@ -6,8 +6,9 @@
 //! slices and, on a cancel, stops it where it is (GRBL feed hold, GCS HLT). A shutdown
 //! (SIGTERM) lets the current step finish instead.
 
+use crate::daemon::interferometer;
 use crate::daemon::plan::Plan;
-use crate::daemon::protocol::{process_options, EventBody, JobSpec, StepTimings};
+use crate::daemon::protocol::{process_options, EventBody, JobRegistration, JobSpec, StepTimings};
 use crate::daemon::rig::Rig;
 use crate::daemon::session::{unix_s, Image16, SessionWriter, StepRow};
 use crate::daemon::study::{summarize, RunResult};
@@ -122,6 +123,9 @@ fn capture(
         }
         stopped_at(s)
     };
+    if let Err(e) = interferometer::begin_job(rig.log.as_deref_mut(), session) {
+        return Outcome::Failed(format!("disk: {e}"));
+    }
     let mut index = 0u32;
     for run in &ctx.plan.runs {
         for &commanded_um in &run.positions_um {
@@ -150,10 +154,14 @@ fn capture(
                     return Outcome::Failed(format!("{e}{at}"));
                 }
             };
-            let interferometer_um = rig
-                .log
-                .as_mut()
-                .and_then(|l| l.position_at(frame.timestamp));
+            let interferometer_um =
+                match interferometer::at_frame(rig.log.as_deref_mut(), session, frame.timestamp) {
+                    Ok(x) => x,
+                    Err(e) => {
+                        stop_stage(rig);
+                        return Outcome::Failed(format!("disk: {e}"));
+                    }
+                };
             let row = StepRow {
                 index,
                 position_um: commanded_um,
@@ -184,12 +192,24 @@ fn capture(
                 total_frames: total,
             });
             if ctx.spec.process {
+                let position_um =
+                    match (ctx.spec.registration.unwrap_or_default(), interferometer_um) {
+                        (JobRegistration::Interferometer, Some(x)) => x,
+                        (JobRegistration::Interferometer, None) => {
+                            stop_stage(rig);
+                            return Outcome::Failed(format!(
+                                "frame {index}: no interferometer reading at its time \
+                             (registration: interferometer needs one)"
+                            ));
+                        }
+                        _ => commanded_um,
+                    };
                 // Blocks only if processing falls four frames behind the capture.
                 let _ = tx.send(ToProcessor::Frame {
                     run: run.run,
                     index,
                     image: frame.image,
-                    position_um: commanded_um,
+                    position_um,
                 });
             }
             index += 1;

@@ -5,14 +5,20 @@
 //! PNG and its `steps.csv` row are in place before the job reports the step, and the
 //! manifest's state is updated last. After a crash the manifest still says `running`; the
 //! next daemon start marks such sessions `incomplete`.
+//!
+//! The one exception is `interferometer.csv`, which grows by hundreds of samples a second:
+//! it is appended to and fsynced before each frame is recorded (rewriting it whole per
+//! frame would be quadratic). A crash can leave an unterminated last line, which readers
+//! skip; every sample up to the last reported frame is complete.
 
 use crate::atomic_file::{self, AtomicWriteError};
 use crate::daemon::plan::Plan;
 use crate::daemon::protocol::{JobSpec, PROTOCOL_VERSION};
-use crate::daemon::rig::RigInfo;
+use crate::daemon::rig::{LogSample, LogSource, RigInfo};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use std::fs;
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
@@ -21,6 +27,8 @@ pub const MANIFEST: &str = "manifest.json";
 pub const STEPS: &str = "steps.csv";
 pub const INTERFEROMETER: &str = "interferometer.csv";
 pub const RESULT: &str = "result.json";
+/// Columns of `interferometer.csv`.
+pub const INTERFEROMETER_HEADER: &str = "t_unix_s,position_um,sample\n";
 
 /// A reconstruction as the pipeline makes it: 16-bit grey.
 pub type Image16 = image::ImageBuffer<image::Luma<u16>, Vec<u16>>;
@@ -84,6 +92,9 @@ pub struct Manifest {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub replay_of: Option<String>,
     pub rig: RigInfo,
+    /// The interferometer log the session's `interferometer.csv` was read from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub interferometer: Option<LogSource>,
     pub versions: Versions,
     pub frames_captured: u32,
 }
@@ -138,6 +149,8 @@ pub struct SessionWriter {
     dir: PathBuf,
     manifest: Manifest,
     rows: Vec<StepRow>,
+    /// `interferometer.csv`, open for appending once the job has a log.
+    log: Option<fs::File>,
 }
 
 impl SessionWriter {
@@ -180,6 +193,7 @@ impl SessionWriter {
             plan: plan.clone(),
             replay_of,
             rig: rig.clone(),
+            interferometer: None,
             versions: Versions {
                 rigd: env!("CARGO_PKG_VERSION").into(),
                 protocol: PROTOCOL_VERSION,
@@ -190,6 +204,7 @@ impl SessionWriter {
             dir,
             manifest,
             rows: Vec::new(),
+            log: None,
         };
         w.write_steps()?;
         w.write_manifest()?;
@@ -222,9 +237,46 @@ impl SessionWriter {
         Ok(())
     }
 
+    /// The job has an interferometer log: record its source in the manifest and start
+    /// `interferometer.csv` (header only).
+    pub fn begin_interferometer(&mut self, source: LogSource) -> Result<(), SessionError> {
+        let path = self.dir.join(INTERFEROMETER);
+        write_atomic(&path, INTERFEROMETER_HEADER.as_bytes())?;
+        sync_dir(&self.dir)?;
+        self.log = Some(
+            fs::OpenOptions::new()
+                .append(true)
+                .open(&path)
+                .map_err(io(&path))?,
+        );
+        self.manifest.interferometer = Some(source);
+        self.write_manifest()
+    }
+
+    /// Update the log's source facts (written with the manifest's next write, at the latest
+    /// when the session is closed).
+    pub fn note_interferometer(&mut self, source: LogSource) {
+        self.manifest.interferometer = Some(source);
+    }
+
+    /// Append interferometer samples and fsync them. Call before recording the frame they
+    /// cover, so a reported frame's samples are on disk.
+    pub fn append_interferometer(&mut self, samples: &[LogSample]) -> Result<(), SessionError> {
+        let (Some(f), false) = (self.log.as_mut(), samples.is_empty()) else {
+            return Ok(());
+        };
+        let mut text = String::with_capacity(samples.len() * 32);
+        for s in samples {
+            // `{}` prints the shortest text that reads back to the same f64.
+            text.push_str(&format!("{},{},{}\n", s.t_unix_s, s.position_um, s.sample));
+        }
+        let path = self.dir.join(INTERFEROMETER);
+        f.write_all(text.as_bytes()).map_err(io(&path))?;
+        f.sync_data().map_err(io(&path))
+    }
+
     fn write_steps(&self) -> Result<(), SessionError> {
         let mut w = csv::Writer::from_writer(Vec::new());
-        let mut log = String::from("t_unix_s,position_um\n");
         if self.rows.is_empty() {
             w.write_record([
                 "index",
@@ -244,13 +296,9 @@ impl SessionWriter {
         }
         for r in &self.rows {
             w.serialize(r).map_err(|e| self.format_err(e))?;
-            if let Some(x) = r.interferometer_um {
-                log.push_str(&format!("{:.6},{x}\n", r.t_unix_s));
-            }
         }
         let bytes = w.into_inner().map_err(|e| self.format_err(e))?;
-        write_atomic(&self.dir.join(STEPS), &bytes)?;
-        write_atomic(&self.dir.join(INTERFEROMETER), log.as_bytes())
+        write_atomic(&self.dir.join(STEPS), &bytes)
     }
 
     fn format_err(&self, e: impl std::fmt::Display) -> SessionError {
@@ -339,6 +387,45 @@ impl Session {
 
     pub fn frame_path(&self, index: u32) -> PathBuf {
         self.dir.join("frames").join(frame_name(index))
+    }
+
+    /// The interferometer samples recorded (`interferometer.csv`), oldest first; empty when
+    /// the session has none. An unterminated last line (cut by a crash) is skipped.
+    pub fn interferometer_samples(&self) -> Result<Vec<LogSample>, SessionError> {
+        let path = self.dir.join(INTERFEROMETER);
+        let text = match fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(io(&path)(e)),
+        };
+        let complete = match text.rfind('\n') {
+            Some(i) => &text[..i],
+            None => "",
+        };
+        let bad = |line: usize, message: String| SessionError::Format {
+            path: path.display().to_string(),
+            message: format!("line {line}: {message}"),
+        };
+        let mut out = Vec::new();
+        for (i, line) in complete.lines().enumerate().skip(1) {
+            let f: Vec<&str> = line.split(',').collect();
+            if f.len() < 2 {
+                return Err(bad(i + 1, format!("{line:?} is not t_unix_s,position_um")));
+            }
+            let num = |s: &str, what: &str| {
+                s.trim()
+                    .parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite())
+                    .ok_or_else(|| bad(i + 1, format!("{what} {s:?} is not a number")))
+            };
+            out.push(LogSample {
+                t_unix_s: num(f[0], "t_unix_s")?,
+                position_um: num(f[1], "position_um")?,
+                sample: f.get(2).and_then(|s| s.trim().parse().ok()).unwrap_or(0),
+            });
+        }
+        Ok(out)
     }
 
     /// The stored result, if the job got that far.

@@ -2,20 +2,22 @@
 //! drivers a real rig uses. The axis is moved by rigd's GRBL driver over the real serialport
 //! path to the GRBL emulator on a pseudo-terminal, the piezo by the GCS driver to the PI GCS
 //! emulator; the camera is the rig's frame-clock camera (frames show where the line of sight
-//! truly was during the exposure, motion blur included); the interferometer reads the axis'
-//! true position.
+//! truly was during the exposure, motion blur included); the simulated XL-80 writes its live
+//! log to a file that the daemon follows as it would a real one (`daemon::interferometer`).
 //!
 //! Faults can be injected (`rigd --sim --fault alarm@5`): alarms and serial loss through the
 //! GRBL emulator's own fault injection, camera timeouts through the frame-clock camera's
 //! (its stream stalls; the driver's deadline runs out).
 
-use crate::daemon::rig::{PositionLog, Rig, RigInfo};
+use crate::daemon::rig::{Rig, RigInfo};
+use crate::daemon::simxl80::SimXl80;
 use crate::hw::gcs::{GcsOptions, GcsStage};
 use crate::hw::grbl::{GrblOptions, GrblStage};
 use crate::hw::limits::TravelLimits;
 use crate::hw::open::SimRigCamera;
 use crate::hw::sim_camera::SimCamera;
 use crate::hw::{HwError, Stage, StageStatus};
+use crate::xl80::Xl80Format;
 use rigd_sim::gcs::{GcsSim, GcsSimOptions};
 use rigd_sim::grbl::{GrblSim, GrblSimOptions};
 use rigd_sim::motion::{Axis, AxisParams};
@@ -23,7 +25,7 @@ use rigd_sim::serve::Faults;
 use rigd_sim::{CameraModel, SimRig, SimRigConfig};
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::{Duration, Instant, SystemTime};
+use std::time::Duration;
 
 /// A fault to inject: what fails, and on which call (1-based) of the device.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -137,6 +139,7 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
     };
     let board = rc.board().map_err(|e| sim_error("sim-rig", e))?;
     let rig = SimRig::start(rc.clone()).map_err(|e| sim_error("sim-rig", e))?;
+    let log = SimXl80::new(&rig, None, Xl80Format::Csv, 1000.0)?;
 
     let grbl = GrblSim::spawn(Arc::clone(&rig.axis), GrblSimOptions::default(), None)
         .map_err(|e| sim_error("sim-grbl", e))?;
@@ -167,6 +170,7 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
         // The camera rides the axis: the board moves the other way in the image.
         axis_dir: [-rc.axis_dir[0], -rc.axis_dir[1]],
         frame_size: (s.camera.width, s.camera.height),
+        interferometer: true,
         board: Some(board.clone()),
         config: serde_json::json!({
             "sim": true,
@@ -176,13 +180,17 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
             "board": board.name,
             "axis_driver": "grbl (emulated, pty)",
             "piezo_driver": "gcs (emulated, pty)",
+            "xl80": rigd_sim::xl80::Xl80Params {
+                sample_rate_hz: crate::daemon::simxl80::SIM_RATE_HZ,
+                ..rc.xl80.clone()
+            },
+            "xl80_log": "live CSV in a temporary file, a new capture per job, followed",
             "faults": s.faults.iter().map(|f| format!("{f:?}")).collect::<Vec<_>>(),
         }),
         // The protocol's own defaults; `rigd --sim --grab-timeout-ms` may shorten the grab's.
         job_defaults: Default::default(),
         grab_timeout_ms: crate::daemon::rig::DEFAULT_GRAB_TIMEOUT_MS,
     };
-    let log = SimInterferometer::new(Arc::clone(&rig.axis));
     let truth = SimTruth {
         axis: Arc::clone(&rig.axis),
         piezo: Arc::clone(&rig.piezo),
@@ -279,29 +287,5 @@ impl Stage for EmulatedStage {
     }
     fn status(&mut self) -> Result<StageStatus, HwError> {
         self.stage.status()
-    }
-}
-
-/// The interferometer of the simulated rig: the axis' true position.
-pub struct SimInterferometer {
-    axis: Arc<Axis>,
-}
-
-impl SimInterferometer {
-    pub fn new(axis: Arc<Axis>) -> SimInterferometer {
-        SimInterferometer { axis }
-    }
-}
-
-impl PositionLog for SimInterferometer {
-    fn position_at(&mut self, t: SystemTime) -> Option<f64> {
-        // Map the wall-clock instant onto the monotonic clock the axis runs on.
-        let now_sys = SystemTime::now();
-        let now = Instant::now();
-        let at = match now_sys.duration_since(t) {
-            Ok(ago) => now.checked_sub(ago)?,
-            Err(e) => now + e.duration(),
-        };
-        Some(self.axis.position_at(at))
     }
 }

@@ -60,10 +60,13 @@ fn execute(shared: &Shared, job: &JobRecord, live: &mut Rig) {
     let mut replay;
     let (rig, replay_of): (&mut Rig, Option<String>) = match &job.source {
         JobSource::Live => (live, None),
-        JobSource::Replay { dir, .. } => match Session::open(dir) {
-            Ok(s) => {
-                replay = replay_rig(&s);
-                (&mut replay, Some(s.manifest.name.clone()))
+        JobSource::Replay { dir, .. } => match Session::open(dir).and_then(|s| {
+            let rig = replay_rig(&s)?;
+            Ok((rig, s.manifest.name))
+        }) {
+            Ok((r, name)) => {
+                replay = r;
+                (&mut replay, Some(name))
             }
             Err(e) => return fail(e.to_string(), None),
         },

@@ -79,6 +79,12 @@ impl CsvParser {
         &self.log
     }
 
+    /// Drop the readings parsed so far (a follower that has handed them on), keeping the
+    /// metadata and the parsing state.
+    pub fn forget_readings(&mut self) {
+        self.log.readings = Vec::new();
+    }
+
     /// Whether the header row has been seen.
     pub fn has_table(&self) -> bool {
         self.table.is_some()
@@ -120,6 +126,7 @@ impl CsvParser {
         let sep = guess_separator(text);
         let fields = split(text, sep);
         if let Some(table) = header(&fields, sep) {
+            self.log.um_per_unit = Some(table.position_um_per_unit);
             self.table = Some(table);
             return;
         }
@@ -140,8 +147,12 @@ impl CsvParser {
             }
         };
         note_metadata(&mut self.log.meta, &key, &value);
-        if self.log.start.is_none() && key.trim().to_ascii_lowercase().starts_with("date") {
+        let k = key.trim().to_ascii_lowercase();
+        if self.log.start.is_none() && k.starts_with("date") {
             self.log.start = parse_datetime(&value);
+        }
+        if k.contains("sample rate") || k.contains("sampling rate") {
+            self.log.sample_rate_hz = parse_number(&value).filter(|hz| *hz > 0.0);
         }
     }
 

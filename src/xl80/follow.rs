@@ -35,6 +35,12 @@ impl Parser {
             Parser::Rtx(p) => p.log(),
         }
     }
+    fn forget_readings(&mut self) {
+        match self {
+            Parser::Csv(p) => p.forget_readings(),
+            Parser::Rtx(p) => p.forget_readings(),
+        }
+    }
 }
 
 pub struct Follower {
@@ -127,6 +133,12 @@ impl Follower {
     /// Everything read so far: metadata, readings, garbled lines.
     pub fn log(&self) -> &Xl80Log {
         self.parser.log()
+    }
+
+    /// Drop the readings read so far, keeping the metadata and the place in the file: a
+    /// long-running follower that hands readings on (`poll` returns them) stays small.
+    pub fn forget_readings(&mut self) {
+        self.parser.forget_readings();
     }
 
     /// Whether the writer has finished (RTX `EOF::` seen; a CSV has no end marker).

@@ -110,6 +110,10 @@ pub struct Xl80Log {
     pub start: Option<SystemTime>,
     /// Samples per second (RTX: the actual sample rate).
     pub sample_rate_hz: Option<f64>,
+    /// µm per unit of the file's positions, once the table header (CSV) or `Data:` (RTX) is
+    /// read: from the column's or the header's unit, else the assumed/configured one.
+    #[serde(default)]
+    pub um_per_unit: Option<f64>,
     pub readings: Vec<Reading>,
     pub garbled: Garbled,
 }
@@ -121,6 +125,7 @@ impl Xl80Log {
             meta: Metadata::default(),
             start: None,
             sample_rate_hz: None,
+            um_per_unit: None,
             readings: Vec::new(),
             garbled: Garbled::default(),
         }

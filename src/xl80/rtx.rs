@@ -70,6 +70,12 @@ impl RtxParser {
         &self.log
     }
 
+    /// Drop the samples parsed so far (a follower that has handed them on), keeping the
+    /// header and the sample count (sample times stay right).
+    pub fn forget_readings(&mut self) {
+        self.log.readings = Vec::new();
+    }
+
     /// Whether the `EOF::` trailer has been read.
     pub fn is_done(&self) -> bool {
         self.state == State::Done
@@ -165,6 +171,7 @@ impl RtxParser {
             }
             State::Header => {
                 if trimmed.eq_ignore_ascii_case("Data:") {
+                    self.log.um_per_unit = Some(self.um_per_unit);
                     self.state = State::DataStart;
                     return;
                 }

@@ -1,0 +1,487 @@
+//! The interferometer log end to end: the simulated XL-80 writes its log live, the daemon
+//! follows the file (the hardware path), the session records the samples covering the job,
+//! each frame's reading comes from them, and replay gives the recorded readings back.
+
+mod support;
+
+use rigd::cli::client::Client;
+use rigd::config::Config;
+use rigd::daemon::hwrig::rig_from_config;
+use rigd::daemon::protocol::{EventBody, JobRegistration, JobSpec, ProcessingOverride, Request};
+use rigd::daemon::rig::LogSample;
+use rigd::daemon::server::Background;
+use rigd::daemon::session::{Session, SessionState, INTERFEROMETER_HEADER};
+use rigd::daemon::simrig::{sim_rig, SimSettings};
+use rigd::daemon::DaemonSettings;
+use rigd::sim::grbl::{GrblSim, GrblSimOptions};
+use rigd::sim::motion::AxisParams;
+use rigd::sim::xl80::{LiveOptions, LogFormat};
+use rigd::sim::{CameraModel, SimRig, SimRigConfig};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// The sim XL-80's reading noise (Xl80Params::default), µm RMS.
+const NOISE_UM: f64 = 0.2;
+
+struct Daemon {
+    bg: Background,
+    data: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+fn daemon(rig: rigd::daemon::rig::Rig, dir: tempfile::TempDir) -> Daemon {
+    let data = dir.path().join("data");
+    let settings = DaemonSettings {
+        socket: dir.path().join("rigd.sock"),
+        group: None,
+        data_root: data.clone(),
+    };
+    Daemon {
+        bg: Background::start(settings, rig).unwrap(),
+        data,
+        _dir: dir,
+    }
+}
+
+/// A small fast `rigd --sim` rig looking at the small two-target board.
+fn sim_settings(dir: &Path) -> SimSettings {
+    let board = dir.join("small.toml");
+    std::fs::write(&board, support::SMALL_BOARD).unwrap();
+    SimSettings {
+        camera: CameraModel {
+            width: 300,
+            height: 200,
+            supersample: 2,
+            frame_period_ms: 2.0,
+            exposure_ms: 1.0,
+            ..CameraModel::default()
+        },
+        board_file: Some(board),
+        ..SimSettings::default()
+    }
+}
+
+fn run(c: &mut Client, req: &Request) -> (u64, Vec<EventBody>) {
+    let id = c.request(req).unwrap()["job_id"].as_u64().unwrap();
+    let mut v = Vec::new();
+    loop {
+        let e = c.next_event().unwrap();
+        if e.job_id != id {
+            continue;
+        }
+        let end = e.body.is_terminal();
+        v.push(e.body);
+        if end {
+            return (id, v);
+        }
+    }
+}
+
+fn session_of(data: &Path, events: &[EventBody]) -> Session {
+    let name = events
+        .iter()
+        .find_map(|e| match e {
+            EventBody::Started { session, .. } => Some(session.clone()),
+            _ => None,
+        })
+        .expect("a started event");
+    Session::open(&data.join(name)).unwrap()
+}
+
+/// The reading at `t`, linear between the recorded samples around it (written here again,
+/// independently of the daemon's).
+fn reading_at(samples: &[LogSample], t: f64) -> f64 {
+    let i = samples
+        .iter()
+        .position(|s| s.t_unix_s >= t)
+        .unwrap_or_else(|| panic!("no sample at or after {t}"));
+    assert!(i > 0, "no sample before {t}");
+    let (a, b) = (samples[i - 1], samples[i]);
+    a.position_um + (t - a.t_unix_s) / (b.t_unix_s - a.t_unix_s) * (b.position_um - a.position_um)
+}
+
+/// Checks every session with a log must pass: the file, its header, its clock, and each
+/// frame's reading read from it. Returns the samples.
+fn check_log(s: &Session, rate_hz: f64) -> Vec<LogSample> {
+    let text = std::fs::read_to_string(s.dir.join("interferometer.csv")).unwrap();
+    assert!(text.starts_with(INTERFEROMETER_HEADER), "{text:.80}");
+    let samples = s.interferometer_samples().unwrap();
+    assert!(samples.len() > 5, "{} samples", samples.len());
+    let dts: Vec<f64> = samples
+        .windows(2)
+        .map(|w| w[1].t_unix_s - w[0].t_unix_s)
+        .collect();
+    assert!(dts.iter().all(|&d| d > 0.0), "sample times must increase");
+    let period = 1.0 / rate_hz;
+    let mean_dt = dts.iter().sum::<f64>() / dts.len() as f64;
+    assert!(
+        (mean_dt - period).abs() < 0.01 * period,
+        "{mean_dt} s apart"
+    );
+    // The samples cover the job: from its start to past its last frame.
+    assert!(samples[0].t_unix_s >= s.manifest.created_unix_s - 0.5);
+    assert!(samples[0].t_unix_s <= s.steps[0].t_unix_s);
+    for r in &s.steps {
+        let x = r.interferometer_um.expect("every frame has a reading");
+        let want = reading_at(&samples, r.t_unix_s);
+        assert!(
+            (x - want).abs() < 1e-6,
+            "frame {}: {x} vs log {want}",
+            r.index
+        );
+    }
+    samples
+}
+
+/// Pooled standard deviation of the samples in the last `window_s` before each frame (the
+/// axis is settled there): the interferometer's noise.
+fn settled_noise_um(samples: &[LogSample], s: &Session, window_s: f64) -> f64 {
+    let (mut ss, mut dof) = (0.0, 0usize);
+    for r in &s.steps {
+        let v: Vec<f64> = samples
+            .iter()
+            .filter(|x| x.t_unix_s <= r.t_unix_s && x.t_unix_s > r.t_unix_s - window_s)
+            .map(|x| x.position_um)
+            .collect();
+        if v.len() < 2 {
+            continue;
+        }
+        let m = v.iter().sum::<f64>() / v.len() as f64;
+        ss += v.iter().map(|x| (x - m).powi(2)).sum::<f64>();
+        dof += v.len() - 1;
+    }
+    assert!(dof >= 10, "too few settled samples ({dof} dof)");
+    (ss / dof as f64).sqrt()
+}
+
+#[test]
+fn a_sim_job_records_the_live_log_and_reads_each_frame_from_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let settings = sim_settings(dir.path());
+    let d = daemon(sim_rig(&settings).unwrap(), dir);
+    let mut c = Client::connect(&d.bg.socket).unwrap();
+    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let job = JobSpec {
+        step_um: Some(100.0),
+        steps: Some(8),
+        settle_ms: 60,
+        process: false,
+        ..JobSpec::default()
+    };
+    let (_, ev) = run(&mut c, &Request::Submit { job });
+    let s = session_of(&d.data, &ev);
+    assert_eq!(s.manifest.state, SessionState::Finished);
+    // The manifest names the source log and its facts.
+    let src = s.manifest.interferometer.as_ref().expect("a log source");
+    assert_eq!(src.format, "csv");
+    assert_eq!(src.um_per_unit, Some(1000.0), "the sim's CSV is in mm");
+    assert_eq!(src.sample_rate_hz, Some(1000.0));
+    assert!(
+        src.date.is_some() && src.path.contains("rigd-sim-xl80"),
+        "{src:?}"
+    );
+    assert!(src.fields.iter().any(|(k, _)| k == "Serial No"), "{src:?}");
+    // The sim dates its capture on a whole second: the log clock is the PC's, and the
+    // estimate says so (less the writer's delay of a few ms).
+    assert!(src.clock.starts_with("estimated"), "{src:?}");
+    assert!((-0.03..=0.001).contains(&src.log_minus_pc_s), "{src:?}");
+    let samples = check_log(&s, 1000.0);
+    // Events carry the same reading as steps.csv.
+    let from_events: Vec<Option<f64>> = ev
+        .iter()
+        .filter_map(|e| match e {
+            EventBody::Step {
+                interferometer_um, ..
+            } => Some(*interferometer_um),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(from_events.len(), s.steps.len());
+    for (e, r) in from_events.iter().zip(&s.steps) {
+        // JSON numbers come back within an ulp or two (serde_json's default float parsing).
+        assert!((e.unwrap() - r.interferometer_um.unwrap()).abs() < 1e-9);
+    }
+    // The laser sees the axis' true position: within its positioning error (2 µm RMS) of
+    // where the controller says it is, but not exactly there.
+    let d_um: Vec<f64> = s
+        .steps
+        .iter()
+        .map(|r| r.interferometer_um.unwrap() - r.axis_um)
+        .collect();
+    assert!(d_um.iter().all(|d| d.abs() < 10.0), "{d_um:?}");
+    let rms = (d_um.iter().map(|d| d * d).sum::<f64>() / d_um.len() as f64).sqrt();
+    assert!(
+        rms > 0.5,
+        "interferometer = axis ({rms} µm RMS): not measured"
+    );
+    // While the axis is settled the log scatters by the XL-80's noise.
+    let noise = settled_noise_um(&samples, &s, 0.05);
+    assert!(
+        (0.5 * NOISE_UM..1.6 * NOISE_UM).contains(&noise),
+        "settled noise {noise} µm"
+    );
+}
+
+#[test]
+fn registration_interferometer_uses_the_readings_and_replays_the_same() {
+    let dir = tempfile::tempdir().unwrap();
+    let settings = sim_settings(dir.path());
+    let d = daemon(sim_rig(&settings).unwrap(), dir);
+    let mut c = Client::connect(&d.bg.socket).unwrap();
+    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let job = JobSpec {
+        step_um: Some(154.8),
+        steps: Some(5),
+        k: Some(5),
+        settle_ms: 30,
+        registration: Some(JobRegistration::Interferometer),
+        ..JobSpec::default()
+    };
+    let (live, ev) = run(&mut c, &Request::Submit { job });
+    assert!(
+        matches!(ev.last(), Some(EventBody::Finished { .. })),
+        "{ev:?}"
+    );
+    let live_s = session_of(&d.data, &ev);
+    let live_log = check_log(&live_s, 1000.0);
+    let result = |c: &mut Client, id| c.request(&Request::Result { job_id: id }).unwrap();
+    let a = result(&mut c, live);
+    let objects = &a["result"]["runs"][0]["result"]["objects"];
+    assert!(
+        objects.as_array().is_some_and(|o| o.len() == 2),
+        "both targets measured: {a}"
+    );
+
+    // Replay: the recorded readings, the same result, the recorded log carried over.
+    let replay = |c: &mut Client, registration| {
+        run(
+            c,
+            &Request::Replay {
+                session: live_s.manifest.name.clone(),
+                processing: ProcessingOverride {
+                    registration,
+                    ..ProcessingOverride::default()
+                },
+            },
+        )
+    };
+    let (rid, rev) = replay(&mut c, None);
+    let rs = session_of(&d.data, &rev);
+    assert_eq!(
+        rs.manifest.job.registration,
+        Some(JobRegistration::Interferometer)
+    );
+    let ifm =
+        |s: &Session| -> Vec<Option<f64>> { s.steps.iter().map(|r| r.interferometer_um).collect() };
+    assert_eq!(ifm(&rs), ifm(&live_s));
+    assert_eq!(result(&mut c, rid)["result"]["runs"], a["result"]["runs"]);
+    let src = rs.manifest.interferometer.as_ref().unwrap();
+    assert_eq!(
+        src.replayed_from.as_deref(),
+        Some(live_s.manifest.name.as_str())
+    );
+    let replay_log = rs.interferometer_samples().unwrap();
+    assert!(!replay_log.is_empty() && replay_log.len() <= live_log.len());
+    assert_eq!(replay_log[..], live_log[..replay_log.len()]);
+
+    // The pipeline registered the frames by the readings: its per-step positions are the
+    // interferometer's, and a replay registered by the commanded positions gets those.
+    let used = |r: &serde_json::Value| -> Vec<f64> {
+        r["result"]["runs"][0]["result"]["steps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s["position_um"].as_f64().unwrap())
+            .collect()
+    };
+    for (u, r) in used(&a).iter().zip(&live_s.steps) {
+        assert!(
+            (u - r.interferometer_um.unwrap()).abs() < 1e-9,
+            "{u} vs {r:?}"
+        );
+    }
+    let (cid, _) = replay(&mut c, Some(JobRegistration::Commanded));
+    let commanded: Vec<f64> = live_s.steps.iter().map(|r| r.position_um).collect();
+    assert_eq!(used(&result(&mut c, cid)), commanded);
+    assert_ne!(used(&a), commanded, "the readings equal the commands");
+}
+
+/// The hardware path: GRBL over a pty, and `[xl80]` pointing at a log the sim's XL-80
+/// writes live, as the laser software would (RTX, flushed ten times a second, dated on the
+/// whole second before its start: the log clock lags the PC's by the start's fraction of a
+/// second, which the daemon must estimate to put the readings at the frames).
+#[test]
+fn a_config_rig_follows_an_rtx_log_written_live() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut sim = SimRig::start(SimRigConfig {
+        axis: AxisParams {
+            max_speed_um_s: 50_000.0,
+            accel_um_s2: 2_000_000.0,
+            position_error_rms_um: 0.0,
+            ..AxisParams::default()
+        },
+        camera: CameraModel {
+            width: 32,
+            height: 24,
+            supersample: 1,
+            ..CameraModel::default()
+        },
+        ..SimRigConfig::default()
+    })
+    .unwrap();
+    let grbl = GrblSim::spawn(Arc::clone(&sim.axis), GrblSimOptions::default(), None).unwrap();
+    let log = dir.path().join("capture.rtx");
+    sim.start_xl80_log_with(&log, LogFormat::Rtx, LiveOptions::default())
+        .unwrap();
+    let text = format!(
+        r#"
+[axis]
+driver = "grbl"
+port = "{port}"
+soft_min_um = 0.0
+soft_max_um = 100000.0
+max_step_um = 100000.0
+feed_um_s = 50000.0
+[camera]
+driver = "sim"
+frame_timeout_ms = 5000
+[camera.sim]
+width = 32
+height = 24
+supersample = 1
+frame_period_ms = 2.0
+exposure_ms = 1.0
+[xl80]
+path = "capture.rtx"
+format = "rtx"
+rtx_unit = "mm"
+poll_ms = 5
+"#,
+        port = grbl.path().display()
+    );
+    let cfg = Config::from_toml_str(&text, &dir.path().join("rig.toml")).unwrap();
+    let rig = rig_from_config(&cfg).unwrap();
+    assert_eq!(rig.info.mode, "hardware");
+    let d = daemon(rig, tempfile::tempdir().unwrap());
+    let mut c = Client::connect(&d.bg.socket).unwrap();
+    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let job = JobSpec {
+        start_um: Some(2_000.0),
+        step_um: Some(250.0),
+        steps: Some(5),
+        settle_ms: 50,
+        process: false,
+        ..JobSpec::default()
+    };
+    let (_, ev) = run(&mut c, &Request::Submit { job });
+    let s = session_of(&d.data, &ev);
+    assert_eq!(s.manifest.state, SessionState::Finished, "{:?}", s.manifest);
+    let src = s.manifest.interferometer.as_ref().unwrap();
+    assert_eq!(
+        (src.format.as_str(), src.um_per_unit),
+        ("rtx", Some(1000.0))
+    );
+    assert!(src.path.ends_with("capture.rtx"), "{src:?}");
+    assert_eq!(src.sample_rate_hz, Some(100.0));
+    let samples = check_log(&s, 100.0);
+    // No positioning error here: the reading is the commanded position within the noise.
+    for r in &s.steps {
+        let x = r.interferometer_um.unwrap();
+        assert!(
+            (x - r.position_um).abs() < 5.0 * NOISE_UM,
+            "frame {}: {x} vs {}",
+            r.index,
+            r.position_um
+        );
+    }
+    let noise = settled_noise_um(&samples, &s, 0.04);
+    assert!((0.5 * NOISE_UM..1.6 * NOISE_UM).contains(&noise), "{noise}");
+    drop(d);
+    let started = sim.finish_xl80_log().unwrap().unwrap().started_sys;
+    let frac = started
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .subsec_nanos() as f64
+        * 1e-9;
+    assert!(src.clock.starts_with("estimated"), "{src:?}");
+    let est = src.log_minus_pc_s;
+    assert!(
+        (est + frac).abs() < 0.03 && est < -frac + 0.002,
+        "log clock - PC clock estimated {est} s, true {}",
+        -frac
+    );
+}
+
+/// Kills the daemon if a test fails before it does.
+struct Reaper(Option<Child>);
+
+impl Drop for Reaper {
+    fn drop(&mut self) {
+        if let Some(c) = self.0.as_mut() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+#[test]
+fn kill_9_keeps_the_log_of_every_reported_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let (socket, data) = (dir.path().join("s.sock"), dir.path().join("data"));
+    let child = Command::new(env!("CARGO_BIN_EXE_rigd"))
+        .args(["--sim", "--socket"])
+        .arg(&socket)
+        .arg("--data-root")
+        .arg(&data)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut child = Reaper(Some(child));
+    let t = Instant::now();
+    while Client::connect(&socket).is_err() {
+        assert!(t.elapsed() < Duration::from_secs(20), "rigd did not start");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let mut c = Client::connect(&socket).unwrap();
+    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let job = JobSpec {
+        step_um: Some(50.0),
+        steps: Some(400),
+        settle_ms: 0,
+        process: false,
+        ..JobSpec::default()
+    };
+    c.request(&Request::Submit { job }).unwrap();
+    let (mut name, mut reported) = (String::new(), Vec::new());
+    while reported.len() < 4 {
+        match c.next_event().unwrap().body {
+            EventBody::Started { session, .. } => name = session,
+            EventBody::Step {
+                index,
+                interferometer_um,
+                ..
+            } => reported.push((index, interferometer_um.expect("a reading"))),
+            other => assert!(!other.is_terminal(), "{other:?}"),
+        }
+    }
+    let mut dead = child.0.take().unwrap();
+    dead.kill().unwrap(); // SIGKILL
+    dead.wait().unwrap();
+    let s = Session::open(&data.join(&name)).unwrap();
+    assert_eq!(s.manifest.state, SessionState::Running);
+    // Every reported frame's reading can be read again from the samples on disk.
+    let samples = s.interferometer_samples().unwrap();
+    for (index, x) in reported {
+        let r = &s.steps[index as usize];
+        assert!(
+            (r.interferometer_um.unwrap() - x).abs() < 1e-9,
+            "{r:?} vs {x}"
+        );
+        let want = reading_at(&samples, r.t_unix_s);
+        assert!((x - want).abs() < 1e-6, "frame {index}: {x} vs {want}");
+    }
+}
