@@ -9,7 +9,7 @@ use crate::hw::gcs::GcsOptions;
 use crate::hw::grbl::{GrblOptions, OnAlarm};
 use crate::hw::limits::TravelLimits;
 use crate::hw::pixfmt::PixelFormat;
-use crate::pipeline::ProcessOptions;
+use crate::pipeline::{Combine, Estimator, ProcessOptions, Registration};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -55,6 +55,27 @@ pub struct Config {
     /// Default processing options for jobs that do not set their own.
     #[serde(default)]
     pub pipeline: ProcessOptions,
+    /// Which of `pipeline`'s job defaults the file sets (not a key; set by
+    /// [`Config::from_toml_str`]).
+    #[serde(skip)]
+    pub job_defaults: JobDefaults,
+}
+
+/// The `[pipeline]` keys that are defaults for jobs, as the file sets them. `None`: the file
+/// leaves the key out, so a job that omits it gets the protocol's own default (which for
+/// `combine` depends on the scan's k, so it cannot be a fixed value here).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct JobDefaults {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub k: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub estimator: Option<Estimator>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub combine: Option<Combine>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub registration: Option<Registration>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub whole_frame: Option<bool>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -211,6 +232,26 @@ fn default_format() -> PixelFormat {
 fn default_buffers() -> u32 {
     4
 }
+/// The job defaults among `[pipeline]`'s keys that `text` sets (already parsed into `p`).
+fn job_defaults(text: &str, p: &ProcessOptions) -> JobDefaults {
+    let set: Vec<String> = text
+        .parse::<toml::Table>()
+        .ok()
+        .and_then(|t| match t.get("pipeline") {
+            Some(toml::Value::Table(t)) => Some(t.keys().cloned().collect()),
+            _ => None,
+        })
+        .unwrap_or_default();
+    let has = |k: &str| set.iter().any(|s| s == k);
+    JobDefaults {
+        k: has("k").then_some(p.k),
+        estimator: has("estimator").then_some(p.estimator),
+        combine: has("combine").then_some(p.combine),
+        registration: has("registration").then_some(p.registration),
+        whole_frame: has("whole_frame").then_some(p.whole_frame),
+    }
+}
+
 fn default_frame_timeout_ms() -> u64 {
     2_000
 }
@@ -300,6 +341,7 @@ impl Config {
         })?;
         cfg.source = origin.to_path_buf();
         cfg.validate()?;
+        cfg.job_defaults = job_defaults(text, &cfg.pipeline);
         let base = origin.parent().unwrap_or(Path::new(""));
         let anchor = |p: &mut PathBuf| {
             if p.is_relative() {
@@ -313,6 +355,14 @@ impl Config {
             anchor(&mut b.path);
         }
         Ok(cfg)
+    }
+
+    /// How long the camera may take to deliver a frame ([camera] frame_timeout_ms, or its
+    /// default without a [camera] section).
+    pub fn frame_timeout_ms(&self) -> u64 {
+        self.camera
+            .as_ref()
+            .map_or_else(default_frame_timeout_ms, |c| c.frame_timeout_ms)
     }
 
     fn invalid(&self, key: &str, message: impl Into<String>) -> ConfigError {
@@ -554,5 +604,39 @@ impl StageConfig {
     /// The settle wait after a move.
     pub fn settle(&self) -> std::time::Duration {
         std::time::Duration::from_millis(self.settle_ms)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn job_defaults_are_only_the_pipeline_keys_the_file_sets() {
+        let origin = Path::new("/etc/rigd/rigd.toml");
+        let cfg = Config::from_toml_str(
+            "[pipeline]\nk = 4\ncombine = \"splat\"\nwhole_frame = false\n",
+            origin,
+        )
+        .unwrap();
+        assert_eq!(
+            cfg.job_defaults,
+            JobDefaults {
+                k: Some(4),
+                estimator: None,
+                combine: Some(Combine::Splat),
+                registration: None,
+                whole_frame: Some(false),
+            }
+        );
+        let none = Config::from_toml_str("[pipeline]\nscale_um_per_px = 500.0\n", origin).unwrap();
+        assert_eq!(none.job_defaults, JobDefaults::default());
+        assert_eq!(none.frame_timeout_ms(), 2000, "the [camera] default");
+        let cam = Config::from_toml_str(
+            "[camera]\ndriver = \"sim\"\nframe_timeout_ms = 750\n",
+            origin,
+        )
+        .unwrap();
+        assert_eq!(cam.frame_timeout_ms(), 750);
     }
 }

@@ -45,7 +45,10 @@ fn start(s: SimSettings) -> Rigd {
         group: None,
         data_root: data.clone(),
     };
-    let (rig, truth) = sim_rig_with_truth(&s).unwrap();
+    let (mut rig, truth) = sim_rig_with_truth(&s).unwrap();
+    // As `rigd --sim --grab-timeout-ms 500`: a stalled camera fails the job in 0.5 s, not 5
+    // (frames come every millisecond here).
+    rig.info.grab_timeout_ms = 500;
     let bg = Background::start(d, rig).unwrap();
     Rigd {
         bg,
@@ -168,7 +171,7 @@ fn a_stalled_camera_fails_the_job_naming_the_camera_and_the_next_job_runs() {
     };
     // The driver's deadline ran out: the reason names the camera and the wait.
     assert!(
-        reason.starts_with("sim-camera: no reply within 5000 ms"),
+        reason.starts_with("sim-camera: no reply within 500 ms"),
         "{reason}"
     );
     assert!(reason.contains("waiting for a frame"), "{reason}");

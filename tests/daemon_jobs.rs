@@ -40,7 +40,11 @@ fn start(faults: Vec<Fault>) -> Rigd {
         group: None,
         data_root: data.clone(),
     };
-    let bg = Background::start(settings, sim_rig(&small_sim(faults)).unwrap()).unwrap();
+    let mut rig = sim_rig(&small_sim(faults)).unwrap();
+    // A short grab deadline (`rigd --sim --grab-timeout-ms`): the camera-timeout case
+    // waits 0.5 s, not the sim's default 5 s.
+    rig.info.grab_timeout_ms = 500;
+    let bg = Background::start(settings, rig).unwrap();
     Rigd {
         bg,
         data,
@@ -198,7 +202,7 @@ fn each_injected_fault_fails_the_job_with_its_reason_and_keeps_the_frames() {
     for (fault, want, kept) in [
         (Fault::Alarm(4), "alarm", 3),
         (Fault::SerialLoss(3), "port gone", 2),
-        (Fault::CameraTimeout(5), "no reply", 4),
+        (Fault::CameraTimeout(5), "no reply within 500 ms", 4),
     ] {
         let d = start(vec![fault]);
         let mut c = d.client();

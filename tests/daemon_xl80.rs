@@ -236,7 +236,7 @@ fn registration_interferometer_uses_the_readings_and_replays_the_same() {
         steps: Some(5),
         k: Some(5),
         settle_ms: 30,
-        registration: JobRegistration::Interferometer,
+        registration: Some(JobRegistration::Interferometer),
         ..JobSpec::default()
     };
     let (live, ev) = run(&mut c, &Request::Submit { job });
@@ -271,7 +271,7 @@ fn registration_interferometer_uses_the_readings_and_replays_the_same() {
     let rs = session_of(&d.data, &rev);
     assert_eq!(
         rs.manifest.job.registration,
-        JobRegistration::Interferometer
+        Some(JobRegistration::Interferometer)
     );
     let ifm =
         |s: &Session| -> Vec<Option<f64>> { s.steps.iter().map(|r| r.interferometer_um).collect() };

@@ -28,6 +28,10 @@ struct Args {
     /// camera-timeout@N (N-th grab). Repeatable.
     #[arg(long = "fault", value_name = "KIND@N")]
     faults: Vec<Fault>,
+    /// How long a grab waits for a frame on the simulated rig, ms (default 5000; a rig
+    /// from --config uses its [camera] frame_timeout_ms).
+    #[arg(long, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..))]
+    grab_timeout_ms: Option<u64>,
 }
 
 fn main() -> std::process::ExitCode {
@@ -62,6 +66,9 @@ fn run(a: Args) -> anyhow::Result<()> {
     if !a.faults.is_empty() && !a.sim {
         bail!("--fault needs --sim");
     }
+    if a.grab_timeout_ms.is_some() && !a.sim {
+        bail!("--grab-timeout-ms needs --sim (a configured rig uses [camera] frame_timeout_ms)");
+    }
     let settings = DaemonSettings {
         socket: a
             .socket
@@ -73,7 +80,7 @@ fn run(a: Args) -> anyhow::Result<()> {
             .or(from_config.as_ref().map(|c| c.data_root.clone()))
             .unwrap_or_else(|| PathBuf::from("rigd-sessions")),
     };
-    let rig = match (&a.config, a.sim) {
+    let mut rig = match (&a.config, a.sim) {
         // --sim wins: the config then only sets the daemon's socket and data root.
         (_, true) => sim_rig(&SimSettings {
             faults: a.faults,
@@ -86,6 +93,9 @@ fn run(a: Args) -> anyhow::Result<()> {
         }
         (None, false) => bail!("give --config FILE for a rig, or --sim for the simulated rig"),
     };
+    if let Some(ms) = a.grab_timeout_ms {
+        rig.info.grab_timeout_ms = ms;
+    }
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(server::run(
         settings,

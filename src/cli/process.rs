@@ -19,7 +19,7 @@ pub enum CombineArg {
     Mean,
 }
 
-#[derive(Clone, Copy, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum RegistrationArg {
     Image,
     Positions,

@@ -25,14 +25,19 @@ pub struct SubmitArgs {
     pub study: Vec<CaseArg>,
     #[arg(long, default_value_t = 20)]
     pub settle_ms: u64,
-    #[arg(long, value_enum, default_value = "fit")]
-    pub estimator: EstimatorArg,
+    /// Default: the rig's ([pipeline] estimator), else fit.
+    #[arg(long, value_enum)]
+    pub estimator: Option<EstimatorArg>,
+    /// Default: the rig's ([pipeline] combine), else interp if k > 1, else mean.
     #[arg(long, value_enum)]
     pub combine: Option<CombineArg>,
     /// Where frame displacements come from: the image, the commanded positions or the
-    /// interferometer's readings.
-    #[arg(long, value_enum, default_value = "image")]
-    pub registration: RegistrationArg,
+    /// interferometer's readings. Default: the rig's ([pipeline] registration), else image.
+    #[arg(long, value_enum)]
+    pub registration: Option<RegistrationArg>,
+    /// Also reconstruct the whole frame (default: the rig's [pipeline] whole_frame).
+    #[arg(long)]
+    pub whole_frame: bool,
     #[arg(long, default_value_t = 1)]
     pub repeats: u32,
     /// Absolute start position (µm); default: the rig's.
@@ -130,9 +135,11 @@ impl SubmitArgs {
                     .collect()
             }),
             settle_ms: self.settle_ms,
-            estimator: self.estimator.into(),
+            estimator: self.estimator.map(Into::into),
             combine: self.combine.map(Into::into),
-            registration: self.registration.into(),
+            // Left out: the rig's [pipeline] defaults apply.
+            registration: self.registration.map(Into::into),
+            whole_frame: self.whole_frame.then_some(true),
             repeats: self.repeats,
             start_um: self.start_um,
             repeat_shift_um: self.repeat_shift_um,
@@ -168,4 +175,49 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
 pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
     let req = Request::Submit { job: a.spec() };
     submit_and_follow(&a.socket, req, a.detach).map(|_| ())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        submit: SubmitArgs,
+    }
+
+    fn spec(args: &[&str]) -> JobSpec {
+        let argv = ["rigctl"].iter().chain(args).copied();
+        Cli::try_parse_from(argv).unwrap().submit.spec()
+    }
+
+    #[test]
+    fn processing_left_out_is_left_to_the_rig_and_given_flags_are_sent() {
+        let s = spec(&["--steps", "3", "--step-um", "50"]);
+        assert_eq!(
+            (s.k, s.estimator, s.combine, s.registration, s.whole_frame),
+            (None, None, None, None, None)
+        );
+        let s = spec(&[
+            "--steps",
+            "3",
+            "--step-um",
+            "50",
+            "--estimator",
+            "paper",
+            "--registration",
+            "interferometer",
+            "--whole-frame",
+        ]);
+        assert_eq!(
+            (s.estimator, s.registration, s.whole_frame),
+            (
+                Some(Estimator::Paper),
+                Some(JobRegistration::Interferometer),
+                Some(true)
+            )
+        );
+    }
 }

@@ -2,7 +2,7 @@
 //! only queued for the worker.
 
 use crate::daemon::jobs::{JobSource, JobState};
-use crate::daemon::plan::plan;
+use crate::daemon::plan::{estimated_bytes, plan, resolve_defaults};
 use crate::daemon::protocol::{ErrorCode, EventBody, ProtoError, Request, PROTOCOL_VERSION};
 use crate::daemon::replay::{replay_plan, replay_spec};
 use crate::daemon::session::{self, Session};
@@ -29,15 +29,31 @@ pub fn handle(shared: &Shared, req: Request) -> Result<Value, ProtoError> {
                     "default_start_um": i.default_start_um,
                     "scale_um_per_px": i.scale_um_per_px,
                     "frame_size": i.frame_size,
+                    "job_defaults": i.job_defaults,
                 },
                 "data_root": shared.settings.data_root,
             }))
         }
         Request::Submit { job } => {
             refuse_if_stopping(shared)?;
-            let plan = plan(&job, &shared.rig_info, &shared.settings.data_root)?;
+            // What the client leaves out, the rig's configuration decides; the job is
+            // recorded and echoed as resolved.
+            let job = resolve_defaults(&job, &shared.rig_info.job_defaults);
+            // The disk must hold this job next to what the queued and running ones will
+            // still write; the table stays locked from the check to the queueing so two
+            // submits cannot both count on the same free space.
+            let info = &shared.rig_info;
+            let mut jobs = shared.jobs();
+            let committed: u64 = jobs
+                .frames_left()
+                .into_iter()
+                .map(|n| estimated_bytes(n, info.frame_size))
+                .sum();
+            let plan = plan(&job, info, &shared.settings.data_root, committed)?;
             let total = plan.total_frames;
-            Ok(enqueue(shared, job, plan, JobSource::Live, total))
+            let (id, ahead) = jobs.submit(job.clone(), plan, JobSource::Live);
+            drop(jobs);
+            Ok(announce(shared, id, ahead, job, total))
         }
         Request::Replay {
             session: name,
@@ -166,16 +182,29 @@ fn enqueue(
     source: JobSource,
     total: u32,
 ) -> Value {
-    let (id, ahead) = shared.jobs().submit(spec, plan, source);
+    let (id, ahead) = shared.jobs().submit(spec.clone(), plan, source);
+    announce(shared, id, ahead, spec, total)
+}
+
+/// Tell subscribers and the worker about a queued job; the submit reply.
+fn announce(
+    shared: &Shared,
+    id: u64,
+    ahead: usize,
+    spec: crate::daemon::protocol::JobSpec,
+    total: u32,
+) -> Value {
+    let job = serde_json::to_value(&spec).expect("plain data");
     shared.events.emit(
         id,
         EventBody::Accepted {
             queue_position: ahead,
             total_frames: total,
+            job: Some(Box::new(spec)),
         },
     );
     shared.wake.notify_one();
-    json!({ "job_id": id, "queue_position": ahead, "total_frames": total })
+    json!({ "job_id": id, "queue_position": ahead, "total_frames": total, "job": job })
 }
 
 /// A job's status: from the table, else from its session on disk.

@@ -59,6 +59,8 @@ pub fn rig_from_config(cfg: &Config) -> Result<Rig, HwError> {
         interferometer: all_sim || cfg.xl80.is_some(),
         board,
         config: serde_json::to_value(cfg).unwrap_or_default(),
+        job_defaults: cfg.job_defaults,
+        grab_timeout_ms: cfg.frame_timeout_ms(),
     };
     if all_sim {
         let hw = open_sim_rig(cfg)?;

@@ -154,6 +154,16 @@ impl Jobs {
         self.queue.iter().copied().collect()
     }
 
+    /// Frames the running and queued jobs have yet to capture, one entry a job.
+    pub fn frames_left(&self) -> Vec<u64> {
+        self.running
+            .iter()
+            .chain(self.queue.iter())
+            .filter_map(|id| self.table.get(id))
+            .map(|r| r.plan.total_frames.saturating_sub(r.frames_done) as u64)
+            .collect()
+    }
+
     pub fn all(&self) -> impl Iterator<Item = &JobRecord> {
         self.table.values()
     }

@@ -1,7 +1,9 @@
 //! A job spec checked against the rig and expanded into runs, before anything moves.
 
+use crate::config::JobDefaults;
 use crate::daemon::protocol::{CaseScan, ErrorCode, JobRegistration, JobSpec, ProtoError};
 use crate::daemon::rig::RigInfo;
+use crate::pipeline::{Combine, Estimator, Registration};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -26,6 +28,34 @@ pub struct Plan {
 
 fn rejected(msg: impl Into<String>) -> ProtoError {
     ProtoError::new(ErrorCode::Rejected, msg)
+}
+
+/// `spec` with every processing field it leaves out filled in: from the rig's `[pipeline]`
+/// defaults where the config sets them, else the protocol's own. A study's cases keep their
+/// own k, and without a configured `combine` each case combines by its k (interp above 1,
+/// else mean), so a study's `k` and possibly `combine` stay unset.
+pub fn resolve_defaults(spec: &JobSpec, d: &JobDefaults) -> JobSpec {
+    let mut s = spec.clone();
+    s.estimator = s.estimator.or(d.estimator).or(Some(Estimator::default()));
+    s.combine = s.combine.or(d.combine);
+    if s.study.is_none() {
+        let k = *s.k.get_or_insert(d.k.unwrap_or(1));
+        s.combine.get_or_insert(if k > 1 {
+            Combine::Interp
+        } else {
+            Combine::Mean
+        });
+    }
+    // The config's "positions" are the commanded ones (it has no interferometer choice).
+    s.registration = s
+        .registration
+        .or(d.registration.map(|r| match r {
+            Registration::Image => JobRegistration::Image,
+            Registration::Positions => JobRegistration::Commanded,
+        }))
+        .or(Some(JobRegistration::Image));
+    s.whole_frame = s.whole_frame.or(d.whole_frame).or(Some(false));
+    s
 }
 
 /// The scans a job asks for, checked for shape.
@@ -60,13 +90,52 @@ fn cases(spec: &JobSpec) -> Result<Vec<CaseScan>, ProtoError> {
     }
 }
 
-/// Check `spec` against the rig and the disk and expand it into runs.
-pub fn plan(spec: &JobSpec, rig: &RigInfo, data_root: &Path) -> Result<Plan, ProtoError> {
+/// What a job of `frames` frames of `frame_size` may write: frames are written as PNG, and
+/// an 8-bit RGB frame's raw size bounds its PNG closely enough for noisy images (they
+/// barely compress); 4 KiB a frame for its steps.csv row and file-system slack, 1 MiB for
+/// the manifest, result and images.
+pub fn estimated_bytes(frames: u64, frame_size: (u32, u32)) -> u64 {
+    let (w, h) = frame_size;
+    frames.saturating_mul(w as u64 * h as u64 * 3 + 4096) + (1 << 20)
+}
+
+fn mb(bytes: u64) -> u64 {
+    bytes >> 20
+}
+
+fn disk_message(frames: u32, need: u64, committed: u64, root: &Path, free: u64) -> String {
+    let root = root.display();
+    if committed == 0 {
+        format!(
+            "{frames} frames need about {} MB but {root} has {} MB free",
+            mb(need),
+            mb(free)
+        )
+    } else {
+        format!(
+            "{frames} frames need about {} MB, {} MB are already committed to queued and \
+             running jobs, and {root} has {} MB free",
+            mb(need),
+            mb(committed),
+            mb(free)
+        )
+    }
+}
+
+/// Check `spec` against the rig and the disk and expand it into runs. `committed_bytes`:
+/// what the jobs already queued or running are still expected to write (their
+/// [`estimated_bytes`] for the frames they have left), which the free space must also hold.
+pub fn plan(
+    spec: &JobSpec,
+    rig: &RigInfo,
+    data_root: &Path,
+    committed_bytes: u64,
+) -> Result<Plan, ProtoError> {
     let cases = cases(spec)?;
     if spec.repeats == 0 {
         return Err(rejected("`repeats` must be at least 1"));
     }
-    if spec.registration == JobRegistration::Interferometer && !rig.interferometer {
+    if spec.registration == Some(JobRegistration::Interferometer) && !rig.interferometer {
         return Err(rejected(
             "`registration`: \"interferometer\" needs an interferometer, and this rig has none \
              (no [xl80] section in its configuration)",
@@ -133,17 +202,15 @@ pub fn plan(spec: &JobSpec, rig: &RigInfo, data_root: &Path) -> Result<Plan, Pro
         }
     }
     let total_frames = total as u32;
-    // Frames are written as PNG; an 8-bit RGB frame's raw size bounds its PNG closely
-    // enough for noisy images (they barely compress).
-    let (w, h) = rig.frame_size;
-    let need = total * (w as u64 * h as u64 * 3 + 4096) + (1 << 20);
+    let need = estimated_bytes(total, rig.frame_size);
     if let Some(free) = free_bytes(data_root) {
-        if need > free {
-            return Err(rejected(format!(
-                "{total_frames} frames need about {} MB but {} has {} MB free",
-                need >> 20,
-                data_root.display(),
-                free >> 20
+        if need.saturating_add(committed_bytes) > free {
+            return Err(rejected(disk_message(
+                total_frames,
+                need,
+                committed_bytes,
+                data_root,
+                free,
             )));
         }
     }
@@ -177,7 +244,132 @@ mod tests {
             interferometer: false,
             board: None,
             config: serde_json::Value::Null,
+            job_defaults: JobDefaults::default(),
+            grab_timeout_ms: 5000,
         }
+    }
+
+    #[test]
+    fn omitted_processing_takes_the_rigs_defaults_and_explicit_values_win() {
+        let scan = JobSpec {
+            steps: Some(3),
+            step_um: Some(10.0),
+            ..JobSpec::default()
+        };
+        // No configured defaults (rigd --sim): the protocol's own, k-dependent combine.
+        let r = resolve_defaults(&scan, &JobDefaults::default());
+        assert_eq!(
+            (r.k, r.estimator, r.combine, r.registration, r.whole_frame),
+            (
+                Some(1),
+                Some(Estimator::Fit),
+                Some(Combine::Mean),
+                Some(JobRegistration::Image),
+                Some(false)
+            )
+        );
+        let k4 = resolve_defaults(
+            &JobSpec {
+                k: Some(4),
+                ..scan.clone()
+            },
+            &JobDefaults::default(),
+        );
+        assert_eq!(k4.combine, Some(Combine::Interp));
+        let rig = JobDefaults {
+            k: Some(6),
+            estimator: Some(Estimator::Paper),
+            combine: None,
+            registration: Some(Registration::Positions),
+            whole_frame: Some(true),
+        };
+        let r = resolve_defaults(&scan, &rig);
+        assert_eq!(
+            (r.k, r.estimator, r.combine, r.registration, r.whole_frame),
+            (
+                Some(6),
+                Some(Estimator::Paper),
+                Some(Combine::Interp),
+                Some(JobRegistration::Commanded),
+                Some(true)
+            )
+        );
+        // ...and processing runs with them.
+        let o = crate::daemon::protocol::process_options(&r, 6, 774.0, [-1.0, 0.0]);
+        assert_eq!(
+            (o.k, o.estimator, o.combine, o.registration, o.whole_frame),
+            (
+                6,
+                Estimator::Paper,
+                Combine::Interp,
+                Registration::Positions,
+                true
+            )
+        );
+        let explicit = JobSpec {
+            k: Some(1),
+            estimator: Some(Estimator::Fit),
+            combine: Some(Combine::Splat),
+            registration: Some(JobRegistration::Interferometer),
+            whole_frame: Some(false),
+            ..scan.clone()
+        };
+        assert_eq!(resolve_defaults(&explicit, &rig), explicit);
+        // A study's cases keep their own k (and combine by it when nothing is configured).
+        let study = JobSpec {
+            study: Some(PaperCase::ALL.to_vec()),
+            ..JobSpec::default()
+        };
+        let s = resolve_defaults(&study, &rig);
+        assert_eq!(
+            (s.k, s.combine, s.estimator),
+            (None, None, Some(Estimator::Paper))
+        );
+        assert!(plan(&s, &super::tests::rig(), Path::new("/tmp"), 0).is_ok());
+    }
+
+    #[test]
+    fn the_disk_check_counts_what_queued_jobs_will_write() {
+        let t = Path::new("/tmp");
+        let free = free_bytes(t).expect("statvfs of /tmp");
+        // Frames of about a tenth of the free space each: six of them fit, but not next to
+        // six more already queued.
+        let rig = RigInfo {
+            frame_size: (1000, (free / 30_000).max(1) as u32),
+            ..rig()
+        };
+        let six = JobSpec {
+            steps: Some(6),
+            step_um: Some(10.0),
+            ..JobSpec::default()
+        };
+        let need = estimated_bytes(6, rig.frame_size);
+        assert!(plan(&six, &rig, t, 0).is_ok());
+        let e = plan(&six, &rig, t, need).unwrap_err();
+        assert_eq!(e.code, ErrorCode::Rejected);
+        let m = e.message;
+        assert!(m.starts_with("6 frames need about "), "{m}");
+        assert!(
+            m.contains(&format!(
+                ", {} MB are already committed to queued",
+                need >> 20
+            )),
+            "{m}"
+        );
+        assert!(m.contains("/tmp has ") && m.ends_with(" MB free"), "{m}");
+        // Nothing queued, too big alone: the single-job message.
+        let e = plan(
+            &JobSpec {
+                steps: Some(12),
+                ..six.clone()
+            },
+            &rig,
+            t,
+            0,
+        )
+        .unwrap_err();
+        assert!(e.message.contains(" MB but /tmp has "), "{}", e.message);
+        assert_eq!(estimated_bytes(2, (10, 10)), 2 * (300 + 4096) + (1 << 20));
     }
 
     #[test]
@@ -188,7 +380,7 @@ mod tests {
             repeat_shift_um: 38.7,
             ..JobSpec::default()
         };
-        let p = plan(&spec, &rig(), Path::new("/tmp")).unwrap();
+        let p = plan(&spec, &rig(), Path::new("/tmp"), 0).unwrap();
         assert_eq!((p.runs.len(), p.total_frames), (60, 620));
         assert_eq!(p.runs[5].positions_um[0], 1000.0 + 38.7);
         assert_eq!(p.runs[2].positions_um[19], 1000.0 + 19.0 * 50.0);
@@ -207,12 +399,15 @@ mod tests {
             step_um: Some(0.0),
             ..base.clone()
         };
-        assert!(plan(&zero, &r, t).unwrap_err().message.contains("non-zero"));
+        assert!(plan(&zero, &r, t, 0)
+            .unwrap_err()
+            .message
+            .contains("non-zero"));
         let far = JobSpec {
             step_um: Some(5000.0),
             ..base.clone()
         };
-        assert!(plan(&far, &r, t)
+        assert!(plan(&far, &r, t, 0)
             .unwrap_err()
             .message
             .contains("soft limits"));
@@ -220,7 +415,7 @@ mod tests {
             stage: crate::daemon::protocol::StageKind::Piezo,
             ..base.clone()
         };
-        assert!(plan(&piezo, &r, t)
+        assert!(plan(&piezo, &r, t, 0)
             .unwrap_err()
             .message
             .contains("no Piezo"));
@@ -233,21 +428,21 @@ mod tests {
             step_um: Some(1.0),
             ..base.clone()
         };
-        assert!(plan(&big, &huge, t)
+        assert!(plan(&big, &huge, t, 0)
             .unwrap_err()
             .message
             .contains("MB free"));
-        assert!(plan(&base, &r, t).is_ok());
+        assert!(plan(&base, &r, t, 0).is_ok());
         let by_laser = JobSpec {
-            registration: JobRegistration::Interferometer,
+            registration: Some(JobRegistration::Interferometer),
             ..base.clone()
         };
-        let e = plan(&by_laser, &r, t).unwrap_err();
+        let e = plan(&by_laser, &r, t, 0).unwrap_err();
         assert!(e.message.contains("[xl80]"), "{}", e.message);
         let with_laser = RigInfo {
             interferometer: true,
             ..rig()
         };
-        assert!(plan(&by_laser, &with_laser, t).is_ok());
+        assert!(plan(&by_laser, &with_laser, t, 0).is_ok());
     }
 }

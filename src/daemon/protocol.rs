@@ -108,12 +108,16 @@ pub struct JobSpec {
     /// Wait after each move before grabbing.
     #[serde(default = "default_settle_ms")]
     pub settle_ms: u64,
-    #[serde(default)]
-    pub estimator: Estimator,
+    /// Processing left out (None) takes the rig's `[pipeline]` default, else the protocol's;
+    /// the daemon records the values it resolved (docs/protocol.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub estimator: Option<Estimator>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub combine: Option<Combine>,
-    #[serde(default)]
-    pub registration: JobRegistration,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub registration: Option<JobRegistration>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub whole_frame: Option<bool>,
     #[serde(default = "default_one")]
     pub repeats: u32,
     /// Absolute start of the first scan; default: where the stage is.
@@ -138,9 +142,10 @@ impl Default for JobSpec {
             k: None,
             study: None,
             settle_ms: default_settle_ms(),
-            estimator: Estimator::default(),
+            estimator: None,
             combine: None,
-            registration: JobRegistration::default(),
+            registration: None,
+            whole_frame: None,
             repeats: 1,
             start_um: None,
             repeat_shift_um: 0.0,
@@ -366,6 +371,9 @@ pub enum EventBody {
     Accepted {
         queue_position: usize,
         total_frames: u32,
+        /// The job as it will run: every processing default resolved.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        job: Option<Box<JobSpec>>,
     },
     Started {
         session: String,
@@ -442,9 +450,10 @@ pub fn process_options(
     let mut o = ProcessOptions {
         scale_um_per_px,
         k,
-        estimator: spec.estimator,
+        estimator: spec.estimator.unwrap_or_default(),
+        whole_frame: spec.whole_frame.unwrap_or(false),
         axis_dir,
-        registration: match spec.registration {
+        registration: match spec.registration.unwrap_or_default() {
             JobRegistration::Image => Registration::Image,
             JobRegistration::Commanded | JobRegistration::Interferometer => Registration::Positions,
         },

@@ -17,13 +17,13 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 pub fn replay_spec(session: &Session, ov: &ProcessingOverride) -> JobSpec {
     let mut spec = session.manifest.job.clone();
     if let Some(e) = ov.estimator {
-        spec.estimator = e;
+        spec.estimator = Some(e);
     }
     if let Some(c) = ov.combine {
         spec.combine = Some(c);
     }
     if let Some(r) = ov.registration {
-        spec.registration = r;
+        spec.registration = Some(r);
     }
     spec.process = true;
     // The frames are already settled: replay as fast as the pipeline goes.

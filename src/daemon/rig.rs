@@ -3,6 +3,7 @@
 //!
 //! The runner owns a `Rig` for the length of one job, on its own blocking thread.
 
+use crate::config::JobDefaults;
 use crate::daemon::protocol::StageKind;
 use crate::hw::{Camera, HwError, Stage};
 use rigd_sim::Board;
@@ -87,6 +88,20 @@ pub struct RigInfo {
     pub board: Option<Board>,
     /// A snapshot of the configuration this rig was built from (recorded in sessions).
     pub config: serde_json::Value,
+    /// `[pipeline]` defaults for what a job leaves out (none on `rigd --sim`: the
+    /// protocol's own apply).
+    #[serde(default)]
+    pub job_defaults: JobDefaults,
+    /// How long a grab may wait for a fresh frame ([camera] frame_timeout_ms).
+    #[serde(default = "default_grab_timeout_ms")]
+    pub grab_timeout_ms: u64,
+}
+
+/// The grab deadline when nothing configures one (and of sessions recorded before it was).
+pub const DEFAULT_GRAB_TIMEOUT_MS: u64 = 5000;
+
+fn default_grab_timeout_ms() -> u64 {
+    DEFAULT_GRAB_TIMEOUT_MS
 }
 
 impl RigInfo {

@@ -25,7 +25,6 @@ pub const CANCEL: u8 = 1;
 pub const SHUTDOWN: u8 = 2;
 
 const MOVE_TIMEOUT: Duration = Duration::from_secs(30);
-const GRAB_TIMEOUT: Duration = Duration::from_secs(5);
 /// Between status polls of a moving stage: how late a cancel stops it, at most.
 const MOVE_POLL: Duration = Duration::from_millis(2);
 
@@ -193,17 +192,18 @@ fn capture(
                 total_frames: total,
             });
             if ctx.spec.process {
-                let position_um = match (ctx.spec.registration, interferometer_um) {
-                    (JobRegistration::Interferometer, Some(x)) => x,
-                    (JobRegistration::Interferometer, None) => {
-                        stop_stage(rig);
-                        return Outcome::Failed(format!(
-                            "frame {index}: no interferometer reading at its time \
+                let position_um =
+                    match (ctx.spec.registration.unwrap_or_default(), interferometer_um) {
+                        (JobRegistration::Interferometer, Some(x)) => x,
+                        (JobRegistration::Interferometer, None) => {
+                            stop_stage(rig);
+                            return Outcome::Failed(format!(
+                                "frame {index}: no interferometer reading at its time \
                              (registration: interferometer needs one)"
-                        ));
-                    }
-                    _ => commanded_um,
-                };
+                            ));
+                        }
+                        _ => commanded_um,
+                    };
                 // Blocks only if processing falls four frames behind the capture.
                 let _ = tx.send(ToProcessor::Frame {
                     run: run.run,
@@ -244,20 +244,52 @@ fn state_name(s: MotionState) -> &'static str {
     }
 }
 
-/// Wait for the move just commanded to finish, watching for a cancel while the stage
-/// reports it moving. Returns the settled position.
-fn finish_move(ctx: &JobContext<'_>, stage: &mut dyn Stage) -> Result<f64, StepError> {
+/// Wait for the move to `target_um` just commanded to finish, watching for a cancel while
+/// the stage reports it moving. Returns the settled position.
+///
+/// A stage that stops moving in `Holding` (GRBL feed hold or safety door: never the
+/// runner's doing here, its own stop comes only after a cancel) or in `Alarm` fails the step
+/// at once, naming the state and where the stage is, rather than waiting out the move
+/// deadline for a move that will not finish by itself.
+fn finish_move(
+    ctx: &JobContext<'_>,
+    stage: &mut dyn Stage,
+    target_um: f64,
+) -> Result<f64, StepError> {
     let deadline = Instant::now() + MOVE_TIMEOUT;
     loop {
         if ctx.stop.load(Ordering::SeqCst) == CANCEL {
             return Err(StepError::Cancelled);
         }
-        let moving = matches!(
-            stage.status()?.state,
-            MotionState::Moving | MotionState::Homing
-        );
-        if !moving {
-            break;
+        let st = stage.status()?;
+        match st.state {
+            MotionState::Moving | MotionState::Homing => {}
+            MotionState::Idle => break,
+            MotionState::Holding => {
+                return Err(StepError::Hw(HwError::Other {
+                    device: stage.name().into(),
+                    message: format!(
+                        "feed hold at {:.1} µm during the move to {target_um} µm (the \
+                         controller holds: feed hold or safety door, not asked for by rigd)",
+                        st.position_um
+                    ),
+                }))
+            }
+            MotionState::Alarm => {
+                // The driver names the alarm (its code and meaning) if it knows it.
+                return Err(StepError::Hw(
+                    match stage.wait_settled(Duration::from_millis(1)) {
+                        Err(e @ HwError::Alarm { .. }) => e,
+                        _ => HwError::Other {
+                            device: stage.name().into(),
+                            message: format!(
+                                "alarm at {:.1} µm during the move to {target_um} µm",
+                                st.position_um
+                            ),
+                        },
+                    },
+                ));
+            }
         }
         if Instant::now() >= deadline {
             return Err(StepError::Hw(HwError::Timeout {
@@ -282,7 +314,7 @@ fn step(
     let t0 = Instant::now();
     let stage = rig.stage(ctx.spec.stage)?;
     stage.move_abs(commanded_um)?;
-    let axis_um = finish_move(ctx, stage)?;
+    let axis_um = finish_move(ctx, stage, commanded_um)?;
     let t1 = Instant::now();
     // Settle in short sleeps so a cancel is not held up by a long settle time.
     let settle = Duration::from_millis(ctx.spec.settle_ms);
@@ -290,7 +322,9 @@ fn step(
         std::thread::sleep((settle - t1.elapsed()).min(Duration::from_millis(20)));
     }
     let t2 = Instant::now();
-    let frame = rig.camera.grab_fresh(SystemTime::now(), GRAB_TIMEOUT)?;
+    // The rig's deadline ([camera] frame_timeout_ms; the sim's 5 s unless rigd is told).
+    let grab_timeout = Duration::from_millis(rig.info.grab_timeout_ms);
+    let frame = rig.camera.grab_fresh(SystemTime::now(), grab_timeout)?;
     let t3 = Instant::now();
     Ok((
         axis_um,

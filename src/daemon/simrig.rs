@@ -187,6 +187,9 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
             "xl80_log": "live CSV in a temporary file, a new capture per job, followed",
             "faults": s.faults.iter().map(|f| format!("{f:?}")).collect::<Vec<_>>(),
         }),
+        // The protocol's own defaults; `rigd --sim --grab-timeout-ms` may shorten the grab's.
+        job_defaults: Default::default(),
+        grab_timeout_ms: crate::daemon::rig::DEFAULT_GRAB_TIMEOUT_MS,
     };
     let truth = SimTruth {
         axis: Arc::clone(&rig.axis),
