@@ -518,4 +518,40 @@ mod tests {
         let back: ServerLine = serde_json::from_slice(&bytes).unwrap();
         assert_eq!(back, ev);
     }
+
+    #[test]
+    fn positions_come_back_bit_for_bit() {
+        // A reading the default float parser returns one ulp off (serde_json without
+        // `float_roundtrip`): a client must see the very position the daemon recorded.
+        let um = 1698.0848575209213_f64;
+        let ev = ServerLine::Event(Event {
+            v: 1,
+            job_id: 1,
+            body: EventBody::Step {
+                index: 0,
+                run: 0,
+                case: "scan".into(),
+                repeat: 0,
+                commanded_um: um,
+                axis_um: um,
+                interferometer_um: Some(um),
+                timings: StepTimings {
+                    move_ms: 0.1,
+                    settle_ms: 0.2,
+                    grab_ms: 0.3,
+                    process_ms: None,
+                },
+                total_frames: 1,
+            },
+        });
+        let back: ServerLine = serde_json::from_slice(&encode(&ev)).unwrap();
+        let ServerLine::Event(Event {
+            body: EventBody::Step { axis_um, .. },
+            ..
+        }) = back
+        else {
+            panic!("not a step event: {back:?}")
+        };
+        assert_eq!(axis_um.to_bits(), um.to_bits());
+    }
 }
