@@ -37,8 +37,8 @@ impl Stage for HoldOnMove {
         self.inner.move_abs(target_um)?;
         self.moves += 1;
         if self.moves == self.hold_on {
-            // Well into the move: the emulated axis runs at its 50 mm/s (the emulator does not
-            // slow to the F word), so the 40 mm move lasts 0.8 s and this lands ~4-5 mm in...
+            // Well into the move: the driver's feed is the axis' 50 mm/s, so the 40 mm move
+            // lasts 0.8 s and this lands ~4-5 mm in...
             std::thread::sleep(Duration::from_millis(100));
             // ...feed hold: `!` is a realtime byte, the controller holds whatever line it
             // comes in.
@@ -89,10 +89,12 @@ fn a_feed_hold_mid_move_fails_the_job_at_once_naming_the_hold_and_position() {
         ..AxisParams::default()
     }));
     let grbl = GrblSim::spawn(Arc::clone(&axis), GrblSimOptions::default(), None).unwrap();
-    let opts = GrblOptions::new(
+    let mut opts = GrblOptions::new(
         grbl.path().to_str().unwrap(),
         TravelLimits::new(0.0, 100_000.0, 100_000.0).unwrap(),
     );
+    // The emulator moves G1 at the F word: feed at the axis' top speed, as a rig's config would.
+    opts.feed_um_s = 50_000.0;
     let grbl_stage = GrblStage::connect("axis", opts).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let cfg = Config::from_toml_str(CAMERA, &dir.path().join("rig.toml")).unwrap();

@@ -9,7 +9,7 @@ use rigd::hw::grbl_codes::GrblAlarm;
 use rigd::hw::limits::TravelLimits;
 use rigd::hw::{HwError, MotionState, Stage};
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
-use rigd::sim::motion::AxisParams;
+use rigd::sim::motion::{AxisParams, Profile};
 use std::time::{Duration, Instant};
 use support::emulated::{self, replug, step, time_per_step, unplug};
 
@@ -200,6 +200,86 @@ fn controller_errors_are_typed_with_grbl_text() {
     assert!(matches!(e, HwError::Controller { code: 22, .. }), "{e}");
     // The driver is still in step afterwards.
     assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 50.0);
+}
+
+/// The move in progress on the emulated axis: its start and planned profile (model time).
+fn planned_move(r: &Rig) -> (Instant, Profile) {
+    r.axis
+        .current_move()
+        .expect("the driver's move is in progress")
+}
+
+#[test]
+fn the_drivers_feed_rate_is_the_speed_the_axis_moves_at() {
+    let r = rig();
+    let mut opts = r.opts.clone();
+    // 2 mm/s: sent as F120.0.
+    opts.feed_um_s = 2_000.0;
+    let mut s = GrblStage::connect("axis", opts).unwrap();
+    s.move_rel(1_000.0).unwrap();
+    let (start, slow) = planned_move(&r);
+    assert!((slow.peak_speed_um_s() - 2_000.0).abs() < 1e-6);
+    // 1 mm at 2 mm/s: ~0.5 s (4 ms ramps at 0.5 m/s²), not the 0.09 s of top speed.
+    assert!(
+        (slow.duration_s() - 0.504).abs() < 0.01,
+        "{}",
+        slow.duration_s()
+    );
+    // A quarter of a second in (model time): half way, 4 µm of ramp + 246 ms at 2 mm/s.
+    let at_250ms = r.axis.position_at(start + Duration::from_millis(250));
+    assert!((at_250ms - 496.0).abs() < 0.5, "{at_250ms}");
+    let p = s.wait_settled(SETTLE).unwrap();
+    assert_eq!(p, 1_000.0);
+    assert!((r.true_um() - 1_000.0).abs() < TRUE_POSITION_TOL_UM);
+
+    // The same move with a feed above the axis' 20 mm/s: GRBL clamps it to its max rate.
+    drop(s);
+    let mut opts = r.opts.clone();
+    opts.feed_um_s = 100_000.0;
+    let mut s = GrblStage::connect("axis", opts).unwrap();
+    s.move_abs(0.0).unwrap();
+    let (start, fast) = planned_move(&r);
+    assert_eq!(fast.peak_speed_um_s(), 20_000.0);
+    assert!(fast.duration_s() < slow.duration_s() / 4.0);
+    // 50 ms in (model time) it has covered 400 µm of ramp + 10 ms at 20 mm/s; the 2 mm/s
+    // move had covered 4 µm of ramp + 46 ms at 2 mm/s.
+    let covered = fast.from_um - r.axis.position_at(start + Duration::from_millis(50));
+    let slow_covered = slow.position_after(0.05) - slow.from_um;
+    assert!((covered - 600.0).abs() < 0.5, "{covered}");
+    assert!((slow_covered - 96.0).abs() < 0.5, "{slow_covered}");
+    s.wait_settled(SETTLE).unwrap();
+}
+
+#[test]
+fn a_g1_without_a_feed_rate_is_refused_with_grbl_error_22() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    let e = s.send_line("G90 G1 X2").unwrap_err();
+    match &e {
+        HwError::Controller { code, message, .. } => {
+            assert_eq!(*code, 22);
+            assert!(message.contains("Undefined feed rate"), "{message}");
+        }
+        _ => panic!("expected GRBL error 22, got {e}"),
+    }
+    // What a user reads: the device, the code and GRBL's text.
+    let text = e.to_string();
+    assert!(
+        text.starts_with("axis: error 22: Undefined feed rate"),
+        "{text}"
+    );
+    assert!(!r.axis.is_moving(Instant::now()));
+    assert_eq!(s.position_um().unwrap(), 0.0);
+    // G0 needs no feed and moves at the max rate.
+    s.send_line("G90 G0 X1").unwrap();
+    assert_eq!(planned_move(&r).1.peak_speed_um_s(), 20_000.0);
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 1_000.0);
+    // The driver's own moves carry F, so they work and set the modal feed...
+    assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 1_050.0);
+    // ...which a bare G1 then uses: the default 10 mm/s.
+    s.send_line("G90 G1 X3").unwrap();
+    assert!((planned_move(&r).1.peak_speed_um_s() - 10_000.0).abs() < 1e-6);
+    assert_eq!(s.wait_settled(SETTLE).unwrap(), 3_000.0);
 }
 
 #[test]

@@ -7,6 +7,11 @@
 //! past the axis' hard limits runs into the limit switch and raises `ALARM:1`, after which
 //! only a soft reset is accepted. Units are mm in G-code; the axis is in µm.
 //!
+//! Feed: G1 moves at the modal feed rate F (mm/min, kept until changed or reset; a G1 with
+//! none set is `error:22`), G0 at the max rate (`$110`, the axis' top speed), a jog at its
+//! own F; every rate is clamped to the max rate, and the axis' acceleration (`$120`)
+//! shapes every move.
+//!
 //! This parser is the emulator's own: rigd's driver (src/hw/grbl.rs) shares none of it.
 
 use crate::motion::Axis;
@@ -238,7 +243,11 @@ impl Grbl {
         let (lo, hi) = (params.hard_min_um, params.hard_max_um);
         // Past the hard limits the carriage runs into the switch.
         let reach = p.target_um.clamp(lo, hi);
-        let dur = self.axis.command_move(reach).unwrap_or(Duration::ZERO);
+        let speed_um_s = p.feed_mm_min * 1000.0 / 60.0;
+        let dur = self
+            .axis
+            .command_move_at(reach, speed_um_s)
+            .unwrap_or(Duration::ZERO);
         if reach != p.target_um {
             self.alarm_at = Some((now + dur, 1));
         } else if self.faults.take_alarm_mid_move() {
@@ -366,6 +375,12 @@ impl Grbl {
         if jog {
             // Jogs carry their own mode and feed and leave the parser's modes alone.
             let Some(f) = f else { return Err(22) };
+            if f < 0.0 {
+                return Err(4);
+            }
+            if f == 0.0 {
+                return Err(22);
+            }
             let Some(x) = x else { return Ok(Reply::Ok) };
             if dwell || motion.is_some() {
                 return Err(16);
@@ -398,7 +413,7 @@ impl Grbl {
         }
         if let Some(x) = x {
             let feed = if self.rapid {
-                self.axis.params().max_speed_um_s * 60.0 / 1000.0
+                self.max_rate_mm_min()
             } else {
                 self.feed_mm_min.filter(|f| *f > 0.0).ok_or(22u32)?
             };
@@ -412,7 +427,14 @@ impl Grbl {
         Ok(Reply::Ok)
     }
 
+    /// `$110`: the axis' top speed, in mm/min.
+    fn max_rate_mm_min(&self) -> f64 {
+        self.axis.params().max_speed_um_s * 60.0 / 1000.0
+    }
+
     fn plan(&mut self, target_um: f64, feed_mm_min: f64, jog: bool) {
+        // GRBL's planner caps every rate at the axis' max rate.
+        let feed_mm_min = feed_mm_min.min(self.max_rate_mm_min());
         self.queue.push_back(Planned {
             target_um,
             feed_mm_min,
@@ -599,7 +621,7 @@ impl Controller for Grbl {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::motion::AxisParams;
+    use crate::motion::{AxisParams, Profile};
     use crate::pty::TestClient;
 
     const T: Duration = Duration::from_secs(2);
@@ -649,6 +671,131 @@ mod tests {
         assert_eq!(c.line(T).unwrap(), "error:22");
         c.send(b"G1 X1 F600\n");
         assert_eq!(c.line(T).unwrap(), "ok");
+    }
+
+    /// A booted emulator on an axis without positioning error (exact profile positions).
+    fn booted_exact() -> (Arc<Axis>, GrblSim, TestClient) {
+        let axis = Arc::new(Axis::new(AxisParams {
+            position_error_rms_um: 0.0,
+            ..AxisParams::default()
+        }));
+        let sim = GrblSim::spawn(axis.clone(), GrblSimOptions::default(), None).unwrap();
+        let mut c = TestClient::open(&sim.path());
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), BANNER);
+        (axis, sim, c)
+    }
+
+    /// Send one motion line, and return the move it started: its start and profile.
+    fn start_move(axis: &Axis, c: &mut TestClient, line: &str) -> (Instant, Profile) {
+        c.send(format!("{line}\n").as_bytes());
+        assert_eq!(c.line(T).unwrap(), "ok", "{line}");
+        axis.current_move()
+            .unwrap_or_else(|| panic!("{line}: no move in progress"))
+    }
+
+    /// Wait for the planner to empty (`G4 P0`).
+    fn drain(c: &mut TestClient) {
+        c.send(b"G4 P0\n");
+        assert_eq!(c.line(T).unwrap(), "ok");
+    }
+
+    #[test]
+    fn g1_cruises_at_the_modal_feed_and_g0_at_the_max_rate() {
+        let (axis, _sim, mut c) = booted_exact();
+        // F300 mm/min = 5 mm/s: 1 mm takes 0.21 s (0.19 s cruising, 10 ms per ramp).
+        let (start, slow) = start_move(&axis, &mut c, "G90 G1 X1 F300");
+        assert!((slow.peak_speed_um_s() - 5_000.0).abs() < 1e-9);
+        assert!(
+            (slow.duration_s() - 0.210).abs() < 1e-9,
+            "{}",
+            slow.duration_s()
+        );
+        // 100 ms of model time in: 25 µm of ramp + 90 ms at 5 mm/s.
+        let at_100ms = axis.position_at(start + Duration::from_millis(100));
+        assert!((at_100ms - 475.0).abs() < 0.5, "{at_100ms}");
+        drain(&mut c);
+        // F is modal: the next G1 without it runs at 300 mm/min too.
+        let (_, modal) = start_move(&axis, &mut c, "G1 X2");
+        assert!((modal.peak_speed_um_s() - 5_000.0).abs() < 1e-9);
+        drain(&mut c);
+        // G0 runs at the max rate ($110 = 1200 mm/min = the axis' 20 mm/s)...
+        let (start, rapid) = start_move(&axis, &mut c, "G0 X3");
+        assert_eq!(rapid.peak_speed_um_s(), 20_000.0);
+        // ... so after the same 100 ms it is 4x farther along than the F300 move was
+        // (1 mm at 20 mm/s is over in ~90 ms: it has arrived).
+        let rapid_at_100ms = axis.position_at(start + Duration::from_millis(100)) - 2_000.0;
+        assert!((rapid_at_100ms - 1_000.0).abs() < 0.5, "{rapid_at_100ms}");
+        assert!(rapid.duration_s() < slow.duration_s() / 2.0);
+        drain(&mut c);
+        // ... and leaves the modal feed alone.
+        let (_, after_g0) = start_move(&axis, &mut c, "G1 X4");
+        assert!((after_g0.peak_speed_um_s() - 5_000.0).abs() < 1e-9);
+        drain(&mut c);
+        assert_eq!(axis.position_at(Instant::now()), 4_000.0);
+    }
+
+    #[test]
+    fn feed_is_proportional_and_clamped_to_the_max_rate() {
+        let (axis, _sim, mut c) = booted_exact();
+        // 4 mm at 600 and at 150 mm/min: the cruise takes 4x as long.
+        let (_, f600) = start_move(&axis, &mut c, "G91 G1 X4 F600");
+        c.send(b"?");
+        let r = c.line(T).unwrap();
+        assert!(r.starts_with("<Run|") && r.ends_with("|FS:600,0>"), "{r}");
+        drain(&mut c);
+        let (s150, f150) = start_move(&axis, &mut c, "G1 X4 F150");
+        assert!((f600.peak_speed_um_s() - 10_000.0).abs() < 1e-9);
+        assert!((f150.peak_speed_um_s() - 2_500.0).abs() < 1e-9);
+        let cruise = |p: &Profile| p.duration_s() - p.peak_speed_um_s() / 5e5;
+        assert!((cruise(&f150) / cruise(&f600) - 4.0).abs() < 1e-9);
+        // 1 s of model time into the slow move: 2.5 mm of the 4, not the end.
+        let at_1s = axis.position_at(s150 + Duration::from_secs(1)) - 4_000.0;
+        assert!((at_1s - 2_493.75).abs() < 0.5, "{at_1s}");
+        // Stop it rather than wait 1.6 s.
+        c.send(&[0x18]);
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), "ALARM:3");
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), BANNER);
+        c.send(b"$X\n");
+        assert_eq!(c.line_where(T, |l| !l.starts_with('[')).unwrap(), "ok");
+        // Faster than the max rate: the axis' 20 mm/s, reported as 1200 mm/min.
+        let (_, fast) = start_move(&axis, &mut c, "G91 G1 X4 F6000");
+        assert_eq!(fast.peak_speed_um_s(), 20_000.0);
+        c.send(b"?");
+        let r = c.line(T).unwrap();
+        assert!(r.ends_with("|FS:1200,0>"), "{r}");
+        drain(&mut c);
+        // A jog carries its own feed, clamped the same way.
+        let (_, jog) = start_move(&axis, &mut c, "$J=G91 X1 F120");
+        assert!((jog.peak_speed_um_s() - 2_000.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_g1_without_a_feed_rate_is_error_22_and_moves_nothing() {
+        let (axis, _sim, mut c) = booted_exact();
+        for (line, code) in [
+            ("G1 X1", "error:22"),
+            ("G1 X1 F0", "error:22"),
+            ("G1 X1 F-5", "error:4"),
+            ("$J=G91 X1", "error:22"),
+            ("$J=G91 X1 F0", "error:22"),
+            ("$J=G91 X1 F-5", "error:4"),
+        ] {
+            c.send(format!("{line}\n").as_bytes());
+            assert_eq!(c.line(T).unwrap(), code, "{line}");
+            assert!(!axis.is_moving(Instant::now()), "{line}");
+        }
+        // A rapid needs no feed; it does not set one for G1 either.
+        let (_, rapid) = start_move(&axis, &mut c, "G0 X1");
+        assert_eq!(rapid.peak_speed_um_s(), 20_000.0);
+        drain(&mut c);
+        c.send(b"G1 X2\n");
+        assert_eq!(c.line(T).unwrap(), "error:22");
+        // A jog's feed is not modal either.
+        let _ = start_move(&axis, &mut c, "$J=G91 X0.1 F600");
+        drain(&mut c);
+        c.send(b"G1 X2\n");
+        assert_eq!(c.line(T).unwrap(), "error:22");
+        assert_eq!(axis.position_at(Instant::now()), 1_100.0);
     }
 
     #[test]

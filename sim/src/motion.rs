@@ -4,7 +4,9 @@
 //! or an in-process stage) and whoever observes it (the camera's frame clock, the XL-80
 //! synthesizer). Moves follow a trapezoidal velocity profile with finite speed and
 //! acceleration, and end at the commanded position plus a random positioning error, as a
-//! real axis does (the paper's axis was good to about 2 µm).
+//! real axis does (the paper's axis was good to about 2 µm). A move runs at the axis' top
+//! speed, or at a slower speed of its own (a G-code feed rate), always with the axis'
+//! acceleration.
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -60,11 +62,24 @@ pub struct Profile {
 }
 
 impl Profile {
+    /// A move at the axis' top speed.
     pub fn plan(from_um: f64, to_um: f64, p: &AxisParams) -> Profile {
+        Profile::plan_at(from_um, to_um, p, p.max_speed_um_s)
+    }
+
+    /// A move cruising at `speed_um_s`, clamped to the axis' top speed (as GRBL clamps a
+    /// feed rate to its max rate); a speed that is not a positive number means the top
+    /// speed. Acceleration is the axis' own.
+    pub fn plan_at(from_um: f64, to_um: f64, p: &AxisParams, speed_um_s: f64) -> Profile {
         let dist = (to_um - from_um).abs();
         let a = p.accel_um_s2;
-        // Triangle profile if the move is too short to reach full speed.
-        let v_peak = p.max_speed_um_s.min((dist * a).sqrt());
+        let cruise_um_s = if speed_um_s > 0.0 {
+            speed_um_s.min(p.max_speed_um_s)
+        } else {
+            p.max_speed_um_s
+        };
+        // Triangle profile if the move is too short to reach the cruise speed.
+        let v_peak = cruise_um_s.min((dist * a).sqrt());
         let t_acc = if a > 0.0 { v_peak / a } else { 0.0 };
         let d_acc = 0.5 * a * t_acc * t_acc;
         let t_flat = if v_peak > 0.0 {
@@ -84,6 +99,11 @@ impl Profile {
 
     pub fn duration_s(&self) -> f64 {
         2.0 * self.t_acc + self.t_flat
+    }
+
+    /// The highest speed the move reaches: its cruise speed, or less on a short move.
+    pub fn peak_speed_um_s(&self) -> f64 {
+        self.v_peak
     }
 
     /// Position `s` seconds after the move began (clamped to the ends).
@@ -113,13 +133,6 @@ struct Segment {
 }
 
 impl Segment {
-    fn plan(start: Instant, from_um: f64, to_um: f64, p: &AxisParams) -> Segment {
-        Segment {
-            start,
-            profile: Profile::plan(from_um, to_um, p),
-        }
-    }
-
     fn duration(&self) -> Duration {
         Duration::from_secs_f64(self.profile.duration_s())
     }
@@ -178,9 +191,20 @@ impl Axis {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Start a move to `target_um` now; returns how long it will take. A move past the hard
-    /// limits is refused (the emulators turn that into their controller's alarm).
+    /// Start a move to `target_um` now at the axis' top speed; returns how long it will
+    /// take. A move past the hard limits is refused (the emulators turn that into their
+    /// controller's alarm).
     pub fn command_move(&self, target_um: f64) -> Result<Duration, MotionError> {
+        self.command_move_at(target_um, self.params.max_speed_um_s)
+    }
+
+    /// [`Axis::command_move`] cruising at `speed_um_s` (clamped to the top speed, see
+    /// [`Profile::plan_at`]).
+    pub fn command_move_at(
+        &self,
+        target_um: f64,
+        speed_um_s: f64,
+    ) -> Result<Duration, MotionError> {
         let p = &self.params;
         if !(p.hard_min_um..=p.hard_max_um).contains(&target_um) {
             return Err(MotionError::HardLimit {
@@ -199,7 +223,10 @@ impl Axis {
         } else {
             0.0
         };
-        let seg = Segment::plan(now, from, target_um + err, p);
+        let seg = Segment {
+            start: now,
+            profile: Profile::plan_at(from, target_um + err, p, speed_um_s),
+        };
         st.rest_um = seg.profile.to_um;
         st.commanded_um = target_um;
         st.segment = Some(seg);
@@ -252,6 +279,18 @@ impl Axis {
         matches!(&st.segment, Some(seg) if t < seg.start + seg.duration())
     }
 
+    /// The move in progress: when it started and its profile (what a test checks a
+    /// controller's speed on, in the model's time rather than the wall clock's).
+    pub fn current_move(&self) -> Option<(Instant, Profile)> {
+        let st = self.lock();
+        match &st.segment {
+            Some(seg) if Instant::now() < seg.start + seg.duration() => {
+                Some((seg.start, seg.profile))
+            }
+            _ => None,
+        }
+    }
+
     /// When the current move ends (now, if idle).
     pub fn move_ends_at(&self) -> Instant {
         let st = self.lock();
@@ -284,6 +323,55 @@ mod tests {
         let end = axis.position_at(t0 + d * 2);
         assert!((end - 50.0).abs() < 10.0, "end {end}");
         assert_eq!(axis.reported_um(t0 + d * 2), 50.0);
+    }
+
+    #[test]
+    fn a_slower_move_cruises_at_its_own_speed_with_the_same_acceleration() {
+        let p = AxisParams::default();
+        let fast = Profile::plan(0.0, 10_000.0, &p);
+        let slow = Profile::plan_at(0.0, 10_000.0, &p, 5_000.0);
+        assert_eq!(fast.peak_speed_um_s(), 20_000.0);
+        assert_eq!(slow.peak_speed_um_s(), 5_000.0);
+        // 10 mm at 5 mm/s: 2 s cruising plus v/a = 10 ms for the ramps.
+        assert!(
+            (slow.duration_s() - 2.010).abs() < 1e-9,
+            "{}",
+            slow.duration_s()
+        );
+        assert!(
+            (fast.duration_s() - 0.540).abs() < 1e-9,
+            "{}",
+            fast.duration_s()
+        );
+        // Same acceleration: both ramps cover the first 1 ms identically.
+        assert_eq!(slow.position_after(0.001), fast.position_after(0.001));
+        // One second in, the slow move is ~5 mm along; the fast one is past 10 mm's half.
+        assert!((slow.position_after(1.0) - 4_975.0).abs() < 1e-6);
+        assert_eq!(slow.position_after(3.0), 10_000.0);
+        // Clamped to the top speed; nonsense speeds mean the top speed.
+        for v in [1e9, 0.0, -1.0, f64::NAN] {
+            let q = Profile::plan_at(0.0, 10_000.0, &p, v);
+            assert_eq!(q.peak_speed_um_s(), 20_000.0, "speed {v}");
+        }
+        // A short move never reaches a high cruise speed: triangle profile.
+        let short = Profile::plan_at(0.0, 50.0, &p, 15_000.0);
+        assert!((short.peak_speed_um_s() - 5_000.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn command_move_at_plans_the_move_it_reports() {
+        let axis = Axis::new(AxisParams {
+            position_error_rms_um: 0.0,
+            ..AxisParams::default()
+        });
+        assert!(axis.current_move().is_none());
+        let d = axis.command_move_at(2_000.0, 4_000.0).unwrap();
+        let (start, prof) = axis.current_move().unwrap();
+        assert_eq!(prof.peak_speed_um_s(), 4_000.0);
+        assert!((d.as_secs_f64() - prof.duration_s()).abs() < 1e-6);
+        assert!((prof.duration_s() - 0.508).abs() < 1e-9);
+        let quarter = axis.position_at(start + Duration::from_millis(129));
+        assert!((quarter - 500.0).abs() < 1.0, "{quarter}");
     }
 
     #[test]
