@@ -5,6 +5,8 @@
 //! namespaces; without them the test says SKIPPED on stderr (with `CI` set and run as root
 //! it fails instead, so CI cannot skip it silently).
 
+mod support;
+
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, JobSpec, Request};
 use rigd::daemon::session::{Session, SessionState};
@@ -12,6 +14,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
+use support::daemon::{end_of, submit, subscribe};
 
 fn is_root() -> bool {
     // SAFETY: geteuid has no preconditions.
@@ -232,7 +235,7 @@ fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
         .to_string();
     assert!(e.contains("MB free"), "{e}");
 
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    subscribe(&mut c);
     let job = JobSpec {
         step_um: Some(50.0),
         steps: Some(16),
@@ -240,9 +243,7 @@ fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
         process: false,
         ..JobSpec::default()
     };
-    let id = c.request(&Request::Submit { job }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap();
+    let id = submit(&mut c, job);
     let (mut session, mut reported, mut end) = (String::new(), Vec::new(), None);
     let mut filler = None;
     while end.is_none() {
@@ -324,15 +325,8 @@ fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
     assert!(e.contains("MB free"), "{e}");
     // Space freed: the daemon runs the next job.
     std::fs::remove_file(&filler).unwrap();
-    let id = c.request(&Request::Submit { job: one }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap();
-    let ended = loop {
-        let e = c.next_event().unwrap();
-        if e.job_id == id && e.body.is_terminal() {
-            break e.body;
-        }
-    };
+    let id = submit(&mut c, one);
+    let ended = end_of(&mut c, id);
     assert!(matches!(ended, EventBody::Finished { .. }), "{ended:?}");
 }
 
@@ -345,7 +339,7 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
     let mut ns = Namespace::start(dir.path(), 64);
     let data = ns.root().join("data");
     let mut c = ns.client();
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    subscribe(&mut c);
     let job = JobSpec {
         step_um: Some(50.0),
         steps: Some(16),
@@ -353,9 +347,7 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
         process: false,
         ..JobSpec::default()
     };
-    let id = c.request(&Request::Submit { job }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap();
+    let id = submit(&mut c, job);
     let (mut session, mut reported, mut filler) = (String::new(), Vec::new(), None);
     let end = loop {
         let e = c.next_event().unwrap();
@@ -441,20 +433,13 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
         .unwrap();
     assert_eq!(entry["state"], serde_json::to_value(want).unwrap());
     // And it runs the next job.
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    subscribe(&mut c);
     let one = JobSpec {
         steps: Some(1),
         process: false,
         ..JobSpec::default()
     };
-    let id = c.request(&Request::Submit { job: one }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap();
-    let ended = loop {
-        let e = c.next_event().unwrap();
-        if e.job_id == id && e.body.is_terminal() {
-            break e.body;
-        }
-    };
+    let id = submit(&mut c, one);
+    let ended = end_of(&mut c, id);
     assert!(matches!(ended, EventBody::Finished { .. }), "{ended:?}");
 }
