@@ -8,7 +8,9 @@ use rigd::daemon::hwrig::rig_from_config;
 use rigd::daemon::protocol::{JobSpec, Request};
 use rigd::daemon::session::SessionState;
 use std::time::Instant;
-use support::daemon::{assert_finished, config, fast_grbl, run_job, subscribe, Daemon};
+use support::daemon::{
+    assert_finished, capture_job, config, fast_grbl, run_job, subscribe, Daemon,
+};
 
 const SIM_RIG: &str = r#"
 [axis]
@@ -99,13 +101,7 @@ fn a_hardware_rig_takes_its_scan_start_and_axis_direction_from_the_config() {
     let hello = c.request(&Request::Hello).unwrap();
     assert_eq!(hello["rig"]["default_start_um"], 7_250.0);
     subscribe(&mut c);
-    let job = JobSpec {
-        step_um: Some(100.0),
-        steps: Some(2),
-        settle_ms: 0,
-        process: false,
-        ..JobSpec::default()
-    };
+    let job = capture_job(100.0, 2, 0);
     let (_, ev) = run_job(&mut c, job);
     assert_finished(&ev);
     let s = d.session(&ev);

@@ -6,19 +6,13 @@ use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, JobSpec, Request};
 use rigd::daemon::session::{Session, SessionState};
 use std::path::PathBuf;
-use support::daemon::{submit, subscribe, RigdProcess};
+use support::daemon::{capture_job, submit, subscribe, RigdProcess};
 
 /// Submit a long capture-only job and wait until `n` steps are reported; returns the job id,
 /// its session and the indices reported captured.
 fn run_until_steps(c: &mut Client, n: usize) -> (u64, String, Vec<u32>) {
     subscribe(c);
-    let job = JobSpec {
-        step_um: Some(50.0),
-        steps: Some(400),
-        settle_ms: 0,
-        process: false,
-        ..JobSpec::default()
-    };
+    let job = capture_job(50.0, 400, 0);
     let id = submit(c, job);
     let (mut session, mut steps) = (String::new(), Vec::new());
     while steps.len() < n {

@@ -14,7 +14,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-use support::daemon::{end_of, submit, subscribe};
+use support::daemon::{capture_job, end_of, submit, subscribe};
 
 fn is_root() -> bool {
     // SAFETY: geteuid has no preconditions.
@@ -199,6 +199,52 @@ fn fill(dir: &Path, slack: u64) -> PathBuf {
     path
 }
 
+/// What a job filled mid-way came to: its id, its session, the frames reported, the filler file
+/// and the job's failure reason.
+struct FilledMidJob {
+    id: u64,
+    session: String,
+    reported: Vec<u32>,
+    filler: PathBuf,
+    reason: String,
+}
+
+/// Run a 16-frame capture job; once two frames are in, another program fills the disk at
+/// `root` leaving `slack` bytes. The job must fail.
+fn fill_mid_job(c: &mut Client, root: &Path, slack: u64) -> FilledMidJob {
+    subscribe(c);
+    let id = submit(c, capture_job(50.0, 16, 100));
+    let (mut session, mut reported, mut filler) = (String::new(), Vec::new(), None);
+    let end = loop {
+        let e = c.next_event().unwrap();
+        if e.job_id != id {
+            continue;
+        }
+        match e.body {
+            EventBody::Started { session: s, .. } => session = s,
+            EventBody::Step { index, .. } => {
+                reported.push(index);
+                if reported.len() == 2 {
+                    filler = Some(fill(root, slack));
+                }
+            }
+            b if b.is_terminal() => break b,
+            _ => {}
+        }
+    };
+    let filler = filler.expect("the job reached two frames");
+    let EventBody::Failed { reason, .. } = end else {
+        panic!("the job did not fail: {end:?}")
+    };
+    FilledMidJob {
+        id,
+        session,
+        reported,
+        filler,
+        reason,
+    }
+}
+
 fn frames_on_disk(s: &Session) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(s.dir.join("frames"))
         .unwrap()
@@ -235,39 +281,14 @@ fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
         .to_string();
     assert!(e.contains("MB free"), "{e}");
 
-    subscribe(&mut c);
-    let job = JobSpec {
-        step_um: Some(50.0),
-        steps: Some(16),
-        settle_ms: 100,
-        process: false,
-        ..JobSpec::default()
-    };
-    let id = submit(&mut c, job);
-    let (mut session, mut reported, mut end) = (String::new(), Vec::new(), None);
-    let mut filler = None;
-    while end.is_none() {
-        let e = c.next_event().unwrap();
-        if e.job_id != id {
-            continue;
-        }
-        match e.body {
-            EventBody::Started { session: s, .. } => session = s,
-            EventBody::Step { index, .. } => {
-                reported.push(index);
-                // Another program fills the disk once two frames are in.
-                if reported.len() == 2 {
-                    filler = Some(fill(&root, 256 * 1024));
-                }
-            }
-            b if b.is_terminal() => end = Some(b),
-            _ => {}
-        }
-    }
-    let filler = filler.expect("the job reached two frames");
-    let Some(EventBody::Failed { reason, .. }) = end else {
-        panic!("the job did not fail: {end:?}")
-    };
+    // Another program fills the disk once two frames are in.
+    let FilledMidJob {
+        id,
+        session,
+        reported,
+        filler,
+        reason,
+    } = fill_mid_job(&mut c, &root, 256 * 1024);
     eprintln!("disk full after {} frames: {reason}", reported.len());
     assert!(reported.len() >= 2 && reported.len() < 16, "{reported:?}");
     // The reason says the disk is full and names the frame that could not be written.
@@ -339,38 +360,14 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
     let mut ns = Namespace::start(dir.path(), 64);
     let data = ns.root().join("data");
     let mut c = ns.client();
-    subscribe(&mut c);
-    let job = JobSpec {
-        step_um: Some(50.0),
-        steps: Some(16),
-        settle_ms: 100,
-        process: false,
-        ..JobSpec::default()
-    };
-    let id = submit(&mut c, job);
-    let (mut session, mut reported, mut filler) = (String::new(), Vec::new(), None);
-    let end = loop {
-        let e = c.next_event().unwrap();
-        if e.job_id != id {
-            continue;
-        }
-        match e.body {
-            EventBody::Started { session: s, .. } => session = s,
-            EventBody::Step { index, .. } => {
-                reported.push(index);
-                if reported.len() == 2 {
-                    // No slack at all: not even the manifest fits.
-                    filler = Some(fill(&ns.root(), 0));
-                }
-            }
-            b if b.is_terminal() => break b,
-            _ => {}
-        }
-    };
-    let filler = filler.expect("the job reached two frames");
-    let EventBody::Failed { reason, .. } = end else {
-        panic!("the job did not fail: {end:?}")
-    };
+    // No slack at all: not even the manifest fits.
+    let FilledMidJob {
+        id,
+        session,
+        reported,
+        filler,
+        reason,
+    } = fill_mid_job(&mut c, &ns.root(), 0);
     eprintln!("no room at all after {} frames: {reason}", reported.len());
     // The first reason is the first write of the next step that did not fit: its share of
     // the interferometer log (appended before the frame) or the frame itself.

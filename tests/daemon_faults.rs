@@ -11,7 +11,7 @@ use rigd::daemon::simrig::{sim_rig_with_truth, Fault, SimSettings, SimTruth};
 use rigd::sim::motion::AxisParams;
 use std::time::{Duration, Instant};
 use support::daemon::{
-    assert_finished, events_until_end, fast_camera, reported_steps, submit, Daemon,
+    assert_finished, capture_job, events_until_end, fast_camera, reported_steps, submit, Daemon,
 };
 
 fn settings(faults: Vec<Fault>, axis: AxisParams) -> SimSettings {
@@ -35,11 +35,7 @@ fn start(s: SimSettings) -> (Daemon, SimTruth) {
 fn scan(start_um: f64, step_um: f64, steps: u32) -> JobSpec {
     JobSpec {
         start_um: Some(start_um),
-        step_um: Some(step_um),
-        steps: Some(steps),
-        settle_ms: 0,
-        process: false,
-        ..JobSpec::default()
+        ..capture_job(step_um, steps, 0)
     }
 }
 

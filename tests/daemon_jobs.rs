@@ -9,7 +9,7 @@ use rigd::daemon::session::SessionState;
 use rigd::daemon::simrig::{sim_rig, Fault, SimSettings};
 use serde_json::Value;
 use support::daemon::{
-    assert_finished, events_until_end, fast_camera, job_id, submit, subscribe, Daemon,
+    assert_finished, capture_job, events_until_end, fast_camera, job_id, submit, subscribe, Daemon,
 };
 
 fn start(faults: Vec<Fault>) -> Daemon {
@@ -26,13 +26,7 @@ fn start(faults: Vec<Fault>) -> Daemon {
 }
 
 fn scan(steps: u32, settle_ms: u64) -> JobSpec {
-    JobSpec {
-        step_um: Some(50.0),
-        steps: Some(steps),
-        settle_ms,
-        process: false,
-        ..JobSpec::default()
-    }
+    capture_job(50.0, steps, settle_ms)
 }
 
 #[test]

@@ -6,7 +6,7 @@ mod support;
 
 use rigd::daemon::plan::{estimated_bytes, free_bytes};
 use rigd::daemon::protocol::{EventBody, JobSpec, Request};
-use support::daemon::{end_of, rig_from_toml, submit, Daemon, SIM_RIG_SMALL};
+use support::daemon::{capture_job, end_of, rig_from_toml, submit, Daemon, SIM_RIG_SMALL};
 
 #[test]
 fn a_job_is_refused_when_the_queued_ones_have_claimed_the_free_space() {
@@ -25,11 +25,7 @@ fn a_job_is_refused_when_the_queued_ones_have_claimed_the_free_space() {
     // Six frames with a long settle: still running when the next ones are submitted.
     let slow = JobSpec {
         start_um: Some(1_000.0),
-        step_um: Some(100.0),
-        steps: Some(6),
-        settle_ms: 10_000,
-        process: false,
-        ..JobSpec::default()
+        ..capture_job(100.0, 6, 10_000)
     };
     let first = submit(&mut c, slow.clone());
     let e = c

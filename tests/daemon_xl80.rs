@@ -18,7 +18,7 @@ use rigd::sim::{CameraModel, SimRig, SimRigConfig};
 use std::path::Path;
 use std::sync::Arc;
 use support::daemon::{
-    assert_finished, run_job, run_request, submit, subscribe, Daemon, RigdProcess,
+    assert_finished, capture_job, run_job, run_request, submit, subscribe, Daemon, RigdProcess,
 };
 
 /// The sim XL-80's reading noise (Xl80Params::default), µm RMS.
@@ -114,13 +114,7 @@ fn a_sim_job_records_the_live_log_and_reads_each_frame_from_it() {
     let settings = sim_settings(dir.path());
     let d = Daemon::start_in(sim_rig(&settings).unwrap(), dir);
     let mut c = d.subscribed();
-    let job = JobSpec {
-        step_um: Some(100.0),
-        steps: Some(8),
-        settle_ms: 60,
-        process: false,
-        ..JobSpec::default()
-    };
+    let job = capture_job(100.0, 8, 60);
     let (_, ev) = run_job(&mut c, job);
     let s = d.session(&ev);
     assert_eq!(s.manifest.state, SessionState::Finished);
@@ -367,13 +361,7 @@ fn kill_9_keeps_the_log_of_every_reported_frame() {
     let mut child = RigdProcess::spawn_sim(&socket, &data);
     let mut c = Client::connect(&socket).unwrap();
     subscribe(&mut c);
-    let job = JobSpec {
-        step_um: Some(50.0),
-        steps: Some(400),
-        settle_ms: 0,
-        process: false,
-        ..JobSpec::default()
-    };
+    let job = capture_job(50.0, 400, 0);
     submit(&mut c, job);
     let (mut name, mut reported) = (String::new(), Vec::new());
     while reported.len() < 4 {

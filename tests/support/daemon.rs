@@ -251,3 +251,15 @@ pub fn fast_grbl() -> (Arc<Axis>, GrblSim) {
     let grbl = GrblSim::spawn(Arc::clone(&axis), GrblSimOptions::default(), None).unwrap();
     (axis, grbl)
 }
+
+/// A capture-only job (no processing) of `steps` frames `step_um` apart from the rig's
+/// default start, settling `settle_ms` before each frame.
+pub fn capture_job(step_um: f64, steps: u32, settle_ms: u64) -> JobSpec {
+    JobSpec {
+        step_um: Some(step_um),
+        steps: Some(steps),
+        settle_ms,
+        process: false,
+        ..JobSpec::default()
+    }
+}
