@@ -6,7 +6,7 @@ use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, JobSpec, Request};
 use rigd::daemon::session::{Session, SessionState};
 use std::path::PathBuf;
-use support::daemon::{capture_job, submit, subscribe, RigdProcess};
+use support::daemon::{assert_frames_decode, capture_job, submit, subscribe, RigdProcess};
 
 /// Submit a long capture-only job and wait until `n` steps are reported; returns the job id,
 /// its session and the indices reported captured.
@@ -34,11 +34,7 @@ fn check_frames(s: &Session, reported: &[u32]) {
             "frame {i} was reported but is not in steps.csv"
         );
     }
-    for r in &s.steps {
-        let img =
-            image::open(s.frame_path(r.index)).unwrap_or_else(|e| panic!("frame {}: {e}", r.index));
-        assert_eq!(img.width(), s.manifest.rig.frame_size.0);
-    }
+    assert_frames_decode(s, s.manifest.rig.frame_size);
 }
 
 #[test]

@@ -14,7 +14,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-use support::daemon::{capture_job, end_of, submit, subscribe};
+use support::daemon::{assert_frames_decode, capture_job, end_of, submit, subscribe};
 
 fn is_root() -> bool {
     // SAFETY: geteuid has no preconditions.
@@ -316,10 +316,7 @@ fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
     let names = frames_on_disk(&s);
     let want: Vec<String> = reported.iter().map(|i| format!("{i:06}.png")).collect();
     assert_eq!(names, want, "frames/ holds exactly the reported frames");
-    for r in &s.steps {
-        let img = image::open(s.frame_path(r.index)).unwrap();
-        assert_eq!((img.width(), img.height()), (1280, 720));
-    }
+    assert_frames_decode(&s, (1280, 720));
     for f in [
         "manifest.json",
         "steps.csv",
@@ -389,9 +386,7 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
             want,
             "frames/ holds exactly the reported frames"
         );
-        for r in &s.steps {
-            image::open(s.frame_path(r.index)).unwrap();
-        }
+        assert_frames_decode(s, (1280, 720));
     };
     // Whatever fit is whole; the manifest is the old one (`running`) or the final one.
     let s = Session::open(&data.join(&session)).unwrap();

@@ -11,7 +11,8 @@ use rigd::daemon::simrig::{sim_rig_with_truth, Fault, SimSettings, SimTruth};
 use rigd::sim::motion::AxisParams;
 use std::time::{Duration, Instant};
 use support::daemon::{
-    assert_finished, capture_job, events_until_end, fast_camera, reported_steps, submit, Daemon,
+    assert_finished, assert_frames_decode, capture_job, events_until_end, fast_camera,
+    reported_steps, submit, Daemon,
 };
 
 fn settings(faults: Vec<Fault>, axis: AxisParams) -> SimSettings {
@@ -45,9 +46,8 @@ fn check_captured(s: &Session, reported: &[(u32, f64)]) {
     assert_eq!(s.manifest.frames_captured as usize, reported.len());
     for (row, (index, commanded)) in s.steps.iter().zip(reported) {
         assert_eq!((row.index, row.position_um), (*index, *commanded));
-        let img = image::open(s.frame_path(row.index)).unwrap();
-        assert_eq!((img.width(), img.height()), (48, 32));
     }
+    assert_frames_decode(s, (48, 32));
 }
 
 /// `(position_um, state)` from a reason's "axis stopped at 123.456 µm (idle)".

@@ -9,7 +9,8 @@ use rigd::daemon::session::SessionState;
 use rigd::daemon::simrig::{sim_rig, Fault, SimSettings};
 use serde_json::Value;
 use support::daemon::{
-    assert_finished, capture_job, events_until_end, fast_camera, job_id, submit, subscribe, Daemon,
+    assert_finished, assert_frames_decode, capture_job, events_until_end, fast_camera, job_id,
+    submit, subscribe, Daemon,
 };
 
 fn start(faults: Vec<Fault>) -> Daemon {
@@ -42,7 +43,7 @@ fn a_job_runs_its_steps_in_order_and_records_every_frame() {
             ..
         }
     ));
-    assert!(matches!(ev.last(), Some(EventBody::Finished { .. })));
+    assert_finished(&ev);
     let steps: Vec<(u32, f64, f64)> = ev
         .iter()
         .filter_map(|e| match e {
@@ -67,10 +68,7 @@ fn a_job_runs_its_steps_in_order_and_records_every_frame() {
     let s = d.session(&ev);
     assert_eq!(s.manifest.state, SessionState::Finished);
     assert_eq!(s.steps.len(), 5);
-    for r in &s.steps {
-        let img = image::open(s.frame_path(r.index)).unwrap();
-        assert_eq!((img.width(), img.height()), (48, 32));
-    }
+    assert_frames_decode(&s, (48, 32));
     let text = std::fs::read_to_string(s.dir.join("steps.csv")).unwrap();
     assert!(text.starts_with("index,position_um,"), "{text}");
     let st = c.request(&Request::Status { job_id: Some(id) }).unwrap();

@@ -263,3 +263,12 @@ pub fn capture_job(step_um: f64, steps: u32, settle_ms: u64) -> JobSpec {
         ..JobSpec::default()
     }
 }
+
+/// Every frame `s`'s steps.csv lists decodes whole, at `size` (width, height).
+pub fn assert_frames_decode(s: &Session, size: (u32, u32)) {
+    for r in &s.steps {
+        let img = image::open(s.frame_path(r.index))
+            .unwrap_or_else(|e| panic!("frame {} of {}: {e}", r.index, s.dir.display()));
+        assert_eq!((img.width(), img.height()), size, "frame {}", r.index);
+    }
+}
