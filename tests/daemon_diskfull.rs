@@ -199,19 +199,14 @@ fn fill(dir: &Path, slack: u64) -> PathBuf {
     path
 }
 
-/// What a job filled mid-way came to: its id, its session, the frames reported, the filler file
-/// and the job's failure reason.
-struct FilledMidJob {
-    id: u64,
-    session: String,
-    reported: Vec<u32>,
-    filler: PathBuf,
-    reason: String,
-}
-
 /// Run a 16-frame capture job; once two frames are in, another program fills the disk at
-/// `root` leaving `slack` bytes. The job must fail.
-fn fill_mid_job(c: &mut Client, root: &Path, slack: u64) -> FilledMidJob {
+/// `root` leaving `slack` bytes. The job must fail: its id, its session, the frames
+/// reported, the filler file and the failure reason.
+fn fill_mid_job(
+    c: &mut Client,
+    root: &Path,
+    slack: u64,
+) -> (u64, String, Vec<u32>, PathBuf, String) {
     subscribe(c);
     let id = submit(c, capture_job(50.0, 16, 100));
     let (mut session, mut reported, mut filler) = (String::new(), Vec::new(), None);
@@ -236,13 +231,7 @@ fn fill_mid_job(c: &mut Client, root: &Path, slack: u64) -> FilledMidJob {
     let EventBody::Failed { reason, .. } = end else {
         panic!("the job did not fail: {end:?}")
     };
-    FilledMidJob {
-        id,
-        session,
-        reported,
-        filler,
-        reason,
-    }
+    (id, session, reported, filler, reason)
 }
 
 fn frames_on_disk(s: &Session) -> Vec<String> {
@@ -282,13 +271,7 @@ fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
     assert!(e.contains("MB free"), "{e}");
 
     // Another program fills the disk once two frames are in.
-    let FilledMidJob {
-        id,
-        session,
-        reported,
-        filler,
-        reason,
-    } = fill_mid_job(&mut c, &root, 256 * 1024);
+    let (id, session, reported, filler, reason) = fill_mid_job(&mut c, &root, 256 * 1024);
     eprintln!("disk full after {} frames: {reason}", reported.len());
     assert!(reported.len() >= 2 && reported.len() < 16, "{reported:?}");
     // The reason says the disk is full and names the frame that could not be written.
@@ -358,13 +341,7 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
     let data = ns.root().join("data");
     let mut c = ns.client();
     // No slack at all: not even the manifest fits.
-    let FilledMidJob {
-        id,
-        session,
-        reported,
-        filler,
-        reason,
-    } = fill_mid_job(&mut c, &ns.root(), 0);
+    let (id, session, reported, filler, reason) = fill_mid_job(&mut c, &ns.root(), 0);
     eprintln!("no room at all after {} frames: {reason}", reported.len());
     // The first reason is the first write of the next step that did not fit: its share of
     // the interferometer log (appended before the frame) or the frame itself.
