@@ -2,14 +2,15 @@
 //! With every driver "sim" the stages and the camera are one `SimRig`, so a job's frames and
 //! interferometer readings follow the axis.
 
-use rigd::cli::client::Client;
-use rigd::config::Config;
+mod support;
+
 use rigd::daemon::hwrig::rig_from_config;
-use rigd::daemon::protocol::{EventBody, JobSpec, Request};
-use rigd::daemon::server::Background;
-use rigd::daemon::session::{Session, SessionState};
-use rigd::daemon::DaemonSettings;
-use std::path::Path;
+use rigd::daemon::protocol::{JobSpec, Request};
+use rigd::daemon::session::SessionState;
+use std::time::Instant;
+use support::daemon::{
+    assert_finished, capture_job, config, fast_grbl, run_job, subscribe, Daemon,
+};
 
 const SIM_RIG: &str = r#"
 [axis]
@@ -36,10 +37,6 @@ frame_period_ms = 2.0
 exposure_ms = 1.0
 "#;
 
-fn config(dir: &Path, text: &str) -> Config {
-    Config::from_toml_str(text, &dir.join("rig.toml")).unwrap()
-}
-
 #[test]
 fn a_sim_config_runs_a_job_whose_interferometer_follows_the_axis() {
     let dir = tempfile::tempdir().unwrap();
@@ -48,15 +45,8 @@ fn a_sim_config_runs_a_job_whose_interferometer_follows_the_axis() {
     assert_eq!(rig.info.axis_limits_um, [0.0, 100_000.0]);
     assert_eq!(rig.info.frame_size, (64, 48));
     assert!(rig.piezo.is_none(), "no [piezo] section: no piezo");
-    let data = dir.path().join("data");
-    let settings = DaemonSettings {
-        socket: dir.path().join("rigd.sock"),
-        group: None,
-        data_root: data.clone(),
-    };
-    let bg = Background::start(settings, rig).unwrap();
-    let mut c = Client::connect(&bg.socket).unwrap();
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let d = Daemon::start_in(rig, dir);
+    let mut c = d.subscribed();
     let job = JobSpec {
         start_um: Some(2_000.0),
         step_um: Some(500.0),
@@ -64,23 +54,8 @@ fn a_sim_config_runs_a_job_whose_interferometer_follows_the_axis() {
         process: false,
         ..JobSpec::default()
     };
-    let id = c.request(&Request::Submit { job }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap();
-    let mut session = None;
-    loop {
-        let e = c.next_event().unwrap();
-        if e.job_id != id {
-            continue;
-        }
-        if let EventBody::Started { session: s, .. } = &e.body {
-            session = Some(s.clone());
-        }
-        if e.body.is_terminal() {
-            break;
-        }
-    }
-    let s = Session::open(&data.join(session.unwrap())).unwrap();
+    let (_, ev) = run_job(&mut c, job);
+    let s = d.session(&ev);
     assert_eq!(s.manifest.state, SessionState::Finished, "{:?}", s.manifest);
     assert_eq!(s.steps.len(), 4);
     for (i, st) in s.steps.iter().enumerate() {
@@ -107,18 +82,7 @@ fn a_config_without_a_camera_is_refused_naming_the_section() {
 /// direction come from the config, and a job without `start_um` starts there.
 #[test]
 fn a_hardware_rig_takes_its_scan_start_and_axis_direction_from_the_config() {
-    use rigd::sim::grbl::{GrblSim, GrblSimOptions};
-    use rigd::sim::motion::{Axis, AxisParams};
-    use std::sync::Arc;
-    use std::time::Instant;
-
-    let axis = Arc::new(Axis::new(AxisParams {
-        max_speed_um_s: 50_000.0,
-        accel_um_s2: 2_000_000.0,
-        position_error_rms_um: 0.0,
-        ..AxisParams::default()
-    }));
-    let grbl = GrblSim::spawn(Arc::clone(&axis), GrblSimOptions::default(), None).unwrap();
+    let (axis, grbl) = fast_grbl();
     let dir = tempfile::tempdir().unwrap();
     let text = format!(
         "[axis]\ndriver = \"grbl\"\nport = \"{}\"\nsoft_min_um = -2000.0\nsoft_max_um = 100000.0\n\
@@ -132,42 +96,15 @@ fn a_hardware_rig_takes_its_scan_start_and_axis_direction_from_the_config() {
     assert_eq!(rig.info.mode, "hardware");
     assert_eq!(rig.info.default_start_um, 7_250.0);
     assert_eq!(rig.info.axis_dir, [0.0, -1.0]);
-    let data = dir.path().join("data");
-    let settings = DaemonSettings {
-        socket: dir.path().join("rigd.sock"),
-        group: None,
-        data_root: data.clone(),
-    };
-    let bg = Background::start(settings, rig).unwrap();
-    let mut c = Client::connect(&bg.socket).unwrap();
+    let d = Daemon::start_in(rig, dir);
+    let mut c = d.client();
     let hello = c.request(&Request::Hello).unwrap();
     assert_eq!(hello["rig"]["default_start_um"], 7_250.0);
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
-    let job = JobSpec {
-        step_um: Some(100.0),
-        steps: Some(2),
-        settle_ms: 0,
-        process: false,
-        ..JobSpec::default()
-    };
-    let id = c.request(&Request::Submit { job }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap();
-    let mut session = None;
-    loop {
-        let e = c.next_event().unwrap();
-        if e.job_id != id {
-            continue;
-        }
-        if let EventBody::Started { session: s, .. } = &e.body {
-            session = Some(s.clone());
-        }
-        if e.body.is_terminal() {
-            assert!(matches!(e.body, EventBody::Finished { .. }), "{:?}", e.body);
-            break;
-        }
-    }
-    let s = Session::open(&data.join(session.unwrap())).unwrap();
+    subscribe(&mut c);
+    let job = capture_job(100.0, 2, 0);
+    let (_, ev) = run_job(&mut c, job);
+    assert_finished(&ev);
+    let s = d.session(&ev);
     let commanded: Vec<f64> = s.steps.iter().map(|r| r.position_um).collect();
     assert_eq!(commanded, vec![7_250.0, 7_350.0]);
     assert_eq!(s.manifest.rig.axis_dir, [0.0, -1.0]);

@@ -1,15 +1,15 @@
 //! The rig's configuration reaches its jobs: `[pipeline]` defaults fill what a job leaves
 //! out (recorded in the session and echoed on `accepted`), explicit values win.
 
+mod support;
+
 use rigd::cli::client::Client;
-use rigd::config::Config;
-use rigd::daemon::hwrig::rig_from_config;
 use rigd::daemon::protocol::{EventBody, JobRegistration, JobSpec, Request};
-use rigd::daemon::server::Background;
 use rigd::daemon::session::{Session, SessionState};
-use rigd::daemon::DaemonSettings;
 use rigd::pipeline::{Combine, Estimator};
-use std::path::Path;
+use support::daemon::{
+    assert_finished, events_until_end, job_id, rig_from_toml, subscribe, Daemon,
+};
 
 const SIM_RIG: &str = r#"
 [axis]
@@ -38,30 +38,21 @@ whole_frame = true
 "#;
 
 /// Run `job` to its end; its `accepted` event's job and its session.
-fn run(c: &mut Client, data: &Path, job: JobSpec) -> (JobSpec, Session) {
+fn run(c: &mut Client, d: &Daemon, job: JobSpec) -> (JobSpec, Session) {
     let reply = c.request(&Request::Submit { job }).unwrap();
-    let id = reply["job_id"].as_u64().unwrap();
-    let mut accepted = None;
-    let mut session = None;
-    loop {
-        let e = c.next_event().unwrap();
-        if e.job_id != id {
-            continue;
-        }
-        match e.body {
-            EventBody::Accepted { job, .. } => accepted = job,
-            EventBody::Started { session: s, .. } => session = Some(s),
-            b if b.is_terminal() => {
-                assert!(matches!(b, EventBody::Finished { .. }), "{b:?}");
-                break;
-            }
-            _ => {}
-        }
-    }
-    let accepted = *accepted.expect("the accepted event carries the resolved job");
+    let ev = events_until_end(c, job_id(&reply));
+    assert_finished(&ev);
+    let accepted = ev
+        .iter()
+        .find_map(|e| match e {
+            EventBody::Accepted { job, .. } => job.clone(),
+            _ => None,
+        })
+        .expect("the accepted event carries the resolved job");
+    let accepted = *accepted;
     // The submit reply says the same.
     assert_eq!(reply["job"], serde_json::to_value(&accepted).unwrap());
-    let s = Session::open(&data.join(session.unwrap())).unwrap();
+    let s = d.session(&ev);
     assert_eq!(s.manifest.state, SessionState::Finished);
     (accepted, s)
 }
@@ -69,20 +60,13 @@ fn run(c: &mut Client, data: &Path, job: JobSpec) -> (JobSpec, Session) {
 #[test]
 fn pipeline_defaults_fill_what_a_job_omits_and_explicit_values_win() {
     let dir = tempfile::tempdir().unwrap();
-    let cfg = Config::from_toml_str(SIM_RIG, &dir.path().join("rig.toml")).unwrap();
-    let rig = rig_from_config(&cfg).unwrap();
+    let rig = rig_from_toml(dir.path(), SIM_RIG);
     assert_eq!(rig.info.grab_timeout_ms, 1500, "[camera] frame_timeout_ms");
-    let data = dir.path().join("data");
-    let settings = DaemonSettings {
-        socket: dir.path().join("rigd.sock"),
-        group: None,
-        data_root: data.clone(),
-    };
-    let bg = Background::start(settings, rig).unwrap();
-    let mut c = Client::connect(&bg.socket).unwrap();
+    let d = Daemon::start_in(rig, dir);
+    let mut c = d.client();
     let hello = c.request(&Request::Hello).unwrap();
     assert_eq!(hello["rig"]["job_defaults"]["estimator"], "paper");
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    subscribe(&mut c);
     let bare = JobSpec {
         start_um: Some(2_000.0),
         step_um: Some(100.0),
@@ -92,7 +76,7 @@ fn pipeline_defaults_fill_what_a_job_omits_and_explicit_values_win() {
         ..JobSpec::default()
     };
 
-    let (job, s) = run(&mut c, &data, bare.clone());
+    let (job, s) = run(&mut c, &d, bare.clone());
     let got = |j: &JobSpec| (j.k, j.estimator, j.combine, j.registration, j.whole_frame);
     let configured = (
         Some(3),
@@ -115,7 +99,7 @@ fn pipeline_defaults_fill_what_a_job_omits_and_explicit_values_win() {
         combine: Some(Combine::Mean),
         ..bare
     };
-    let (job, s) = run(&mut c, &data, explicit);
+    let (job, s) = run(&mut c, &d, explicit);
     let want = (
         Some(1),
         Some(Estimator::Fit),

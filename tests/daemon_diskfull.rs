@@ -5,6 +5,8 @@
 //! namespaces; without them the test says SKIPPED on stderr (with `CI` set and run as root
 //! it fails instead, so CI cannot skip it silently).
 
+mod support;
+
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, JobSpec, Request};
 use rigd::daemon::session::{Session, SessionState};
@@ -12,6 +14,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
+use support::daemon::{assert_frames_decode, capture_job, end_of, submit, subscribe};
 
 fn is_root() -> bool {
     // SAFETY: geteuid has no preconditions.
@@ -196,6 +199,41 @@ fn fill(dir: &Path, slack: u64) -> PathBuf {
     path
 }
 
+/// Run a 16-frame capture job; once two frames are in, another program fills the disk at
+/// `root` leaving `slack` bytes. The job must fail: its id, its session, the frames
+/// reported, the filler file and the failure reason.
+fn fill_mid_job(
+    c: &mut Client,
+    root: &Path,
+    slack: u64,
+) -> (u64, String, Vec<u32>, PathBuf, String) {
+    subscribe(c);
+    let id = submit(c, capture_job(50.0, 16, 100));
+    let (mut session, mut reported, mut filler) = (String::new(), Vec::new(), None);
+    let end = loop {
+        let e = c.next_event().unwrap();
+        if e.job_id != id {
+            continue;
+        }
+        match e.body {
+            EventBody::Started { session: s, .. } => session = s,
+            EventBody::Step { index, .. } => {
+                reported.push(index);
+                if reported.len() == 2 {
+                    filler = Some(fill(root, slack));
+                }
+            }
+            b if b.is_terminal() => break b,
+            _ => {}
+        }
+    };
+    let filler = filler.expect("the job reached two frames");
+    let EventBody::Failed { reason, .. } = end else {
+        panic!("the job did not fail: {end:?}")
+    };
+    (id, session, reported, filler, reason)
+}
+
 fn frames_on_disk(s: &Session) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(s.dir.join("frames"))
         .unwrap()
@@ -232,41 +270,8 @@ fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
         .to_string();
     assert!(e.contains("MB free"), "{e}");
 
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
-    let job = JobSpec {
-        step_um: Some(50.0),
-        steps: Some(16),
-        settle_ms: 100,
-        process: false,
-        ..JobSpec::default()
-    };
-    let id = c.request(&Request::Submit { job }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap();
-    let (mut session, mut reported, mut end) = (String::new(), Vec::new(), None);
-    let mut filler = None;
-    while end.is_none() {
-        let e = c.next_event().unwrap();
-        if e.job_id != id {
-            continue;
-        }
-        match e.body {
-            EventBody::Started { session: s, .. } => session = s,
-            EventBody::Step { index, .. } => {
-                reported.push(index);
-                // Another program fills the disk once two frames are in.
-                if reported.len() == 2 {
-                    filler = Some(fill(&root, 256 * 1024));
-                }
-            }
-            b if b.is_terminal() => end = Some(b),
-            _ => {}
-        }
-    }
-    let filler = filler.expect("the job reached two frames");
-    let Some(EventBody::Failed { reason, .. }) = end else {
-        panic!("the job did not fail: {end:?}")
-    };
+    // Another program fills the disk once two frames are in.
+    let (id, session, reported, filler, reason) = fill_mid_job(&mut c, &root, 256 * 1024);
     eprintln!("disk full after {} frames: {reason}", reported.len());
     assert!(reported.len() >= 2 && reported.len() < 16, "{reported:?}");
     // The reason says the disk is full and names the frame that could not be written.
@@ -294,10 +299,7 @@ fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
     let names = frames_on_disk(&s);
     let want: Vec<String> = reported.iter().map(|i| format!("{i:06}.png")).collect();
     assert_eq!(names, want, "frames/ holds exactly the reported frames");
-    for r in &s.steps {
-        let img = image::open(s.frame_path(r.index)).unwrap();
-        assert_eq!((img.width(), img.height()), (1280, 720));
-    }
+    assert_frames_decode(&s, (1280, 720));
     for f in [
         "manifest.json",
         "steps.csv",
@@ -324,15 +326,8 @@ fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
     assert!(e.contains("MB free"), "{e}");
     // Space freed: the daemon runs the next job.
     std::fs::remove_file(&filler).unwrap();
-    let id = c.request(&Request::Submit { job: one }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap();
-    let ended = loop {
-        let e = c.next_event().unwrap();
-        if e.job_id == id && e.body.is_terminal() {
-            break e.body;
-        }
-    };
+    let id = submit(&mut c, one);
+    let ended = end_of(&mut c, id);
     assert!(matches!(ended, EventBody::Finished { .. }), "{ended:?}");
 }
 
@@ -345,40 +340,8 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
     let mut ns = Namespace::start(dir.path(), 64);
     let data = ns.root().join("data");
     let mut c = ns.client();
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
-    let job = JobSpec {
-        step_um: Some(50.0),
-        steps: Some(16),
-        settle_ms: 100,
-        process: false,
-        ..JobSpec::default()
-    };
-    let id = c.request(&Request::Submit { job }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap();
-    let (mut session, mut reported, mut filler) = (String::new(), Vec::new(), None);
-    let end = loop {
-        let e = c.next_event().unwrap();
-        if e.job_id != id {
-            continue;
-        }
-        match e.body {
-            EventBody::Started { session: s, .. } => session = s,
-            EventBody::Step { index, .. } => {
-                reported.push(index);
-                if reported.len() == 2 {
-                    // No slack at all: not even the manifest fits.
-                    filler = Some(fill(&ns.root(), 0));
-                }
-            }
-            b if b.is_terminal() => break b,
-            _ => {}
-        }
-    };
-    let filler = filler.expect("the job reached two frames");
-    let EventBody::Failed { reason, .. } = end else {
-        panic!("the job did not fail: {end:?}")
-    };
+    // No slack at all: not even the manifest fits.
+    let (id, session, reported, filler, reason) = fill_mid_job(&mut c, &ns.root(), 0);
     eprintln!("no room at all after {} frames: {reason}", reported.len());
     // The first reason is the first write of the next step that did not fit: its share of
     // the interferometer log (appended before the frame) or the frame itself.
@@ -400,9 +363,7 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
             want,
             "frames/ holds exactly the reported frames"
         );
-        for r in &s.steps {
-            image::open(s.frame_path(r.index)).unwrap();
-        }
+        assert_frames_decode(s, (1280, 720));
     };
     // Whatever fit is whole; the manifest is the old one (`running`) or the final one.
     let s = Session::open(&data.join(&session)).unwrap();
@@ -441,20 +402,13 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
         .unwrap();
     assert_eq!(entry["state"], serde_json::to_value(want).unwrap());
     // And it runs the next job.
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    subscribe(&mut c);
     let one = JobSpec {
         steps: Some(1),
         process: false,
         ..JobSpec::default()
     };
-    let id = c.request(&Request::Submit { job: one }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap();
-    let ended = loop {
-        let e = c.next_event().unwrap();
-        if e.job_id == id && e.body.is_terminal() {
-            break e.body;
-        }
-    };
+    let id = submit(&mut c, one);
+    let ended = end_of(&mut c, id);
     assert!(matches!(ended, EventBody::Finished { .. }), "{ended:?}");
 }

@@ -3,125 +3,41 @@
 //! controller is told to stop where it is). Each time the axis is left stopped, what was
 //! captured is kept, and the daemon runs the next job.
 
-use rigd::cli::client::Client;
+mod support;
+
 use rigd::daemon::protocol::{EventBody, JobSpec, Request};
-use rigd::daemon::server::Background;
 use rigd::daemon::session::{Session, SessionState};
 use rigd::daemon::simrig::{sim_rig_with_truth, Fault, SimSettings, SimTruth};
-use rigd::daemon::DaemonSettings;
 use rigd::sim::motion::AxisParams;
-use rigd::sim::CameraModel;
-use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
-
-struct Rigd {
-    bg: Background,
-    data: PathBuf,
-    truth: SimTruth,
-    _dir: tempfile::TempDir,
-}
+use support::daemon::{
+    assert_finished, assert_frames_decode, capture_job, events_until_end, fast_camera,
+    reported_steps, submit, Daemon,
+};
 
 fn settings(faults: Vec<Fault>, axis: AxisParams) -> SimSettings {
     SimSettings {
-        camera: CameraModel {
-            width: 48,
-            height: 32,
-            supersample: 2,
-            frame_period_ms: 1.0,
-            exposure_ms: 0.5,
-            ..CameraModel::default()
-        },
+        camera: fast_camera(),
         axis,
         faults,
         ..SimSettings::default()
     }
 }
 
-fn start(s: SimSettings) -> Rigd {
-    let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("data");
-    let d = DaemonSettings {
-        socket: dir.path().join("rigd.sock"),
-        group: None,
-        data_root: data.clone(),
-    };
+/// The daemon on the sim rig `s`, and the rig's true state.
+fn start(s: SimSettings) -> (Daemon, SimTruth) {
     let (mut rig, truth) = sim_rig_with_truth(&s).unwrap();
     // As `rigd --sim --grab-timeout-ms 500`: a stalled camera fails the job in 0.5 s, not 5
     // (frames come every millisecond here).
     rig.info.grab_timeout_ms = 500;
-    let bg = Background::start(d, rig).unwrap();
-    Rigd {
-        bg,
-        data,
-        truth,
-        _dir: dir,
-    }
-}
-
-impl Rigd {
-    fn client(&self) -> Client {
-        let mut c = Client::connect(&self.bg.socket).unwrap();
-        c.request(&Request::Subscribe { job_id: None }).unwrap();
-        c
-    }
-}
-
-fn submit(c: &mut Client, job: JobSpec) -> u64 {
-    c.request(&Request::Submit { job }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap()
+    (Daemon::start(rig), truth)
 }
 
 fn scan(start_um: f64, step_um: f64, steps: u32) -> JobSpec {
     JobSpec {
         start_um: Some(start_um),
-        step_um: Some(step_um),
-        steps: Some(steps),
-        settle_ms: 0,
-        process: false,
-        ..JobSpec::default()
+        ..capture_job(step_um, steps, 0)
     }
-}
-
-/// Events of job `id` until its terminal one.
-fn events_until_end(c: &mut Client, id: u64) -> Vec<EventBody> {
-    let mut v = Vec::new();
-    loop {
-        let e = c.next_event().unwrap();
-        if e.job_id != id {
-            continue;
-        }
-        let end = e.body.is_terminal();
-        v.push(e.body);
-        if end {
-            return v;
-        }
-    }
-}
-
-fn session_of(data: &Path, events: &[EventBody]) -> Session {
-    let name = events
-        .iter()
-        .find_map(|e| match e {
-            EventBody::Started { session, .. } => Some(session.clone()),
-            _ => None,
-        })
-        .expect("a started event");
-    Session::open(&data.join(name)).unwrap()
-}
-
-fn reported_steps(events: &[EventBody]) -> Vec<(u32, f64)> {
-    events
-        .iter()
-        .filter_map(|e| match e {
-            EventBody::Step {
-                index,
-                commanded_um,
-                ..
-            } => Some((*index, *commanded_um)),
-            _ => None,
-        })
-        .collect()
 }
 
 /// Every frame reported captured is in steps.csv and its PNG decodes whole.
@@ -130,9 +46,8 @@ fn check_captured(s: &Session, reported: &[(u32, f64)]) {
     assert_eq!(s.manifest.frames_captured as usize, reported.len());
     for (row, (index, commanded)) in s.steps.iter().zip(reported) {
         assert_eq!((row.index, row.position_um), (*index, *commanded));
-        let img = image::open(s.frame_path(row.index)).unwrap();
-        assert_eq!((img.width(), img.height()), (48, 32));
     }
+    assert_frames_decode(s, (48, 32));
 }
 
 /// `(position_um, state)` from a reason's "axis stopped at 123.456 µm (idle)".
@@ -159,11 +74,11 @@ fn check_axis_stopped(truth: &SimTruth, reported_um: f64) {
 
 #[test]
 fn a_stalled_camera_fails_the_job_naming_the_camera_and_the_next_job_runs() {
-    let d = start(settings(
+    let (d, truth) = start(settings(
         vec![Fault::CameraTimeout(4)],
         SimSettings::default().axis,
     ));
-    let mut c = d.client();
+    let mut c = d.subscribed();
     let id = submit(&mut c, scan(1_000.0, 50.0, 10));
     let ev = events_until_end(&mut c, id);
     let Some(EventBody::Failed { reason, .. }) = ev.last() else {
@@ -177,7 +92,7 @@ fn a_stalled_camera_fails_the_job_naming_the_camera_and_the_next_job_runs() {
     assert!(reason.contains("waiting for a frame"), "{reason}");
     let reported = reported_steps(&ev);
     assert_eq!(reported.len(), 3, "grabs 1-3 delivered, grab 4 stalled");
-    let s = session_of(&d.data, &ev);
+    let s = d.session(&ev);
     assert_eq!(s.manifest.state, SessionState::Failed);
     assert_eq!(s.manifest.reason.as_deref(), Some(reason.as_str()));
     check_captured(&s, &reported);
@@ -186,15 +101,12 @@ fn a_stalled_camera_fails_the_job_naming_the_camera_and_the_next_job_runs() {
     let (at, state) = stopped_at(reason);
     assert!((at - 1_150.0).abs() < 12.0, "{reason}");
     assert!(state == "idle" || state == "holding", "{reason}");
-    check_axis_stopped(&d.truth, at);
+    check_axis_stopped(&truth, at);
     // The driver restarted the stalled stream: the next job captures every frame.
     let id = submit(&mut c, scan(2_000.0, 50.0, 3));
     let ev = events_until_end(&mut c, id);
-    assert!(
-        matches!(ev.last(), Some(EventBody::Finished { .. })),
-        "{ev:?}"
-    );
-    check_captured(&session_of(&d.data, &ev), &reported_steps(&ev));
+    assert_finished(&ev);
+    check_captured(&d.session(&ev), &reported_steps(&ev));
 }
 
 #[test]
@@ -206,8 +118,8 @@ fn a_cancel_stops_the_axis_mid_move_and_the_next_job_runs() {
         accel_um_s2: 200_000.0,
         ..SimSettings::default().axis
     };
-    let d = start(settings(vec![], slow));
-    let mut c = d.client();
+    let (d, truth) = start(settings(vec![], slow));
+    let mut c = d.subscribed();
     let target = 101_000.0;
     let id = submit(&mut c, scan(1_000.0, 100_000.0, 2));
     let mut ev = Vec::new();
@@ -220,8 +132,8 @@ fn a_cancel_stops_the_axis_mid_move_and_the_next_job_runs() {
     }
     // Cancel once the axis is truly on its way to the second position.
     let t = Instant::now();
-    while !(d.truth.axis.is_moving(Instant::now())
-        && d.truth.axis.position_at(Instant::now()) > 1_100.0)
+    while !(truth.axis.is_moving(Instant::now())
+        && truth.axis.position_at(Instant::now()) > 1_100.0)
     {
         assert!(
             t.elapsed() < Duration::from_secs(20),
@@ -244,9 +156,9 @@ fn a_cancel_stops_the_axis_mid_move_and_the_next_job_runs() {
     let (at, state) = stopped_at(reason);
     assert!(state == "idle" || state == "holding", "{reason}");
     assert!(at > 1_100.0 && at < target - 1_000.0, "{reason}");
-    check_axis_stopped(&d.truth, at);
+    check_axis_stopped(&truth, at);
     // The frame of the first step is kept, nothing of the interrupted one.
-    let s = session_of(&d.data, &ev);
+    let s = d.session(&ev);
     assert_eq!(s.manifest.state, SessionState::Cancelled);
     check_captured(&s, &reported_steps(&ev));
     assert_eq!(s.steps.len(), 1);
@@ -254,11 +166,8 @@ fn a_cancel_stops_the_axis_mid_move_and_the_next_job_runs() {
     let next = scan(at.round() + 100.0, 50.0, 3);
     let id = submit(&mut c, next);
     let ev = events_until_end(&mut c, id);
-    assert!(
-        matches!(ev.last(), Some(EventBody::Finished { .. })),
-        "{ev:?}"
-    );
-    check_captured(&session_of(&d.data, &ev), &reported_steps(&ev));
+    assert_finished(&ev);
+    check_captured(&d.session(&ev), &reported_steps(&ev));
 }
 
 #[test]

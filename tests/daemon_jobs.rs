@@ -1,111 +1,39 @@
 //! The daemon over its real Unix socket, in-process, on a small fast simulated rig:
 //! queueing, cancel, faults, disconnecting clients, many clients, replay, and a short soak.
 
+mod support;
+
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, JobSpec, ProcessingOverride, Request};
-use rigd::daemon::server::Background;
-use rigd::daemon::session::{Session, SessionState};
+use rigd::daemon::session::SessionState;
 use rigd::daemon::simrig::{sim_rig, Fault, SimSettings};
-use rigd::daemon::DaemonSettings;
-use rigd::sim::CameraModel;
 use serde_json::Value;
-use std::path::{Path, PathBuf};
+use support::daemon::{
+    assert_finished, assert_frames_decode, capture_job, events_until_end, fast_camera, job_id,
+    submit, subscribe, Daemon,
+};
 
-struct Rigd {
-    bg: Background,
-    data: PathBuf,
-    _dir: tempfile::TempDir,
-}
-
-fn small_sim(faults: Vec<Fault>) -> SimSettings {
-    SimSettings {
-        camera: CameraModel {
-            width: 48,
-            height: 32,
-            supersample: 2,
-            frame_period_ms: 1.0,
-            exposure_ms: 0.5,
-            ..CameraModel::default()
-        },
+fn start(faults: Vec<Fault>) -> Daemon {
+    let mut rig = sim_rig(&SimSettings {
+        camera: fast_camera(),
         faults,
         ..SimSettings::default()
-    }
-}
-
-fn start(faults: Vec<Fault>) -> Rigd {
-    let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("data");
-    let settings = DaemonSettings {
-        socket: dir.path().join("rigd.sock"),
-        group: None,
-        data_root: data.clone(),
-    };
-    let mut rig = sim_rig(&small_sim(faults)).unwrap();
+    })
+    .unwrap();
     // A short grab deadline (`rigd --sim --grab-timeout-ms`): the camera-timeout case
     // waits 0.5 s, not the sim's default 5 s.
     rig.info.grab_timeout_ms = 500;
-    let bg = Background::start(settings, rig).unwrap();
-    Rigd {
-        bg,
-        data,
-        _dir: dir,
-    }
-}
-
-impl Rigd {
-    fn client(&self) -> Client {
-        Client::connect(&self.bg.socket).unwrap()
-    }
+    Daemon::start(rig)
 }
 
 fn scan(steps: u32, settle_ms: u64) -> JobSpec {
-    JobSpec {
-        step_um: Some(50.0),
-        steps: Some(steps),
-        settle_ms,
-        process: false,
-        ..JobSpec::default()
-    }
-}
-
-fn submit(c: &mut Client, job: JobSpec) -> u64 {
-    c.request(&Request::Submit { job }).unwrap()["job_id"]
-        .as_u64()
-        .unwrap()
-}
-
-/// Events of job `id` until its terminal one (the client is subscribed).
-fn events_until_end(c: &mut Client, id: u64) -> Vec<EventBody> {
-    let mut v = Vec::new();
-    loop {
-        let e = c.next_event().unwrap();
-        if e.job_id != id {
-            continue;
-        }
-        let end = e.body.is_terminal();
-        v.push(e.body);
-        if end {
-            return v;
-        }
-    }
-}
-
-fn session_of(data: &Path, events: &[EventBody]) -> Session {
-    let name = events
-        .iter()
-        .find_map(|e| match e {
-            EventBody::Started { session, .. } => Some(session.clone()),
-            _ => None,
-        })
-        .expect("a started event");
-    Session::open(&data.join(name)).unwrap()
+    capture_job(50.0, steps, settle_ms)
 }
 
 #[test]
 fn a_job_runs_its_steps_in_order_and_records_every_frame() {
     let d = start(vec![]);
-    let mut c = d.client();
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let mut c = d.subscribed();
     let id = submit(&mut c, scan(5, 0));
     let ev = events_until_end(&mut c, id);
     assert!(matches!(
@@ -115,7 +43,7 @@ fn a_job_runs_its_steps_in_order_and_records_every_frame() {
             ..
         }
     ));
-    assert!(matches!(ev.last(), Some(EventBody::Finished { .. })));
+    assert_finished(&ev);
     let steps: Vec<(u32, f64, f64)> = ev
         .iter()
         .filter_map(|e| match e {
@@ -137,13 +65,10 @@ fn a_job_runs_its_steps_in_order_and_records_every_frame() {
         // The axis ends within its random positioning error (2 µm RMS) of the target.
         assert!((ifm - cmd).abs() < 12.0, "interferometer {ifm} vs {cmd}");
     }
-    let s = session_of(&d.data, &ev);
+    let s = d.session(&ev);
     assert_eq!(s.manifest.state, SessionState::Finished);
     assert_eq!(s.steps.len(), 5);
-    for r in &s.steps {
-        let img = image::open(s.frame_path(r.index)).unwrap();
-        assert_eq!((img.width(), img.height()), (48, 32));
-    }
+    assert_frames_decode(&s, (48, 32));
     let text = std::fs::read_to_string(s.dir.join("steps.csv")).unwrap();
     assert!(text.starts_with("index,position_um,"), "{text}");
     let st = c.request(&Request::Status { job_id: Some(id) }).unwrap();
@@ -156,8 +81,7 @@ fn a_job_runs_its_steps_in_order_and_records_every_frame() {
 #[test]
 fn jobs_queue_behind_the_running_one_and_cancel_stops_them() {
     let d = start(vec![]);
-    let mut c = d.client();
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let mut c = d.subscribed();
     let long = submit(&mut c, scan(200, 20));
     let queued = c.request(&Request::Submit { job: scan(3, 0) }).unwrap();
     assert_eq!(queued["queue_position"].as_u64(), Some(1));
@@ -205,15 +129,14 @@ fn each_injected_fault_fails_the_job_with_its_reason_and_keeps_the_frames() {
         (Fault::CameraTimeout(5), "no reply within 500 ms", 4),
     ] {
         let d = start(vec![fault]);
-        let mut c = d.client();
-        c.request(&Request::Subscribe { job_id: None }).unwrap();
+        let mut c = d.subscribed();
         let id = submit(&mut c, scan(10, 0));
         let ev = events_until_end(&mut c, id);
         let Some(EventBody::Failed { reason, .. }) = ev.last() else {
             panic!("{fault:?}: {ev:?}")
         };
         assert!(reason.contains(want), "{fault:?}: {reason}");
-        let s = session_of(&d.data, &ev);
+        let s = d.session(&ev);
         assert_eq!(s.manifest.state, SessionState::Failed);
         assert_eq!(s.steps.len(), kept, "{fault:?}");
         assert!(s.manifest.reason.as_deref().unwrap().contains(want));
@@ -226,8 +149,7 @@ fn each_injected_fault_fails_the_job_with_its_reason_and_keeps_the_frames() {
 fn a_client_that_disconnects_does_not_affect_its_job() {
     let d = start(vec![]);
     let id = {
-        let mut c = d.client();
-        c.request(&Request::Subscribe { job_id: None }).unwrap();
+        let mut c = d.subscribed();
         submit(&mut c, scan(8, 5))
     };
     let mut c = d.client();
@@ -254,7 +176,7 @@ fn many_clients_at_once_all_get_their_jobs_done() {
             let socket = socket.clone();
             std::thread::spawn(move || {
                 let mut c = Client::connect(&socket).unwrap();
-                c.request(&Request::Subscribe { job_id: None }).unwrap();
+                subscribe(&mut c);
                 let id = submit(&mut c, scan(1 + i % 3, 0));
                 // Interleave other requests while the queue drains.
                 c.request(&Request::List).unwrap();
@@ -287,8 +209,7 @@ fn many_clients_at_once_all_get_their_jobs_done() {
 #[test]
 fn replay_feeds_the_recorded_frames_and_positions_through_the_job_path() {
     let d = start(vec![]);
-    let mut c = d.client();
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let mut c = d.subscribed();
     let live = submit(
         &mut c,
         JobSpec {
@@ -297,20 +218,17 @@ fn replay_feeds_the_recorded_frames_and_positions_through_the_job_path() {
         },
     );
     let ev = events_until_end(&mut c, live);
-    let live_s = session_of(&d.data, &ev);
+    let live_s = d.session(&ev);
     let r = c
         .request(&Request::Replay {
             session: live_s.manifest.name.clone(),
             processing: ProcessingOverride::default(),
         })
         .unwrap();
-    let rid = r["job_id"].as_u64().unwrap();
+    let rid = job_id(&r);
     let ev = events_until_end(&mut c, rid);
-    assert!(
-        matches!(ev.last(), Some(EventBody::Finished { .. })),
-        "{ev:?}"
-    );
-    let rs = session_of(&d.data, &ev);
+    assert_finished(&ev);
+    let rs = d.session(&ev);
     assert_eq!(
         rs.manifest.replay_of.as_deref(),
         Some(live_s.manifest.name.as_str())
@@ -369,11 +287,10 @@ fn soak_short_jobs_leak_neither_files_nor_memory() {
     let d = start(vec![]);
     let run = |count: usize| {
         for _ in 0..count {
-            let mut c = d.client();
-            c.request(&Request::Subscribe { job_id: None }).unwrap();
+            let mut c = d.subscribed();
             let id = submit(&mut c, scan(1, 0));
             let ev = events_until_end(&mut c, id);
-            assert!(matches!(ev.last(), Some(EventBody::Finished { .. })));
+            assert_finished(&ev);
         }
     };
     run(30); // warm up: allocator pools, runtime threads, the job table's first growth

@@ -2,15 +2,16 @@
 //! and bad requests over a live socket: each gets an error reply before anything moves and
 //! the connection keeps serving.
 
+mod support;
+
 use proptest::prelude::*;
 use rigd::daemon::protocol::{decode_request, ErrorCode, MAX_LINE_BYTES};
-use rigd::daemon::server::Background;
 use rigd::daemon::simrig::{sim_rig, SimSettings};
-use rigd::daemon::DaemonSettings;
 use rigd::sim::CameraModel;
 use serde_json::Value;
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
+use support::daemon::Daemon;
 
 proptest! {
     #![proptest_config(ProptestConfig { cases: 2000, ..ProptestConfig::default() })]
@@ -99,12 +100,6 @@ impl Conn {
 
 #[test]
 fn bad_requests_get_error_replies_and_the_connection_keeps_serving() {
-    let dir = tempfile::tempdir().unwrap();
-    let settings = DaemonSettings {
-        socket: dir.path().join("s.sock"),
-        group: None,
-        data_root: dir.path().join("data"),
-    };
     let sim = SimSettings {
         camera: CameraModel {
             width: 32,
@@ -114,7 +109,8 @@ fn bad_requests_get_error_replies_and_the_connection_keeps_serving() {
         },
         ..SimSettings::default()
     };
-    let mut bg = Background::start(settings, sim_rig(&sim).unwrap()).unwrap();
+    let mut d = Daemon::start(sim_rig(&sim).unwrap());
+    let bg = &mut d.bg;
     // The socket is group read-write, nobody else.
     use std::os::unix::fs::PermissionsExt;
     let mode = std::fs::metadata(&bg.socket).unwrap().permissions().mode();

@@ -9,41 +9,20 @@ use rigd::config::Config;
 use rigd::daemon::hwrig::rig_from_config;
 use rigd::daemon::protocol::{EventBody, JobRegistration, JobSpec, ProcessingOverride, Request};
 use rigd::daemon::rig::LogSample;
-use rigd::daemon::server::Background;
 use rigd::daemon::session::{Session, SessionState, INTERFEROMETER_HEADER};
 use rigd::daemon::simrig::{sim_rig, SimSettings};
-use rigd::daemon::DaemonSettings;
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
 use rigd::sim::motion::AxisParams;
 use rigd::sim::xl80::{LiveOptions, LogFormat};
 use rigd::sim::{CameraModel, SimRig, SimRigConfig};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::path::Path;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use support::daemon::{
+    assert_finished, capture_job, run_job, run_request, submit, subscribe, Daemon, RigdProcess,
+};
 
 /// The sim XL-80's reading noise (Xl80Params::default), µm RMS.
 const NOISE_UM: f64 = 0.2;
-
-struct Daemon {
-    bg: Background,
-    data: PathBuf,
-    _dir: tempfile::TempDir,
-}
-
-fn daemon(rig: rigd::daemon::rig::Rig, dir: tempfile::TempDir) -> Daemon {
-    let data = dir.path().join("data");
-    let settings = DaemonSettings {
-        socket: dir.path().join("rigd.sock"),
-        group: None,
-        data_root: data.clone(),
-    };
-    Daemon {
-        bg: Background::start(settings, rig).unwrap(),
-        data,
-        _dir: dir,
-    }
-}
 
 /// A small fast `rigd --sim` rig looking at the small two-target board.
 fn sim_settings(dir: &Path) -> SimSettings {
@@ -61,33 +40,6 @@ fn sim_settings(dir: &Path) -> SimSettings {
         board_file: Some(board),
         ..SimSettings::default()
     }
-}
-
-fn run(c: &mut Client, req: &Request) -> (u64, Vec<EventBody>) {
-    let id = c.request(req).unwrap()["job_id"].as_u64().unwrap();
-    let mut v = Vec::new();
-    loop {
-        let e = c.next_event().unwrap();
-        if e.job_id != id {
-            continue;
-        }
-        let end = e.body.is_terminal();
-        v.push(e.body);
-        if end {
-            return (id, v);
-        }
-    }
-}
-
-fn session_of(data: &Path, events: &[EventBody]) -> Session {
-    let name = events
-        .iter()
-        .find_map(|e| match e {
-            EventBody::Started { session, .. } => Some(session.clone()),
-            _ => None,
-        })
-        .expect("a started event");
-    Session::open(&data.join(name)).unwrap()
 }
 
 /// The reading at `t`, linear between the recorded samples around it (written here again,
@@ -160,18 +112,11 @@ fn settled_noise_um(samples: &[LogSample], s: &Session, window_s: f64) -> f64 {
 fn a_sim_job_records_the_live_log_and_reads_each_frame_from_it() {
     let dir = tempfile::tempdir().unwrap();
     let settings = sim_settings(dir.path());
-    let d = daemon(sim_rig(&settings).unwrap(), dir);
-    let mut c = Client::connect(&d.bg.socket).unwrap();
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
-    let job = JobSpec {
-        step_um: Some(100.0),
-        steps: Some(8),
-        settle_ms: 60,
-        process: false,
-        ..JobSpec::default()
-    };
-    let (_, ev) = run(&mut c, &Request::Submit { job });
-    let s = session_of(&d.data, &ev);
+    let d = Daemon::start_in(sim_rig(&settings).unwrap(), dir);
+    let mut c = d.subscribed();
+    let job = capture_job(100.0, 8, 60);
+    let (_, ev) = run_job(&mut c, job);
+    let s = d.session(&ev);
     assert_eq!(s.manifest.state, SessionState::Finished);
     // The manifest names the source log and its facts.
     let src = s.manifest.interferometer.as_ref().expect("a log source");
@@ -228,9 +173,8 @@ fn a_sim_job_records_the_live_log_and_reads_each_frame_from_it() {
 fn registration_interferometer_uses_the_readings_and_replays_the_same() {
     let dir = tempfile::tempdir().unwrap();
     let settings = sim_settings(dir.path());
-    let d = daemon(sim_rig(&settings).unwrap(), dir);
-    let mut c = Client::connect(&d.bg.socket).unwrap();
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let d = Daemon::start_in(sim_rig(&settings).unwrap(), dir);
+    let mut c = d.subscribed();
     let job = JobSpec {
         step_um: Some(154.8),
         steps: Some(5),
@@ -239,12 +183,9 @@ fn registration_interferometer_uses_the_readings_and_replays_the_same() {
         registration: Some(JobRegistration::Interferometer),
         ..JobSpec::default()
     };
-    let (live, ev) = run(&mut c, &Request::Submit { job });
-    assert!(
-        matches!(ev.last(), Some(EventBody::Finished { .. })),
-        "{ev:?}"
-    );
-    let live_s = session_of(&d.data, &ev);
+    let (live, ev) = run_job(&mut c, job);
+    assert_finished(&ev);
+    let live_s = d.session(&ev);
     let live_log = check_log(&live_s, 1000.0);
     let result = |c: &mut Client, id| c.request(&Request::Result { job_id: id }).unwrap();
     let a = result(&mut c, live);
@@ -256,7 +197,7 @@ fn registration_interferometer_uses_the_readings_and_replays_the_same() {
 
     // Replay: the recorded readings, the same result, the recorded log carried over.
     let replay = |c: &mut Client, registration| {
-        run(
+        run_request(
             c,
             &Request::Replay {
                 session: live_s.manifest.name.clone(),
@@ -268,7 +209,7 @@ fn registration_interferometer_uses_the_readings_and_replays_the_same() {
         )
     };
     let (rid, rev) = replay(&mut c, None);
-    let rs = session_of(&d.data, &rev);
+    let rs = d.session(&rev);
     assert_eq!(
         rs.manifest.job.registration,
         Some(JobRegistration::Interferometer)
@@ -364,9 +305,8 @@ poll_ms = 5
     let cfg = Config::from_toml_str(&text, &dir.path().join("rig.toml")).unwrap();
     let rig = rig_from_config(&cfg).unwrap();
     assert_eq!(rig.info.mode, "hardware");
-    let d = daemon(rig, tempfile::tempdir().unwrap());
-    let mut c = Client::connect(&d.bg.socket).unwrap();
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
+    let d = Daemon::start(rig);
+    let mut c = d.subscribed();
     let job = JobSpec {
         start_um: Some(2_000.0),
         step_um: Some(250.0),
@@ -375,8 +315,8 @@ poll_ms = 5
         process: false,
         ..JobSpec::default()
     };
-    let (_, ev) = run(&mut c, &Request::Submit { job });
-    let s = session_of(&d.data, &ev);
+    let (_, ev) = run_job(&mut c, job);
+    let s = d.session(&ev);
     assert_eq!(s.manifest.state, SessionState::Finished, "{:?}", s.manifest);
     let src = s.manifest.interferometer.as_ref().unwrap();
     assert_eq!(
@@ -414,48 +354,15 @@ poll_ms = 5
     );
 }
 
-/// Kills the daemon if a test fails before it does.
-struct Reaper(Option<Child>);
-
-impl Drop for Reaper {
-    fn drop(&mut self) {
-        if let Some(c) = self.0.as_mut() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
-}
-
 #[test]
 fn kill_9_keeps_the_log_of_every_reported_frame() {
     let dir = tempfile::tempdir().unwrap();
     let (socket, data) = (dir.path().join("s.sock"), dir.path().join("data"));
-    let child = Command::new(env!("CARGO_BIN_EXE_rigd"))
-        .args(["--sim", "--socket"])
-        .arg(&socket)
-        .arg("--data-root")
-        .arg(&data)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut child = Reaper(Some(child));
-    let t = Instant::now();
-    while Client::connect(&socket).is_err() {
-        assert!(t.elapsed() < Duration::from_secs(20), "rigd did not start");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let mut child = RigdProcess::spawn_sim(&socket, &data);
     let mut c = Client::connect(&socket).unwrap();
-    c.request(&Request::Subscribe { job_id: None }).unwrap();
-    let job = JobSpec {
-        step_um: Some(50.0),
-        steps: Some(400),
-        settle_ms: 0,
-        process: false,
-        ..JobSpec::default()
-    };
-    c.request(&Request::Submit { job }).unwrap();
+    subscribe(&mut c);
+    let job = capture_job(50.0, 400, 0);
+    submit(&mut c, job);
     let (mut name, mut reported) = (String::new(), Vec::new());
     while reported.len() < 4 {
         match c.next_event().unwrap().body {
@@ -468,9 +375,7 @@ fn kill_9_keeps_the_log_of_every_reported_frame() {
             other => assert!(!other.is_terminal(), "{other:?}"),
         }
     }
-    let mut dead = child.0.take().unwrap();
-    dead.kill().unwrap(); // SIGKILL
-    dead.wait().unwrap();
+    child.kill_9();
     let s = Session::open(&data.join(&name)).unwrap();
     assert_eq!(s.manifest.state, SessionState::Running);
     // Every reported frame's reading can be read again from the samples on disk.

@@ -1,8 +1,9 @@
 //! Shared by the integration tests: a small board and camera, frames and `rigctl process`
 //! folders rendered with the simulator's `SceneRenderer`; controller emulators for the
-//! driver tests in [`emulated`].
+//! driver tests in [`emulated`]; the daemon, its clients and sessions in [`daemon`].
 #![allow(dead_code)]
 
+pub mod daemon;
 pub mod emulated;
 
 use image::RgbImage;

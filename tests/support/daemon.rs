@@ -1,0 +1,274 @@
+//! The daemon as the daemon tests drive it: in-process on a temporary socket and data root,
+//! or the `rigd` binary as a child process; a client that submits jobs and follows their
+//! events to the end; the session a job wrote; a fast GRBL emulator for hardware-mode rigs.
+
+use rigd::cli::client::Client;
+use rigd::config::Config;
+use rigd::daemon::hwrig::rig_from_config;
+use rigd::daemon::protocol::{EventBody, JobSpec, Request};
+use rigd::daemon::rig::Rig;
+use rigd::daemon::server::Background;
+use rigd::daemon::session::Session;
+use rigd::daemon::DaemonSettings;
+use rigd::sim::grbl::{GrblSim, GrblSimOptions};
+use rigd::sim::motion::{Axis, AxisParams};
+use rigd::sim::CameraModel;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// A config rig with a sim axis and a small fast sim camera (48x32 frames every 2 ms).
+pub const SIM_RIG_SMALL: &str = r#"
+[axis]
+driver = "sim"
+soft_min_um = 0.0
+soft_max_um = 100000.0
+max_step_um = 100000.0
+[camera]
+driver = "sim"
+[camera.sim]
+width = 48
+height = 32
+supersample = 2
+frame_period_ms = 2.0
+exposure_ms = 1.0
+"#;
+
+/// `text` parsed as if read from `dir/rig.toml`.
+pub fn config(dir: &Path, text: &str) -> Config {
+    Config::from_toml_str(text, &dir.join("rig.toml")).unwrap()
+}
+
+/// The rig a config `text` (read from `dir/rig.toml`) builds.
+pub fn rig_from_toml(dir: &Path, text: &str) -> Rig {
+    rig_from_config(&config(dir, text)).unwrap()
+}
+
+/// A small fast sim camera for `rigd --sim` rigs: 48x32 frames every millisecond.
+pub fn fast_camera() -> CameraModel {
+    CameraModel {
+        width: 48,
+        height: 32,
+        supersample: 2,
+        frame_period_ms: 1.0,
+        exposure_ms: 0.5,
+        ..CameraModel::default()
+    }
+}
+
+/// A daemon running in this process on `dir/rigd.sock`, its data root `dir/data`.
+pub struct Daemon {
+    pub bg: Background,
+    pub data: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+impl Daemon {
+    /// Serve `rig` from a new temporary folder.
+    pub fn start(rig: Rig) -> Daemon {
+        Daemon::start_in(rig, tempfile::tempdir().unwrap())
+    }
+
+    /// Serve `rig` with its socket and data root in `dir` (kept until the daemon drops).
+    pub fn start_in(rig: Rig, dir: tempfile::TempDir) -> Daemon {
+        let data = dir.path().join("data");
+        let settings = DaemonSettings {
+            socket: dir.path().join("rigd.sock"),
+            group: None,
+            data_root: data.clone(),
+        };
+        Daemon {
+            bg: Background::start(settings, rig).unwrap(),
+            data,
+            _dir: dir,
+        }
+    }
+
+    /// A new connection, not subscribed.
+    pub fn client(&self) -> Client {
+        Client::connect(&self.bg.socket).unwrap()
+    }
+
+    /// A new connection subscribed to every job's events.
+    pub fn subscribed(&self) -> Client {
+        let mut c = self.client();
+        subscribe(&mut c);
+        c
+    }
+
+    /// The session a job's events name, opened from this daemon's data root.
+    pub fn session(&self, events: &[EventBody]) -> Session {
+        session_of(&self.data, events)
+    }
+}
+
+/// Subscribe `c` to every job's events.
+pub fn subscribe(c: &mut Client) {
+    c.request(&Request::Subscribe { job_id: None }).unwrap();
+}
+
+/// Submit `job`; its id.
+pub fn submit(c: &mut Client, job: JobSpec) -> u64 {
+    job_id(&c.request(&Request::Submit { job }).unwrap())
+}
+
+/// The `job_id` of a submit or replay reply.
+pub fn job_id(reply: &serde_json::Value) -> u64 {
+    reply["job_id"]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no job id in {reply}"))
+}
+
+/// Events of job `id` until its terminal one, which is last (the client is subscribed).
+pub fn events_until_end(c: &mut Client, id: u64) -> Vec<EventBody> {
+    let mut v = Vec::new();
+    loop {
+        let e = c.next_event().unwrap();
+        if e.job_id != id {
+            continue;
+        }
+        let end = e.body.is_terminal();
+        v.push(e.body);
+        if end {
+            return v;
+        }
+    }
+}
+
+/// The terminal event of job `id`, skipping everything before it.
+pub fn end_of(c: &mut Client, id: u64) -> EventBody {
+    events_until_end(c, id).pop().unwrap()
+}
+
+/// Send a job-starting request (submit or replay) and follow the job to its end: its id
+/// and its events, the terminal one last.
+pub fn run_request(c: &mut Client, req: &Request) -> (u64, Vec<EventBody>) {
+    let id = job_id(&c.request(req).unwrap());
+    (id, events_until_end(c, id))
+}
+
+/// Submit `job` and follow it to its end: its id and its events, the terminal one last.
+pub fn run_job(c: &mut Client, job: JobSpec) -> (u64, Vec<EventBody>) {
+    run_request(c, &Request::Submit { job })
+}
+
+/// The job ended `finished`.
+pub fn assert_finished(events: &[EventBody]) {
+    assert!(
+        matches!(events.last(), Some(EventBody::Finished { .. })),
+        "{events:?}"
+    );
+}
+
+/// The session named by a job's `started` event.
+pub fn session_name(events: &[EventBody]) -> String {
+    events
+        .iter()
+        .find_map(|e| match e {
+            EventBody::Started { session, .. } => Some(session.clone()),
+            _ => None,
+        })
+        .expect("a started event")
+}
+
+/// The session a job's events name, opened from the data root `data`.
+pub fn session_of(data: &Path, events: &[EventBody]) -> Session {
+    Session::open(&data.join(session_name(events))).unwrap()
+}
+
+/// `(index, commanded_um)` of every step a job's events report.
+pub fn reported_steps(events: &[EventBody]) -> Vec<(u32, f64)> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            EventBody::Step {
+                index,
+                commanded_um,
+                ..
+            } => Some((*index, *commanded_um)),
+            _ => None,
+        })
+        .collect()
+}
+
+/// A `rigd --sim` child process; killed if a test fails before it does.
+pub struct RigdProcess(pub Option<Child>);
+
+impl RigdProcess {
+    /// Start `rigd --sim` on `socket` and `data`, and wait until it answers.
+    pub fn spawn_sim(socket: &Path, data: &Path) -> RigdProcess {
+        let child = Command::new(env!("CARGO_BIN_EXE_rigd"))
+            .args(["--sim", "--socket"])
+            .arg(socket)
+            .arg("--data-root")
+            .arg(data)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let child = RigdProcess(Some(child));
+        let t = Instant::now();
+        while Client::connect(socket).is_err() {
+            assert!(t.elapsed() < Duration::from_secs(20), "rigd did not start");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        child
+    }
+
+    /// The child, no longer killed on drop.
+    pub fn take(&mut self) -> Child {
+        self.0.take().expect("rigd is running")
+    }
+
+    /// `kill -9` the daemon and reap it.
+    pub fn kill_9(&mut self) {
+        let mut dead = self.take();
+        dead.kill().unwrap(); // SIGKILL
+        dead.wait().unwrap();
+    }
+}
+
+impl Drop for RigdProcess {
+    fn drop(&mut self) {
+        if let Some(c) = self.0.as_mut() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+/// The GRBL emulator on a pseudo-terminal serving a fast exact axis (50 mm/s, 2 m/s²,
+/// no positioning error); the axis to see where it really is.
+pub fn fast_grbl() -> (Arc<Axis>, GrblSim) {
+    let axis = Arc::new(Axis::new(AxisParams {
+        max_speed_um_s: 50_000.0,
+        accel_um_s2: 2_000_000.0,
+        position_error_rms_um: 0.0,
+        ..AxisParams::default()
+    }));
+    let grbl = GrblSim::spawn(Arc::clone(&axis), GrblSimOptions::default(), None).unwrap();
+    (axis, grbl)
+}
+
+/// A capture-only job (no processing) of `steps` frames `step_um` apart from the rig's
+/// default start, settling `settle_ms` before each frame.
+pub fn capture_job(step_um: f64, steps: u32, settle_ms: u64) -> JobSpec {
+    JobSpec {
+        step_um: Some(step_um),
+        steps: Some(steps),
+        settle_ms,
+        process: false,
+        ..JobSpec::default()
+    }
+}
+
+/// Every frame `s`'s steps.csv lists decodes whole, at `size` (width, height).
+pub fn assert_frames_decode(s: &Session, size: (u32, u32)) {
+    for r in &s.steps {
+        let img = image::open(s.frame_path(r.index))
+            .unwrap_or_else(|e| panic!("frame {} of {}: {e}", r.index, s.dir.display()));
+        assert_eq!((img.width(), img.height()), size, "frame {}", r.index);
+    }
+}
