@@ -5,11 +5,12 @@
 //! the file and the missing section. Unknown keys are errors (a typo must not silently fall
 //! back to a default on a metrology rig), and every error names the file and the key.
 
+use crate::daemon::protocol::Processing;
 use crate::hw::gcs::GcsOptions;
 use crate::hw::grbl::{GrblOptions, OnAlarm};
 use crate::hw::limits::TravelLimits;
 use crate::hw::pixfmt::PixelFormat;
-use crate::pipeline::{Combine, Estimator, ProcessOptions, Registration};
+use crate::pipeline::ProcessOptions;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -55,27 +56,11 @@ pub struct Config {
     /// Default processing options for jobs that do not set their own.
     #[serde(default)]
     pub pipeline: ProcessOptions,
-    /// Which of `pipeline`'s job defaults the file sets (not a key; set by
-    /// [`Config::from_toml_str`]).
+    /// `pipeline`'s job defaults, only those the file sets (not a key; set by
+    /// [`Config::from_toml_str`]): a key left out leaves a job that omits it to the protocol's
+    /// own default (for `combine` that depends on the scan's k).
     #[serde(skip)]
-    pub job_defaults: JobDefaults,
-}
-
-/// The `[pipeline]` keys that are defaults for jobs, as the file sets them. `None`: the file
-/// leaves the key out, so a job that omits it gets the protocol's own default (which for
-/// `combine` depends on the scan's k, so it cannot be a fixed value here).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-pub struct JobDefaults {
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub k: Option<u32>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub estimator: Option<Estimator>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub combine: Option<Combine>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub registration: Option<Registration>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub whole_frame: Option<bool>,
+    pub job_defaults: Processing,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -233,7 +218,7 @@ fn default_buffers() -> u32 {
     4
 }
 /// The job defaults among `[pipeline]`'s keys that `text` sets (already parsed into `p`).
-fn job_defaults(text: &str, p: &ProcessOptions) -> JobDefaults {
+fn job_defaults(text: &str, p: &ProcessOptions) -> Processing {
     let set: Vec<String> = text
         .parse::<toml::Table>()
         .ok()
@@ -243,11 +228,11 @@ fn job_defaults(text: &str, p: &ProcessOptions) -> JobDefaults {
         })
         .unwrap_or_default();
     let has = |k: &str| set.iter().any(|s| s == k);
-    JobDefaults {
+    Processing {
         k: has("k").then_some(p.k),
         estimator: has("estimator").then_some(p.estimator),
         combine: has("combine").then_some(p.combine),
-        registration: has("registration").then_some(p.registration),
+        registration: has("registration").then_some(p.registration.into()),
         whole_frame: has("whole_frame").then_some(p.whole_frame),
     }
 }
@@ -610,6 +595,7 @@ impl StageConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::pipeline::Combine;
 
     #[test]
     fn job_defaults_are_only_the_pipeline_keys_the_file_sets() {
@@ -621,7 +607,7 @@ mod tests {
         .unwrap();
         assert_eq!(
             cfg.job_defaults,
-            JobDefaults {
+            Processing {
                 k: Some(4),
                 estimator: None,
                 combine: Some(Combine::Splat),
@@ -630,7 +616,7 @@ mod tests {
             }
         );
         let none = Config::from_toml_str("[pipeline]\nscale_um_per_px = 500.0\n", origin).unwrap();
-        assert_eq!(none.job_defaults, JobDefaults::default());
+        assert_eq!(none.job_defaults, Processing::default());
         assert_eq!(none.frame_timeout_ms(), 2000, "the [camera] default");
         let cam = Config::from_toml_str(
             "[camera]\ndriver = \"sim\"\nframe_timeout_ms = 750\n",

@@ -4,7 +4,7 @@
 mod support;
 
 use rigd::cli::client::Client;
-use rigd::daemon::protocol::{EventBody, JobSpec, ProcessingOverride, Request};
+use rigd::daemon::protocol::{EventBody, JobSpec, Processing, Request};
 use rigd::daemon::session::SessionState;
 use rigd::daemon::simrig::{sim_rig, Fault, SimSettings};
 use serde_json::Value;
@@ -222,7 +222,7 @@ fn replay_feeds_the_recorded_frames_and_positions_through_the_job_path() {
     let r = c
         .request(&Request::Replay {
             session: live_s.manifest.name.clone(),
-            processing: ProcessingOverride::default(),
+            processing: Processing::default(),
         })
         .unwrap();
     let rid = job_id(&r);
@@ -253,7 +253,7 @@ fn replay_feeds_the_recorded_frames_and_positions_through_the_job_path() {
         let e = c
             .request(&Request::Replay {
                 session: bad.into(),
-                processing: ProcessingOverride::default(),
+                processing: Processing::default(),
             })
             .unwrap_err();
         assert!(

@@ -7,7 +7,7 @@ mod support;
 use rigd::cli::client::Client;
 use rigd::config::Config;
 use rigd::daemon::hwrig::rig_from_config;
-use rigd::daemon::protocol::{EventBody, JobRegistration, JobSpec, ProcessingOverride, Request};
+use rigd::daemon::protocol::{EventBody, JobRegistration, JobSpec, Processing, Request};
 use rigd::daemon::rig::LogSample;
 use rigd::daemon::session::{Session, SessionState, INTERFEROMETER_HEADER};
 use rigd::daemon::simrig::{sim_rig, SimSettings};
@@ -201,9 +201,9 @@ fn registration_interferometer_uses_the_readings_and_replays_the_same() {
             c,
             &Request::Replay {
                 session: live_s.manifest.name.clone(),
-                processing: ProcessingOverride {
+                processing: Processing {
                     registration,
-                    ..ProcessingOverride::default()
+                    ..Processing::default()
                 },
             },
         )

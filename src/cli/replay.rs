@@ -1,8 +1,8 @@
 //! `rigctl replay SESSION`: run a recorded session again through the job path.
 
 use crate::cli::client::SocketArg;
-use crate::cli::submit::{submit_and_follow, CombineArg, EstimatorArg, RegistrationArg};
-use crate::daemon::protocol::{ProcessingOverride, Request};
+use crate::cli::submit::{submit_and_follow, ProcessingArgs};
+use crate::daemon::protocol::Request;
 
 #[derive(clap::Args, Debug)]
 pub struct ReplayArgs {
@@ -10,14 +10,9 @@ pub struct ReplayArgs {
     pub socket: SocketArg,
     /// Session name (a folder under the daemon's data root).
     pub session: String,
-    #[arg(long)]
-    pub k: Option<u32>,
-    #[arg(long, value_enum)]
-    pub estimator: Option<EstimatorArg>,
-    #[arg(long, value_enum)]
-    pub combine: Option<CombineArg>,
-    #[arg(long, value_enum)]
-    pub registration: Option<RegistrationArg>,
+    /// Processing to use instead of the recorded one.
+    #[command(flatten)]
+    pub processing: ProcessingArgs,
     #[arg(long)]
     pub detach: bool,
 }
@@ -25,12 +20,7 @@ pub struct ReplayArgs {
 pub fn run(a: ReplayArgs) -> anyhow::Result<()> {
     let req = Request::Replay {
         session: a.session.clone(),
-        processing: ProcessingOverride {
-            registration: a.registration.map(Into::into),
-            k: a.k,
-            estimator: a.estimator.map(Into::into),
-            combine: a.combine.map(Into::into),
-        },
+        processing: a.processing.processing(),
     };
     submit_and_follow(&a.socket, req, a.detach).map(|_| ())
 }

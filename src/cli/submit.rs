@@ -1,7 +1,9 @@
 //! `rigctl submit`: queue a capture job and follow it with a progress bar.
 
 use crate::cli::client::{follow, report_end, SocketArg};
-use crate::daemon::protocol::{JobRegistration, JobSpec, PaperCase, Request, StageKind};
+use crate::daemon::protocol::{
+    JobRegistration, JobSpec, PaperCase, Processing, Request, StageKind,
+};
 use crate::pipeline::{Combine, Estimator};
 
 #[derive(clap::Args, Debug)]
@@ -17,27 +19,13 @@ pub struct SubmitArgs {
     /// Number of frames.
     #[arg(long)]
     pub steps: Option<u32>,
-    /// Upsampling factor of the reconstruction.
-    #[arg(long)]
-    pub k: Option<u32>,
     /// Run these of the paper's cases instead of one scan (comma-separated: case1,case2,case3).
     #[arg(long, value_delimiter = ',', value_enum)]
     pub study: Vec<CaseArg>,
     #[arg(long, default_value_t = 20)]
     pub settle_ms: u64,
-    /// Default: the rig's ([pipeline] estimator), else fit.
-    #[arg(long, value_enum)]
-    pub estimator: Option<EstimatorArg>,
-    /// Default: the rig's ([pipeline] combine), else interp if k > 1, else mean.
-    #[arg(long, value_enum)]
-    pub combine: Option<CombineArg>,
-    /// Where frame displacements come from: the image, the commanded positions or the
-    /// interferometer's readings. Default: the rig's ([pipeline] registration), else image.
-    #[arg(long, value_enum)]
-    pub registration: Option<RegistrationArg>,
-    /// Also reconstruct the whole frame (default: the rig's [pipeline] whole_frame).
-    #[arg(long)]
-    pub whole_frame: bool,
+    #[command(flatten)]
+    pub processing: ProcessingArgs,
     #[arg(long, default_value_t = 1)]
     pub repeats: u32,
     /// Absolute start position (µm); default: the rig's.
@@ -54,6 +42,40 @@ pub struct SubmitArgs {
     /// Return once queued instead of following the job.
     #[arg(long)]
     pub detach: bool,
+}
+
+/// The processing flags `submit` and `replay` share. Each left out is left to the daemon: for
+/// a job the rig's `[pipeline]` default, else the protocol's; for a replay the recorded value.
+#[derive(clap::Args, Debug)]
+pub struct ProcessingArgs {
+    /// Upsampling factor of the reconstruction (a study's cases keep their own).
+    #[arg(long)]
+    pub k: Option<u32>,
+    /// Default: the rig's ([pipeline] estimator), else fit.
+    #[arg(long, value_enum)]
+    pub estimator: Option<EstimatorArg>,
+    /// Default: the rig's ([pipeline] combine), else interp if k > 1, else mean.
+    #[arg(long, value_enum)]
+    pub combine: Option<CombineArg>,
+    /// Where frame displacements come from: the image, the commanded positions or the
+    /// interferometer's readings. Default: the rig's ([pipeline] registration), else image.
+    #[arg(long, value_enum)]
+    pub registration: Option<RegistrationArg>,
+    /// Also reconstruct the whole frame (default: the rig's [pipeline] whole_frame).
+    #[arg(long)]
+    pub whole_frame: bool,
+}
+
+impl ProcessingArgs {
+    pub fn processing(&self) -> Processing {
+        Processing {
+            k: self.k,
+            estimator: self.estimator.map(Into::into),
+            combine: self.combine.map(Into::into),
+            registration: self.registration.map(Into::into),
+            whole_frame: self.whole_frame.then_some(true),
+        }
+    }
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -116,6 +138,7 @@ impl From<CombineArg> for Combine {
 
 impl SubmitArgs {
     pub fn spec(&self) -> JobSpec {
+        let p = self.processing.processing();
         JobSpec {
             stage: match self.stage {
                 StageArg::Axis => StageKind::Axis,
@@ -123,7 +146,7 @@ impl SubmitArgs {
             },
             step_um: self.step_um,
             steps: self.steps,
-            k: self.k,
+            k: p.k,
             study: (!self.study.is_empty()).then(|| {
                 self.study
                     .iter()
@@ -135,11 +158,10 @@ impl SubmitArgs {
                     .collect()
             }),
             settle_ms: self.settle_ms,
-            estimator: self.estimator.map(Into::into),
-            combine: self.combine.map(Into::into),
-            // Left out: the rig's [pipeline] defaults apply.
-            registration: self.registration.map(Into::into),
-            whole_frame: self.whole_frame.then_some(true),
+            estimator: p.estimator,
+            combine: p.combine,
+            registration: p.registration,
+            whole_frame: p.whole_frame,
             repeats: self.repeats,
             start_um: self.start_um,
             repeat_shift_um: self.repeat_shift_um,

@@ -2,7 +2,7 @@
 //! time because the rig is exclusive.
 
 use crate::daemon::plan::Plan;
-use crate::daemon::protocol::{JobSpec, ProcessingOverride};
+use crate::daemon::protocol::{JobSpec, Processing};
 use crate::daemon::runner::{CANCEL, RUN};
 use serde::Serialize;
 use std::collections::{BTreeMap, VecDeque};
@@ -35,10 +35,7 @@ impl JobState {
 #[derive(Debug, Clone)]
 pub enum JobSource {
     Live,
-    Replay {
-        dir: PathBuf,
-        overrides: ProcessingOverride,
-    },
+    Replay { dir: PathBuf, overrides: Processing },
 }
 
 #[derive(Debug, Clone)]

@@ -1,9 +1,10 @@
 //! A job spec checked against the rig and expanded into runs, before anything moves.
 
-use crate::config::JobDefaults;
-use crate::daemon::protocol::{CaseScan, ErrorCode, JobRegistration, JobSpec, ProtoError};
+use crate::daemon::protocol::{
+    CaseScan, ErrorCode, JobRegistration, JobSpec, Processing, ProtoError,
+};
 use crate::daemon::rig::RigInfo;
-use crate::pipeline::{Combine, Estimator, Registration};
+use crate::pipeline::{Combine, Estimator};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -34,7 +35,7 @@ fn rejected(msg: impl Into<String>) -> ProtoError {
 /// defaults where the config sets them, else the protocol's own. A study's cases keep their
 /// own k, and without a configured `combine` each case combines by its k (interp above 1,
 /// else mean), so a study's `k` and possibly `combine` stay unset.
-pub fn resolve_defaults(spec: &JobSpec, d: &JobDefaults) -> JobSpec {
+pub fn resolve_defaults(spec: &JobSpec, d: &Processing) -> JobSpec {
     let mut s = spec.clone();
     s.estimator = s.estimator.or(d.estimator).or(Some(Estimator::default()));
     s.combine = s.combine.or(d.combine);
@@ -46,13 +47,9 @@ pub fn resolve_defaults(spec: &JobSpec, d: &JobDefaults) -> JobSpec {
             Combine::Mean
         });
     }
-    // The config's "positions" are the commanded ones (it has no interferometer choice).
     s.registration = s
         .registration
-        .or(d.registration.map(|r| match r {
-            Registration::Image => JobRegistration::Image,
-            Registration::Positions => JobRegistration::Commanded,
-        }))
+        .or(d.registration)
         .or(Some(JobRegistration::Image));
     s.whole_frame = s.whole_frame.or(d.whole_frame).or(Some(false));
     s
@@ -231,6 +228,7 @@ pub fn free_bytes(path: &Path) -> Option<u64> {
 mod tests {
     use super::*;
     use crate::daemon::protocol::PaperCase;
+    use crate::pipeline::Registration;
 
     fn rig() -> RigInfo {
         RigInfo {
@@ -244,7 +242,7 @@ mod tests {
             interferometer: false,
             board: None,
             config: serde_json::Value::Null,
-            job_defaults: JobDefaults::default(),
+            job_defaults: Processing::default(),
             grab_timeout_ms: 5000,
         }
     }
@@ -257,7 +255,7 @@ mod tests {
             ..JobSpec::default()
         };
         // No configured defaults (rigd --sim): the protocol's own, k-dependent combine.
-        let r = resolve_defaults(&scan, &JobDefaults::default());
+        let r = resolve_defaults(&scan, &Processing::default());
         assert_eq!(
             (r.k, r.estimator, r.combine, r.registration, r.whole_frame),
             (
@@ -273,14 +271,15 @@ mod tests {
                 k: Some(4),
                 ..scan.clone()
             },
-            &JobDefaults::default(),
+            &Processing::default(),
         );
         assert_eq!(k4.combine, Some(Combine::Interp));
-        let rig = JobDefaults {
+        let rig = Processing {
             k: Some(6),
             estimator: Some(Estimator::Paper),
             combine: None,
-            registration: Some(Registration::Positions),
+            // The config names the commanded positions "positions".
+            registration: Some(Registration::Positions.into()),
             whole_frame: Some(true),
         };
         let r = resolve_defaults(&scan, &rig);

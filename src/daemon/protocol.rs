@@ -61,10 +61,20 @@ pub enum JobRegistration {
     /// Measured in the image (the paper's).
     #[default]
     Image,
-    /// From the commanded positions.
+    /// From the commanded positions (the config's and `rigctl process`'s "positions").
+    #[serde(alias = "positions")]
     Commanded,
     /// From the interferometer's reading at each frame (the job fails at a frame without one).
     Interferometer,
+}
+
+impl From<Registration> for JobRegistration {
+    fn from(r: Registration) -> JobRegistration {
+        match r {
+            Registration::Image => JobRegistration::Image,
+            Registration::Positions => JobRegistration::Commanded,
+        }
+    }
 }
 
 /// One scan of a job: `frames` frames `step_um` apart, reconstructed at `k`.
@@ -155,10 +165,11 @@ impl Default for JobSpec {
     }
 }
 
-/// Processing settings a replay may override.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+/// Processing settings, each optional: a replay's overrides of the recorded ones, and a
+/// rig's `[pipeline]` defaults for what a job leaves out.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
-pub struct ProcessingOverride {
+pub struct Processing {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub k: Option<u32>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -167,6 +178,8 @@ pub struct ProcessingOverride {
     pub combine: Option<Combine>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub registration: Option<JobRegistration>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub whole_frame: Option<bool>,
 }
 
 /// What a client asks. Tagged by `kind`.
@@ -201,7 +214,7 @@ pub enum Request {
     Replay {
         session: String,
         #[serde(default)]
-        processing: ProcessingOverride,
+        processing: Processing,
     },
 }
 
@@ -517,6 +530,24 @@ mod tests {
         assert!(text.contains(r#""job_id":4"#) && text.contains(r#""event":"cancelled""#));
         let back: ServerLine = serde_json::from_slice(&bytes).unwrap();
         assert_eq!(back, ev);
+    }
+
+    #[test]
+    fn processing_names_the_commanded_positions_either_way() {
+        // "positions" is what the config and `rigctl process` call them (and what manifests
+        // recorded a config rig's default as); the protocol's name is "commanded".
+        for name in ["commanded", "positions"] {
+            let p: Processing = serde_json::from_str(&format!(
+                r#"{{"registration":"{name}","whole_frame":true}}"#
+            ))
+            .unwrap();
+            assert_eq!(p.registration, Some(JobRegistration::Commanded));
+            assert_eq!(p.whole_frame, Some(true));
+        }
+        assert_eq!(
+            JobRegistration::from(Registration::Positions),
+            JobRegistration::Commanded
+        );
     }
 
     #[test]

@@ -3,7 +3,7 @@
 //! order the job recorded them, so the replayed job goes through the same runner and
 //! pipeline and gets the same result (or another, with other processing settings).
 
-use crate::daemon::protocol::{JobSpec, ProcessingOverride};
+use crate::daemon::protocol::{JobSpec, Processing};
 use crate::daemon::rig::{LogSample, LogSource, PositionLog, Rig, RigInfo};
 use crate::daemon::session::{Session, SessionError, StepRow, INTERFEROMETER};
 use crate::hw::{Camera, Frame, HwError, MotionState, Stage, StageStatus};
@@ -14,7 +14,7 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 /// The job spec to replay a session with: the recorded one, processing overridden, and
 /// only as many frames as were captured (an incomplete session replays what it holds).
-pub fn replay_spec(session: &Session, ov: &ProcessingOverride) -> JobSpec {
+pub fn replay_spec(session: &Session, ov: &Processing) -> JobSpec {
     let mut spec = session.manifest.job.clone();
     if let Some(e) = ov.estimator {
         spec.estimator = Some(e);
@@ -25,6 +25,9 @@ pub fn replay_spec(session: &Session, ov: &ProcessingOverride) -> JobSpec {
     if let Some(r) = ov.registration {
         spec.registration = Some(r);
     }
+    if let Some(w) = ov.whole_frame {
+        spec.whole_frame = Some(w);
+    }
     spec.process = true;
     // The frames are already settled: replay as fast as the pipeline goes.
     spec.settle_ms = 0;
@@ -32,7 +35,7 @@ pub fn replay_spec(session: &Session, ov: &ProcessingOverride) -> JobSpec {
 }
 
 /// The recorded plan cut to the frames the session holds, with `k` overridden.
-pub fn replay_plan(session: &Session, ov: &ProcessingOverride) -> crate::daemon::plan::Plan {
+pub fn replay_plan(session: &Session, ov: &Processing) -> crate::daemon::plan::Plan {
     let mut plan = session.manifest.plan.clone();
     let mut left = session.steps.len();
     plan.runs.retain_mut(|r| {

@@ -3,7 +3,7 @@
 //!
 //! The runner owns a `Rig` for the length of one job, on its own blocking thread.
 
-use crate::config::JobDefaults;
+use crate::daemon::protocol::Processing;
 use crate::daemon::protocol::StageKind;
 use crate::hw::{Camera, HwError, Stage};
 use rigd_sim::Board;
@@ -91,7 +91,7 @@ pub struct RigInfo {
     /// `[pipeline]` defaults for what a job leaves out (none on `rigd --sim`: the
     /// protocol's own apply).
     #[serde(default)]
-    pub job_defaults: JobDefaults,
+    pub job_defaults: Processing,
     /// How long a grab may wait for a fresh frame ([camera] frame_timeout_ms).
     #[serde(default = "default_grab_timeout_ms")]
     pub grab_timeout_ms: u64,
