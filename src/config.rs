@@ -5,7 +5,7 @@
 //! the file and the missing section. Unknown keys are errors (a typo must not silently fall
 //! back to a default on a metrology rig), and every error names the file and the key.
 
-use crate::daemon::protocol::Processing;
+use crate::acquisition::Processing;
 use crate::hw::gcs::GcsOptions;
 use crate::hw::grbl::{GrblOptions, OnAlarm};
 use crate::hw::limits::TravelLimits;

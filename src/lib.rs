@@ -1,6 +1,7 @@
 //! rigd: a rig-control and acquisition daemon for offset-image averaging metrology.
 //!
 //! The map of the code is `docs/architecture.md`. In short:
+//! - `acquisition`: the job, its plan (every check before anything moves), the step engine.
 //! - `pipeline`: frames + positions -> measured target offsets (the science).
 //! - `folder`: the `rigctl process` folder contract (frames/*.png + steps.csv).
 //! - `atomic_file`: files written whole or not at all (temporary name, sync, rename).
@@ -11,6 +12,7 @@
 //! - `daemon`: protocol, server, job runner, sessions, replay.
 //! - `cli`: the `rigctl` subcommands; the binaries in `src/bin` are thin.
 
+pub mod acquisition;
 pub mod atomic_file;
 pub mod cli;
 pub mod config;
@@ -22,3 +24,5 @@ pub mod report;
 pub mod xl80;
 
 pub use rigd_sim as sim;
+// TEMP until the core crate lands: the board's home.
+pub use rigd_sim::board;

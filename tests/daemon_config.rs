@@ -4,8 +4,9 @@
 
 mod support;
 
+use rigd::acquisition::JobSpec;
 use rigd::daemon::hwrig::rig_from_config;
-use rigd::daemon::protocol::{JobSpec, Request};
+use rigd::daemon::protocol::Request;
 use rigd::daemon::session::SessionState;
 use std::time::Instant;
 use support::daemon::{

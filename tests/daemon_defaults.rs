@@ -3,8 +3,9 @@
 
 mod support;
 
+use rigd::acquisition::{JobRegistration, JobSpec};
 use rigd::cli::client::Client;
-use rigd::daemon::protocol::{EventBody, JobRegistration, JobSpec, Request};
+use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::session::{Session, SessionState};
 use rigd::pipeline::{Combine, Estimator};
 use support::daemon::{

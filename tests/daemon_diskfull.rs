@@ -7,8 +7,9 @@
 
 mod support;
 
+use rigd::acquisition::JobSpec;
 use rigd::cli::client::Client;
-use rigd::daemon::protocol::{EventBody, JobSpec, Request};
+use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::session::{Session, SessionState};
 use std::io::Write;
 use std::path::{Path, PathBuf};

@@ -5,7 +5,8 @@
 
 mod support;
 
-use rigd::daemon::protocol::{EventBody, JobSpec, Request};
+use rigd::acquisition::JobSpec;
+use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::session::{Session, SessionState};
 use rigd::daemon::simrig::{sim_rig_with_truth, Fault, SimSettings, SimTruth};
 use rigd::sim::motion::AxisParams;
@@ -145,7 +146,13 @@ fn a_cancel_stops_the_axis_mid_move_and_the_next_job_runs() {
     assert_eq!(r["state"], "cancelling");
     ev.extend(events_until_end(&mut c, id));
     assert!(
-        matches!(ev.last(), Some(EventBody::Cancelled { session: Some(_) })),
+        matches!(
+            ev.last(),
+            Some(EventBody::Cancelled {
+                session: Some(_),
+                ..
+            })
+        ),
         "{ev:?}"
     );
     let st = c.request(&Request::Status { job_id: Some(id) }).unwrap();

@@ -5,7 +5,8 @@
 
 mod support;
 
-use rigd::daemon::protocol::{EventBody, JobSpec};
+use rigd::acquisition::JobSpec;
+use rigd::daemon::protocol::EventBody;
 use rigd::daemon::session::SessionState;
 use rigd::hw::grbl::{GrblOptions, GrblStage};
 use rigd::hw::limits::TravelLimits;

@@ -3,8 +3,9 @@
 
 mod support;
 
+use rigd::acquisition::{JobSpec, Processing};
 use rigd::cli::client::Client;
-use rigd::daemon::protocol::{EventBody, JobSpec, Processing, Request};
+use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::session::SessionState;
 use rigd::daemon::simrig::{sim_rig, Fault, SimSettings};
 use serde_json::Value;
@@ -106,7 +107,10 @@ fn jobs_queue_behind_the_running_one_and_cancel_stops_them() {
     let ev = events_until_end(&mut c, long);
     assert!(matches!(
         ev.last(),
-        Some(EventBody::Cancelled { session: Some(_) })
+        Some(EventBody::Cancelled {
+            session: Some(_),
+            ..
+        })
     ));
     let st = c.request(&Request::Status { job_id: Some(long) }).unwrap();
     let done = st["frames_done"].as_u64().unwrap();

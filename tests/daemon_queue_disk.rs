@@ -4,8 +4,9 @@
 
 mod support;
 
-use rigd::daemon::plan::{estimated_bytes, free_bytes};
-use rigd::daemon::protocol::{EventBody, JobSpec, Request};
+use rigd::acquisition::plan::{estimated_bytes, free_bytes};
+use rigd::acquisition::JobSpec;
+use rigd::daemon::protocol::{EventBody, Request};
 use support::daemon::{capture_job, end_of, rig_from_toml, submit, Daemon, SIM_RIG_SMALL};
 
 #[test]

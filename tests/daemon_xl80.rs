@@ -4,10 +4,11 @@
 
 mod support;
 
+use rigd::acquisition::{JobRegistration, JobSpec, Processing};
 use rigd::cli::client::Client;
 use rigd::config::Config;
 use rigd::daemon::hwrig::rig_from_config;
-use rigd::daemon::protocol::{EventBody, JobRegistration, JobSpec, Processing, Request};
+use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::rig::LogSample;
 use rigd::daemon::session::{Session, SessionState, INTERFEROMETER_HEADER};
 use rigd::daemon::simrig::{sim_rig, SimSettings};

@@ -170,15 +170,23 @@ pub fn report_end(id: u64, end: &Ended) -> anyhow::Result<()> {
             eprintln!("job {id} finished: session {session}");
             Ok(())
         }
-        EventBody::Failed { reason, session } => bail!(
+        EventBody::Failed {
+            reason, session, ..
+        } => bail!(
             "job {id} failed: {reason}{}",
             session
                 .as_ref()
                 .map(|s| format!(" (session {s} keeps what was captured)"))
                 .unwrap_or_default()
         ),
-        EventBody::Cancelled { session } => bail!(
-            "job {id} was cancelled{}",
+        EventBody::Cancelled {
+            session, reason, ..
+        } => bail!(
+            "job {id} was cancelled{}{}",
+            reason
+                .as_ref()
+                .map(|r| format!(": {r}"))
+                .unwrap_or_default(),
             session
                 .as_ref()
                 .map(|s| format!(" (session {s})"))

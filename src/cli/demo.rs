@@ -5,10 +5,11 @@
 //! frames at 50 µm, k = 10; each repeat from a different sub-pixel start), prints Tables 1-3
 //! and writes the session and the report.
 
+use crate::acquisition::study::{tables, StudySummary};
+use crate::acquisition::{JobSpec, PaperCase};
 use crate::cli::client::{follow, report_end, Client};
-use crate::daemon::protocol::{JobSpec, PaperCase, Request};
+use crate::daemon::protocol::Request;
 use crate::daemon::simrig::{sim_rig, SimSettings};
-use crate::daemon::study::{tables, StudySummary};
 use crate::daemon::{server, DaemonSettings};
 use anyhow::Context;
 use std::path::PathBuf;

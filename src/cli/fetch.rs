@@ -1,8 +1,8 @@
 //! `rigctl fetch JOB`: a job's result (and the paper's tables for a study).
 
+use crate::acquisition::study::{tables, StudySummary};
 use crate::cli::client::SocketArg;
 use crate::daemon::protocol::Request;
-use crate::daemon::study::{tables, StudySummary};
 use anyhow::Context;
 
 #[derive(clap::Args, Debug)]

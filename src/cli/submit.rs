@@ -1,9 +1,8 @@
 //! `rigctl submit`: queue a capture job and follow it with a progress bar.
 
+use crate::acquisition::{JobRegistration, JobSpec, PaperCase, Processing, StageKind};
 use crate::cli::client::{follow, report_end, SocketArg};
-use crate::daemon::protocol::{
-    JobRegistration, JobSpec, PaperCase, Processing, Request, StageKind,
-};
+use crate::daemon::protocol::Request;
 use crate::pipeline::{Combine, Estimator};
 
 #[derive(clap::Args, Debug)]
@@ -12,7 +11,7 @@ pub struct SubmitArgs {
     pub socket: SocketArg,
     /// Stage to step.
     #[arg(long, value_enum, default_value = "axis")]
-    pub stage: StageArg,
+    pub stage: StageKind,
     /// Distance between frames (µm).
     #[arg(long)]
     pub step_um: Option<f64>,
@@ -21,7 +20,7 @@ pub struct SubmitArgs {
     pub steps: Option<u32>,
     /// Run these of the paper's cases instead of one scan (comma-separated: case1,case2,case3).
     #[arg(long, value_delimiter = ',', value_enum)]
-    pub study: Vec<CaseArg>,
+    pub study: Vec<PaperCase>,
     #[arg(long, default_value_t = 20)]
     pub settle_ms: u64,
     #[command(flatten)]
@@ -60,7 +59,7 @@ pub struct ProcessingArgs {
     /// Where frame displacements come from: the image, the commanded positions or the
     /// interferometer's readings. Default: the rig's ([pipeline] registration), else image.
     #[arg(long, value_enum)]
-    pub registration: Option<RegistrationArg>,
+    pub registration: Option<JobRegistration>,
     /// Also reconstruct the whole frame (default: the rig's [pipeline] whole_frame).
     #[arg(long)]
     pub whole_frame: bool,
@@ -72,45 +71,17 @@ impl ProcessingArgs {
             k: self.k,
             estimator: self.estimator.map(Into::into),
             combine: self.combine.map(Into::into),
-            registration: self.registration.map(Into::into),
+            registration: self.registration,
             whole_frame: self.whole_frame.then_some(true),
         }
     }
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
-pub enum StageArg {
-    Axis,
-    Piezo,
-}
-#[derive(clap::ValueEnum, Clone, Copy, Debug)]
-pub enum CaseArg {
-    Case1,
-    Case2,
-    Case3,
-}
-#[derive(clap::ValueEnum, Clone, Copy, Debug)]
 pub enum EstimatorArg {
     Paper,
     Fit,
 }
-#[derive(clap::ValueEnum, Clone, Copy, Debug)]
-pub enum RegistrationArg {
-    Image,
-    Commanded,
-    Interferometer,
-}
-
-impl From<RegistrationArg> for JobRegistration {
-    fn from(r: RegistrationArg) -> Self {
-        match r {
-            RegistrationArg::Image => JobRegistration::Image,
-            RegistrationArg::Commanded => JobRegistration::Commanded,
-            RegistrationArg::Interferometer => JobRegistration::Interferometer,
-        }
-    }
-}
-
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
 pub enum CombineArg {
     Interp,
@@ -140,23 +111,11 @@ impl SubmitArgs {
     pub fn spec(&self) -> JobSpec {
         let p = self.processing.processing();
         JobSpec {
-            stage: match self.stage {
-                StageArg::Axis => StageKind::Axis,
-                StageArg::Piezo => StageKind::Piezo,
-            },
+            stage: self.stage,
             step_um: self.step_um,
             steps: self.steps,
             k: p.k,
-            study: (!self.study.is_empty()).then(|| {
-                self.study
-                    .iter()
-                    .map(|c| match c {
-                        CaseArg::Case1 => PaperCase::Case1,
-                        CaseArg::Case2 => PaperCase::Case2,
-                        CaseArg::Case3 => PaperCase::Case3,
-                    })
-                    .collect()
-            }),
+            study: (!self.study.is_empty()).then(|| self.study.clone()),
             settle_ms: self.settle_ms,
             estimator: p.estimator,
             combine: p.combine,

@@ -3,10 +3,10 @@
 
 use crate::daemon::commands;
 use crate::daemon::protocol::{
-    decode_request, encode, ErrorCode, ProtoError, Reply, Request, ServerLine, MAX_LINE_BYTES,
+    decode_request, encode, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
+    SubscribeReply, MAX_LINE_BYTES,
 };
 use crate::daemon::Shared;
-use serde_json::json;
 use std::sync::Arc;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::UnixStream;
@@ -109,18 +109,18 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>) {
                                         job_id,
                                         out_tx.clone(),
                                     )));
-                                    Reply::ok(
+                                    Reply::with(
                                         env.id,
-                                        json!({
-                                            "subscribed": job_id,
-                                            "status": st.and_then(|s| s.ok()),
+                                        &ReplyBody::Subscribe(SubscribeReply {
+                                            subscribed: job_id,
+                                            status: st.and_then(|s| s.ok()),
                                         }),
                                     )
                                 }
                             }
                         }
                         req => match commands::handle(&shared, req) {
-                            Ok(v) => Reply::ok(env.id, v),
+                            Ok(body) => Reply::with(env.id, &body),
                             Err(e) => Reply::err(env.id, e),
                         },
                     },

@@ -1,19 +1,17 @@
 //! The job table and queue: what was submitted, what runs, what waits. One job runs at a
 //! time because the rig is exclusive.
 
-use crate::daemon::plan::Plan;
-use crate::daemon::protocol::{JobSpec, Processing};
-use crate::daemon::runner::{CANCEL, RUN};
-use serde::Serialize;
+use crate::acquisition::plan::Plan;
+use crate::acquisition::{JobSpec, Processing, StopFlag};
+use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::Arc;
 
 /// Finished jobs kept in memory; older ones are still listed from their sessions on disk.
 const KEEP_FINISHED: usize = 256;
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum JobState {
     Queued,
@@ -48,15 +46,15 @@ pub struct JobRecord {
     pub session: Option<String>,
     pub frames_done: u32,
     pub reason: Option<String>,
-    pub stop: Arc<AtomicU8>,
+    pub stop: Arc<StopFlag>,
 }
 
 /// The public view of a job (status and list replies).
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JobStatus {
     pub job_id: u64,
     pub state: JobState,
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub label: Option<String>,
     pub replay_of: Option<String>,
     pub session: Option<String>,
@@ -118,7 +116,7 @@ impl Jobs {
                 session: None,
                 frames_done: 0,
                 reason: None,
-                stop: Arc::new(AtomicU8::new(RUN)),
+                stop: Arc::new(StopFlag::default()),
             },
         );
         let ahead = self.queue.len() + usize::from(self.running.is_some());
@@ -181,7 +179,7 @@ impl Jobs {
                 Ok(true)
             }
             JobState::Running => {
-                rec.stop.store(CANCEL, Ordering::SeqCst);
+                rec.stop.cancel();
                 Ok(false)
             }
             s => Err(format!("job {id} is already {s:?}").to_lowercase()),

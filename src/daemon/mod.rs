@@ -3,9 +3,10 @@
 //! - `protocol`: the JSON-lines wire format (docs/protocol.md);
 //! - `server`: the socket and the accept loop; `connection`: one client;
 //! - `commands`: what each request does; `jobs`: the job table and queue;
-//! - `worker`: takes jobs off the queue onto a blocking thread; `runner`: runs one job;
-//! - `plan`: checks a job before anything moves; `session`: the crash-safe session folder;
-//! - `replay`: a session as a rig; `simrig`: the simulated rig; `study`: Tables 1-3;
+//! - `worker`: takes jobs off the queue onto a blocking thread and runs each through the
+//!   step engine (`acquisition`) with the recorder and processor as its sinks;
+//! - `recorder`: the session as a step sink; `session`: the crash-safe session folder;
+//! - `replay`: a session as a rig; `simrig`: the simulated rig;
 //! - `events`: the event bus; `rig`: the hardware a job uses.
 
 pub mod commands;
@@ -14,16 +15,14 @@ pub mod events;
 pub mod hwrig;
 pub mod interferometer;
 pub mod jobs;
-pub mod plan;
 pub mod protocol;
+pub mod recorder;
 pub mod replay;
 pub mod rig;
-pub mod runner;
 pub mod server;
 pub mod session;
 pub mod simrig;
 pub mod simxl80;
-pub mod study;
 pub mod worker;
 
 use events::EventBus;

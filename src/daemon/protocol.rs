@@ -5,182 +5,18 @@
 //! Decoding is strict (unknown fields and kinds are errors) and never panics: every bad line
 //! gets an error reply naming what was wrong.
 
-use crate::pipeline::{Combine, Estimator, ProcessOptions, Registration};
+use crate::acquisition::outcome::EndDetail;
+use crate::acquisition::record::{StepRecord, StepTimings};
+use crate::acquisition::{JobSpec, Processing};
+use crate::daemon::jobs::JobStatus;
+use crate::daemon::session::SessionState;
 use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
 
 /// Version of this protocol; requests may carry `"v"` and must match it.
 pub const PROTOCOL_VERSION: u32 = 1;
 /// Longest request line the server reads; longer lines get a `line_too_long` error.
 pub const MAX_LINE_BYTES: usize = 64 * 1024;
-
-/// Which stage a job steps.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum StageKind {
-    /// The numerically controlled axis (GRBL).
-    #[default]
-    Axis,
-    /// The piezo flexure (PI GCS).
-    Piezo,
-}
-
-/// The paper's three cases (Alzarok et al., section 4).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum PaperCase {
-    /// One raw frame.
-    Case1,
-    /// Ten frames 100 µm apart, reconstructed at k = 5.
-    Case2,
-    /// Twenty frames 50 µm apart, reconstructed at k = 10.
-    Case3,
-}
-
-impl PaperCase {
-    pub const ALL: [PaperCase; 3] = [PaperCase::Case1, PaperCase::Case2, PaperCase::Case3];
-
-    pub fn scan(self) -> CaseScan {
-        let (name, frames, step_um, k) = match self {
-            PaperCase::Case1 => ("case1", 1, 0.0, 1),
-            PaperCase::Case2 => ("case2", 10, 100.0, 5),
-            PaperCase::Case3 => ("case3", 20, 50.0, 10),
-        };
-        CaseScan {
-            name: name.to_string(),
-            frames,
-            step_um,
-            k,
-        }
-    }
-}
-
-/// Where a job's per-frame displacements come from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum JobRegistration {
-    /// Measured in the image (the paper's).
-    #[default]
-    Image,
-    /// From the commanded positions (the config's and `rigctl process`'s "positions").
-    #[serde(alias = "positions")]
-    Commanded,
-    /// From the interferometer's reading at each frame (the job fails at a frame without one).
-    Interferometer,
-}
-
-impl From<Registration> for JobRegistration {
-    fn from(r: Registration) -> JobRegistration {
-        match r {
-            Registration::Image => JobRegistration::Image,
-            Registration::Positions => JobRegistration::Commanded,
-        }
-    }
-}
-
-/// One scan of a job: `frames` frames `step_um` apart, reconstructed at `k`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CaseScan {
-    pub name: String,
-    pub frames: u32,
-    pub step_um: f64,
-    pub k: u32,
-}
-
-fn default_settle_ms() -> u64 {
-    20
-}
-fn default_one() -> u32 {
-    1
-}
-fn default_true() -> bool {
-    true
-}
-
-/// A capture job as a client submits it. Either a single scan (`step_um`, `steps`, `k`) or a
-/// study of the paper's cases (`study`), repeated `repeats` times.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct JobSpec {
-    #[serde(default)]
-    pub stage: StageKind,
-    /// Distance between frames of a scan.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub step_um: Option<f64>,
-    /// Number of frames of a scan.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub steps: Option<u32>,
-    /// Upsampling factor of a scan's reconstruction.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub k: Option<u32>,
-    /// Run these of the paper's cases instead of a single scan.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub study: Option<Vec<PaperCase>>,
-    /// Wait after each move before grabbing.
-    #[serde(default = "default_settle_ms")]
-    pub settle_ms: u64,
-    /// Processing left out (None) takes the rig's `[pipeline]` default, else the protocol's;
-    /// the daemon records the values it resolved (docs/protocol.md).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub estimator: Option<Estimator>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub combine: Option<Combine>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub registration: Option<JobRegistration>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub whole_frame: Option<bool>,
-    #[serde(default = "default_one")]
-    pub repeats: u32,
-    /// Absolute start of the first scan; default: where the stage is.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub start_um: Option<f64>,
-    /// Each repeat starts this much further than the previous one (sub-pixel start phases).
-    #[serde(default)]
-    pub repeat_shift_um: f64,
-    /// Process the frames while capturing (false: capture and record only).
-    #[serde(default = "default_true")]
-    pub process: bool,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub label: Option<String>,
-}
-
-impl Default for JobSpec {
-    fn default() -> Self {
-        JobSpec {
-            stage: StageKind::Axis,
-            step_um: None,
-            steps: None,
-            k: None,
-            study: None,
-            settle_ms: default_settle_ms(),
-            estimator: None,
-            combine: None,
-            registration: None,
-            whole_frame: None,
-            repeats: 1,
-            start_um: None,
-            repeat_shift_um: 0.0,
-            process: true,
-            label: None,
-        }
-    }
-}
-
-/// Processing settings, each optional: a replay's overrides of the recorded ones, and a
-/// rig's `[pipeline]` defaults for what a job leaves out.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
-#[serde(deny_unknown_fields)]
-pub struct Processing {
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub k: Option<u32>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub estimator: Option<Estimator>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub combine: Option<Combine>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub registration: Option<JobRegistration>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub whole_frame: Option<bool>,
-}
 
 /// What a client asks. Tagged by `kind`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -357,18 +193,6 @@ impl Reply {
     }
 }
 
-/// Time spent in each phase of one step, milliseconds.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
-pub struct StepTimings {
-    pub move_ms: f64,
-    pub settle_ms: f64,
-    pub grab_ms: f64,
-    /// Processing of this frame (runs while the axis moves to the next step); `None` when
-    /// the job does not process.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub process_ms: Option<f64>,
-}
-
 /// Something that happened to a job. Every event carries the job id.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Event {
@@ -429,10 +253,17 @@ pub enum EventBody {
         reason: String,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         session: Option<String>,
+        /// The reason's fields: kind, device, file, where the stage was left.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        detail: Option<EndDetail>,
     },
     Cancelled {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         session: Option<String>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        reason: Option<String>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        detail: Option<EndDetail>,
     },
 }
 
@@ -446,6 +277,143 @@ impl EventBody {
     }
 }
 
+impl EventBody {
+    /// A queued job that ends before it started.
+    pub fn cancelled_in_queue(reason: &str) -> EventBody {
+        EventBody::Cancelled {
+            session: None,
+            reason: Some(reason.into()),
+            detail: None,
+        }
+    }
+
+    /// The `step` event of a recorded step.
+    pub fn step(rec: &StepRecord) -> EventBody {
+        EventBody::Step {
+            index: rec.index,
+            run: rec.run,
+            case: rec.case.clone(),
+            repeat: rec.repeat,
+            commanded_um: rec.commanded_um,
+            axis_um: rec.axis_um,
+            interferometer_um: rec.interferometer_um,
+            timings: rec.timings,
+            total_frames: rec.total_frames,
+        }
+    }
+}
+
+/// The rig as `hello` describes it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RigSummary {
+    pub mode: String,
+    pub axis_limits_um: [f64; 2],
+    pub piezo_limits_um: Option<[f64; 2]>,
+    pub default_start_um: f64,
+    pub scale_um_per_px: f64,
+    pub frame_size: (u32, u32),
+    pub job_defaults: Processing,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HelloReply {
+    pub protocol: u32,
+    pub rigd: String,
+    pub rig: RigSummary,
+    pub data_root: PathBuf,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SubmitReply {
+    pub job_id: u64,
+    /// Jobs ahead of this one.
+    pub queue_position: usize,
+    pub total_frames: u32,
+    /// The job as it will run: every processing default resolved.
+    pub job: JobSpec,
+}
+
+/// `status` without a job id: the daemon's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DaemonStatus {
+    pub running: Option<JobStatus>,
+    pub queued: Vec<u64>,
+    pub shutting_down: bool,
+}
+
+/// A session on disk, as `list` shows it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SessionSummary {
+    pub name: String,
+    pub job_id: u64,
+    pub state: SessionState,
+    pub reason: Option<String>,
+    pub frames_captured: usize,
+    pub total_frames: u32,
+    pub replay_of: Option<String>,
+    pub label: Option<String>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ListReply {
+    pub jobs: Vec<JobStatus>,
+    pub sessions: Vec<SessionSummary>,
+}
+
+/// A queued job is cancelled at once; a running one is told to stop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CancelState {
+    Cancelled,
+    Cancelling,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CancelReply {
+    pub job_id: u64,
+    pub state: CancelState,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ResultReply {
+    pub job_id: u64,
+    pub session: String,
+    pub state: SessionState,
+    pub reason: Option<String>,
+    /// The session's `result.json`, as recorded.
+    pub result: Option<serde_json::Value>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SubscribeReply {
+    pub subscribed: Option<u64>,
+    pub status: Option<JobStatus>,
+}
+
+/// The `result` of an ok reply, one shape per request.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(untagged)]
+pub enum ReplyBody {
+    Hello(HelloReply),
+    Submit(SubmitReply),
+    DaemonStatus(DaemonStatus),
+    JobStatus(JobStatus),
+    List(ListReply),
+    Cancel(CancelReply),
+    Result(ResultReply),
+    Subscribe(SubscribeReply),
+}
+
+impl Reply {
+    /// An ok reply carrying `body`.
+    pub fn with(id: Option<serde_json::Value>, body: &ReplyBody) -> Reply {
+        Reply::ok(
+            id,
+            serde_json::to_value(body).expect("replies are plain data"),
+        )
+    }
+}
+
 /// Encode a server line as JSON + newline.
 pub fn encode(line: &ServerLine) -> Vec<u8> {
     let mut v = serde_json::to_vec(line).expect("server lines are plain data");
@@ -453,36 +421,11 @@ pub fn encode(line: &ServerLine) -> Vec<u8> {
     v
 }
 
-/// Processing options for one scan of a job.
-pub fn process_options(
-    spec: &JobSpec,
-    k: u32,
-    scale_um_per_px: f64,
-    axis_dir: [f64; 2],
-) -> ProcessOptions {
-    let mut o = ProcessOptions {
-        scale_um_per_px,
-        k,
-        estimator: spec.estimator.unwrap_or_default(),
-        whole_frame: spec.whole_frame.unwrap_or(false),
-        axis_dir,
-        registration: match spec.registration.unwrap_or_default() {
-            JobRegistration::Image => Registration::Image,
-            JobRegistration::Commanded | JobRegistration::Interferometer => Registration::Positions,
-        },
-        ..ProcessOptions::default()
-    };
-    if let Some(c) = spec.combine {
-        o.combine = c;
-    } else if k > 1 {
-        o.combine = Combine::Interp;
-    }
-    o
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::acquisition::JobRegistration;
+    use crate::pipeline::Registration;
 
     #[test]
     fn a_submit_line_decodes_with_defaults() {
@@ -523,7 +466,11 @@ mod tests {
         let ev = ServerLine::Event(Event {
             v: 1,
             job_id: 4,
-            body: EventBody::Cancelled { session: None },
+            body: EventBody::Cancelled {
+                session: None,
+                reason: None,
+                detail: None,
+            },
         });
         let bytes = encode(&ev);
         let text = std::str::from_utf8(&bytes).unwrap();
@@ -570,7 +517,6 @@ mod tests {
                     move_ms: 0.1,
                     settle_ms: 0.2,
                     grab_ms: 0.3,
-                    process_ms: None,
                 },
                 total_frames: 1,
             },

@@ -3,7 +3,8 @@
 //! order the job recorded them, so the replayed job goes through the same runner and
 //! pipeline and gets the same result (or another, with other processing settings).
 
-use crate::daemon::protocol::{JobSpec, Processing};
+use crate::acquisition::plan::{Plan, PlanError};
+use crate::acquisition::{JobSpec, Processing};
 use crate::daemon::rig::{LogSample, LogSource, PositionLog, Rig, RigInfo};
 use crate::daemon::session::{Session, SessionError, StepRow, INTERFEROMETER};
 use crate::hw::{Camera, Frame, HwError, MotionState, Stage, StageStatus};
@@ -12,47 +13,20 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-/// The job spec to replay a session with: the recorded one, processing overridden, and
-/// only as many frames as were captured (an incomplete session replays what it holds).
-pub fn replay_spec(session: &Session, ov: &Processing) -> JobSpec {
-    let mut spec = session.manifest.job.clone();
-    if let Some(e) = ov.estimator {
-        spec.estimator = Some(e);
-    }
-    if let Some(c) = ov.combine {
-        spec.combine = Some(c);
-    }
-    if let Some(r) = ov.registration {
-        spec.registration = Some(r);
-    }
-    if let Some(w) = ov.whole_frame {
-        spec.whole_frame = Some(w);
-    }
+/// The job and plan to replay a session with: the recorded job with processing
+/// overridden, cut to the frames the session holds (an incomplete session replays what it
+/// holds), every run's processing options rebuilt and checked as at submit.
+pub fn replay_job(session: &Session, ov: &Processing) -> Result<(JobSpec, Plan), PlanError> {
+    let mut spec = session.manifest.job.overridden(ov);
     spec.process = true;
     // The frames are already settled: replay as fast as the pipeline goes.
     spec.settle_ms = 0;
-    spec
-}
-
-/// The recorded plan cut to the frames the session holds, with `k` overridden.
-pub fn replay_plan(session: &Session, ov: &Processing) -> crate::daemon::plan::Plan {
-    let mut plan = session.manifest.plan.clone();
-    let mut left = session.steps.len();
-    plan.runs.retain_mut(|r| {
-        if left == 0 {
-            return false;
-        }
-        let n = r.positions_um.len().min(left);
-        r.positions_um.truncate(n);
-        r.case.frames = n as u32;
-        left -= n;
-        if let Some(k) = ov.k {
-            r.case.k = k;
-        }
-        true
-    });
-    plan.total_frames = plan.runs.iter().map(|r| r.positions_um.len() as u32).sum();
-    plan
+    let plan =
+        session
+            .manifest
+            .plan
+            .for_replay(session.steps.len(), &spec, ov, &session.manifest.rig)?;
+    Ok((spec, plan))
 }
 
 /// Build the replay rig for `session` (fails on an unreadable `interferometer.csv`).

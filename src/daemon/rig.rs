@@ -3,8 +3,8 @@
 //!
 //! The runner owns a `Rig` for the length of one job, on its own blocking thread.
 
-use crate::daemon::protocol::Processing;
-use crate::daemon::protocol::StageKind;
+use crate::acquisition::Processing;
+use crate::acquisition::StageKind;
 use crate::hw::{Camera, HwError, Stage};
 use rigd_sim::Board;
 use serde::{Deserialize, Serialize};

@@ -4,7 +4,6 @@
 
 use crate::daemon::protocol::EventBody;
 use crate::daemon::rig::Rig;
-use crate::daemon::runner::SHUTDOWN;
 use crate::daemon::session;
 use crate::daemon::{connection, worker, DaemonSettings, Shared};
 use std::os::unix::fs::PermissionsExt;
@@ -113,14 +112,15 @@ pub async fn run(
     shared.shutting_down.store(true, Ordering::SeqCst);
     let drained = shared.jobs().drain_queue();
     for id in drained {
-        shared
-            .events
-            .emit(id, EventBody::Cancelled { session: None });
+        shared.events.emit(
+            id,
+            EventBody::cancelled_in_queue("the daemon is shutting down"),
+        );
     }
     {
         let jobs = shared.jobs();
         if let Some(r) = jobs.running().and_then(|id| jobs.get(id)) {
-            r.stop.store(SHUTDOWN, Ordering::SeqCst);
+            r.stop.shutdown();
         }
     }
     shared.wake.notify_one();

@@ -6,14 +6,17 @@
 //! manifest's state is updated last. After a crash the manifest still says `running`; the
 //! next daemon start marks such sessions `incomplete`.
 //!
-//! The one exception is `interferometer.csv`, which grows by hundreds of samples a second:
-//! it is appended to and fsynced before each frame is recorded (rewriting it whole per
-//! frame would be quadratic). A crash can leave an unterminated last line, which readers
-//! skip; every sample up to the last reported frame is complete.
+//! The exceptions are `steps.csv` and `interferometer.csv`, which grow by a row a frame and
+//! by hundreds of samples a second: they are appended to and fsynced (rewriting them whole
+//! per frame would be quadratic in a job's length). A frame's PNG is in place before its
+//! `steps.csv` row, and its samples before either. A crash can leave an unterminated last
+//! line, which readers skip; every row up to the last reported frame is complete.
 
+use crate::acquisition::outcome::EndDetail;
+use crate::acquisition::plan::Plan;
+use crate::acquisition::JobSpec;
 use crate::atomic_file::{self, AtomicWriteError};
-use crate::daemon::plan::Plan;
-use crate::daemon::protocol::{JobSpec, PROTOCOL_VERSION};
+use crate::daemon::protocol::PROTOCOL_VERSION;
 use crate::daemon::rig::{LogSample, LogSource, RigInfo};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
@@ -30,8 +33,11 @@ pub const RESULT: &str = "result.json";
 /// Columns of `interferometer.csv`.
 pub const INTERFEROMETER_HEADER: &str = "t_unix_s,position_um,sample\n";
 
-/// A reconstruction as the pipeline makes it: 16-bit grey.
-pub type Image16 = image::ImageBuffer<image::Luma<u16>, Vec<u16>>;
+pub use crate::acquisition::processor::Image16;
+
+/// Columns of `steps.csv`, the `rigctl process` contract (`index,position_um`) first.
+pub const STEPS_HEADER: &str = "index,position_um,run,case,repeat,axis_um,interferometer_um,\
+t_unix_s,sequence,move_ms,settle_ms,grab_ms\n";
 
 #[derive(Debug, thiserror::Error)]
 pub enum SessionError {
@@ -84,6 +90,9 @@ pub struct Manifest {
     pub state: SessionState,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
+    /// The reason's fields (kind, device, file, where the stage was left).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub detail: Option<EndDetail>,
     pub created_unix_s: f64,
     pub updated_unix_s: f64,
     pub job: JobSpec,
@@ -148,7 +157,8 @@ pub fn frame_name(index: u32) -> String {
 pub struct SessionWriter {
     dir: PathBuf,
     manifest: Manifest,
-    rows: Vec<StepRow>,
+    /// `steps.csv`, open for appending.
+    steps: fs::File,
     /// `interferometer.csv`, open for appending once the job has a log.
     log: Option<fs::File>,
 }
@@ -187,6 +197,7 @@ impl SessionWriter {
             job_id,
             state: SessionState::Running,
             reason: None,
+            detail: None,
             created_unix_s: unix_s(now),
             updated_unix_s: unix_s(now),
             job: job.clone(),
@@ -200,13 +211,18 @@ impl SessionWriter {
             },
             frames_captured: 0,
         };
+        let steps_path = dir.join(STEPS);
+        write_atomic(&steps_path, STEPS_HEADER.as_bytes())?;
+        let steps = fs::OpenOptions::new()
+            .append(true)
+            .open(&steps_path)
+            .map_err(io(&steps_path))?;
         let mut w = SessionWriter {
             dir,
             manifest,
-            rows: Vec::new(),
+            steps,
             log: None,
         };
-        w.write_steps()?;
         w.write_manifest()?;
         sync_dir(data_root)?;
         Ok(w)
@@ -231,9 +247,8 @@ impl SessionWriter {
                 message: format!("PNG encoding: {e}"),
             })?;
         write_atomic(&path, &png)?;
-        self.rows.push(row);
-        self.write_steps()?;
-        self.manifest.frames_captured = self.rows.len() as u32;
+        self.append_step(&row)?;
+        self.manifest.frames_captured += 1;
         Ok(())
     }
 
@@ -275,30 +290,16 @@ impl SessionWriter {
         f.sync_data().map_err(io(&path))
     }
 
-    fn write_steps(&self) -> Result<(), SessionError> {
-        let mut w = csv::Writer::from_writer(Vec::new());
-        if self.rows.is_empty() {
-            w.write_record([
-                "index",
-                "position_um",
-                "run",
-                "case",
-                "repeat",
-                "axis_um",
-                "interferometer_um",
-                "t_unix_s",
-                "sequence",
-                "move_ms",
-                "settle_ms",
-                "grab_ms",
-            ])
-            .map_err(|e| self.format_err(e))?;
-        }
-        for r in &self.rows {
-            w.serialize(r).map_err(|e| self.format_err(e))?;
-        }
+    /// Append one `steps.csv` row and fsync it.
+    fn append_step(&mut self, row: &StepRow) -> Result<(), SessionError> {
+        let mut w = csv::WriterBuilder::new()
+            .has_headers(false)
+            .from_writer(Vec::with_capacity(160));
+        w.serialize(row).map_err(|e| self.format_err(e))?;
         let bytes = w.into_inner().map_err(|e| self.format_err(e))?;
-        write_atomic(&self.dir.join(STEPS), &bytes)
+        let path = self.dir.join(STEPS);
+        self.steps.write_all(&bytes).map_err(io(&path))?;
+        self.steps.sync_data().map_err(io(&path))
     }
 
     fn format_err(&self, e: impl std::fmt::Display) -> SessionError {
@@ -311,7 +312,7 @@ impl SessionWriter {
     /// Write the result and its images (before the final state).
     pub fn write_result(
         &mut self,
-        result: &serde_json::Value,
+        result: &impl Serialize,
         images: &[(String, Image16)],
     ) -> Result<(), SessionError> {
         if !images.is_empty() {
@@ -335,9 +336,11 @@ impl SessionWriter {
         mut self,
         state: SessionState,
         reason: Option<String>,
+        detail: Option<EndDetail>,
     ) -> Result<(), SessionError> {
         self.manifest.state = state;
         self.manifest.reason = reason;
+        self.manifest.detail = detail;
         self.write_manifest()?;
         sync_dir(&self.dir)
     }
@@ -367,10 +370,13 @@ impl Session {
                 message: e.to_string(),
             })?;
         let spath = dir.join(STEPS);
-        let mut rd = csv::Reader::from_path(&spath).map_err(|e| SessionError::Format {
-            path: spath.display().to_string(),
-            message: e.to_string(),
-        })?;
+        let text = fs::read(&spath).map_err(io(&spath))?;
+        // A crash mid-append can leave half a row: every complete row ends in a newline.
+        let complete = match text.iter().rposition(|&b| b == b'\n') {
+            Some(i) => &text[..=i],
+            None => &text[..0],
+        };
+        let mut rd = csv::Reader::from_reader(complete);
         let mut steps = Vec::new();
         for (i, row) in rd.deserialize::<StepRow>().enumerate() {
             steps.push(row.map_err(|e| SessionError::Format {

@@ -1,15 +1,27 @@
 //! The worker: takes queued jobs one at a time and runs each on a blocking thread with the
-//! rig, then records how it ended.
+//! rig: a session to record into, the step engine to drive the rig, the recorder and the
+//! processor as its sinks; then records how the job ended.
 
+use crate::acquisition::processor::{Image16, Processor, ProcessorEvent};
+use crate::acquisition::study::{summarize, JobResult, RunResult};
+use crate::acquisition::{
+    Devices, Engine, EngineSettings, JobError, Outcome, StageKind, StepSink, Threaded,
+};
 use crate::daemon::jobs::{JobRecord, JobSource, JobState};
 use crate::daemon::protocol::EventBody;
+use crate::daemon::recorder::{disk_error, Recorder};
 use crate::daemon::replay::replay_rig;
 use crate::daemon::rig::Rig;
-use crate::daemon::runner::{run_job, JobContext, Outcome};
 use crate::daemon::session::{Session, SessionState, SessionWriter};
 use crate::daemon::Shared;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
+use std::time::{Duration, SystemTime};
+
+/// Frames the engine may be ahead of the disk by (each is a few MB in memory).
+const RECORDER_QUEUE: usize = 2;
+/// Frames processing may fall behind the disk by.
+const PROCESSOR_QUEUE: usize = 4;
 
 /// Run jobs until the daemon shuts down; returns the rig (stopped).
 pub async fn run(shared: Arc<Shared>, mut rig: Rig) -> Rig {
@@ -37,25 +49,8 @@ pub async fn run(shared: Arc<Shared>, mut rig: Rig) -> Rig {
 }
 
 /// Run one job start to finish, on the calling (blocking) thread.
-fn execute(shared: &Shared, job: &JobRecord, live: &mut Rig) {
+fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
     let id = job.id;
-    let emit = |body: EventBody| {
-        if let EventBody::Step { index, .. } = &body {
-            if let Some(r) = shared.jobs().get_mut(id) {
-                r.frames_done = index + 1;
-            }
-        }
-        shared.events.emit(id, body);
-    };
-    let fail = |reason: String, session: Option<String>| {
-        tracing::warn!(job = id, %reason, "job failed");
-        shared
-            .jobs()
-            .finish(id, JobState::Failed, Some(reason.clone()));
-        shared
-            .events
-            .emit(id, EventBody::Failed { reason, session });
-    };
     // A replay runs on a rig made of the recorded session; a live job on the rig.
     let mut replay;
     let (rig, replay_of): (&mut Rig, Option<String>) = match &job.source {
@@ -68,80 +63,221 @@ fn execute(shared: &Shared, job: &JobRecord, live: &mut Rig) {
                 replay = r;
                 (&mut replay, Some(name))
             }
-            Err(e) => return fail(e.to_string(), None),
+            Err(e) => return end(shared, id, None, failed_setup(e.to_string())),
         },
     };
-    let mut session = match SessionWriter::create(
-        &shared.settings.data_root,
-        id,
-        &job.spec,
-        &job.plan,
-        &rig.info,
-        replay_of,
-    ) {
+    let root = &shared.settings.data_root;
+    let session = match SessionWriter::create(root, id, &job.spec, &job.plan, &rig.info, replay_of)
+    {
         Ok(s) => s,
-        Err(e) => return fail(format!("disk: {e}"), None),
+        Err(e) => return end(shared, id, None, failed_setup(format!("disk: {e}"))),
     };
     let name = session.name().to_string();
     if let Some(r) = shared.jobs().get_mut(id) {
         r.session = Some(name.clone());
     }
     tracing::info!(job = id, session = %name, frames = job.plan.total_frames, "job started");
-    shared.events.emit(
-        id,
-        EventBody::Started {
-            session: name.clone(),
-            total_frames: job.plan.total_frames,
-        },
-    );
-    let ctx = JobContext {
-        spec: &job.spec,
-        plan: &job.plan,
-        stop: &job.stop,
-        emit: &emit,
+    let started = EventBody::Started {
+        session: name.clone(),
+        total_frames: job.plan.total_frames,
     };
-    let out = run_job(&ctx, rig, &mut session);
-    let images: Vec<_> = out.images;
-    let wrote = session.write_result(&out.result, &images);
-    // A write failing while closing keeps the job's own reason first (on a full disk that
-    // names the frame that did not fit).
-    let earlier = match &out.outcome {
-        Outcome::Finished => String::new(),
-        Outcome::Failed(r) | Outcome::Cancelled(r) => format!("{r}; "),
-    };
-    let (state, jstate, reason) = match (&out.outcome, wrote) {
-        (_, Err(e)) => (
-            SessionState::Failed,
-            JobState::Failed,
-            Some(format!("{earlier}disk: {e}")),
-        ),
-        (Outcome::Finished, Ok(())) => (SessionState::Finished, JobState::Finished, None),
-        (Outcome::Failed(r), Ok(())) => (SessionState::Failed, JobState::Failed, Some(r.clone())),
-        (Outcome::Cancelled(r), Ok(())) => (
-            SessionState::Cancelled,
-            JobState::Cancelled,
-            Some(r.clone()),
-        ),
-    };
-    let closed = session.close(state, reason.clone());
-    let (jstate, reason) = match closed {
-        Err(e) => {
-            let earlier = reason.map(|r| format!("{r}; ")).unwrap_or_default();
-            (JobState::Failed, Some(format!("{earlier}disk: {e}")))
+    shared.events.emit(id, started);
+    let (outcome, session, runs, images) = capture(shared, job, rig, session);
+    let names: Vec<&str> = rig
+        .info
+        .board
+        .iter()
+        .flat_map(|b| b.targets.iter().map(|t| t.name.as_str()))
+        .collect();
+    let study = (job.spec.process && !runs.is_empty())
+        .then(|| summarize(&runs, &names, rig.info.scale_um_per_px));
+    let result = JobResult { runs, study };
+    let outcome = close(session, outcome, &result, &images);
+    end(shared, id, Some(name), outcome);
+}
+
+fn failed_setup(message: String) -> Outcome {
+    Outcome::Failed(JobError::Setup { message })
+}
+
+type Captured = (
+    Outcome,
+    Option<SessionWriter>,
+    Vec<RunResult>,
+    Vec<(String, Image16)>,
+);
+
+/// Drive the rig through the job's plan, recording and processing behind it.
+fn capture(
+    shared: &Arc<Shared>,
+    job: &JobRecord,
+    rig: &mut Rig,
+    mut session: SessionWriter,
+) -> Captured {
+    if let Some(log) = rig.log.as_deref_mut() {
+        log.begin(SystemTime::now());
+        if let Err(e) = session.begin_interferometer(log.source()) {
+            let e = crate::acquisition::engine::sink_error(disk_error(e));
+            return (Outcome::Failed(e), Some(session), Vec::new(), Vec::new());
         }
-        Ok(()) => (jstate, reason),
-    };
-    tracing::info!(job = id, state = ?jstate, reason = ?reason, "job ended");
-    shared.jobs().finish(id, jstate, reason.clone());
-    let body = match jstate {
-        JobState::Finished => EventBody::Finished { session: name },
-        JobState::Cancelled => EventBody::Cancelled {
-            session: Some(name),
+    }
+    let processor = job.spec.process.then(|| {
+        let p = Processor::new(
+            job.plan.runs.clone(),
+            rig.info.board.clone(),
+            processor_events(shared, job.id),
+        );
+        Threaded::spawn("processor", p, PROCESSOR_QUEUE)
+    });
+    let recorder = Recorder::new(session, step_recorded(shared, job.id), processor);
+    let mut sink = Threaded::spawn("recorder", recorder, RECORDER_QUEUE);
+    let engine = Engine {
+        plan: &job.plan,
+        settings: EngineSettings {
+            settle: Duration::from_millis(job.spec.settle_ms),
+            grab_timeout: Duration::from_millis(rig.info.grab_timeout_ms),
+            registration: job.spec.registration.unwrap_or_default(),
+            ..EngineSettings::default()
         },
-        _ => EventBody::Failed {
-            reason: reason.unwrap_or_default(),
-            session: Some(name),
+        stop: &job.stop,
+    };
+    let outcome = match devices(rig, job.spec.stage) {
+        Ok(mut dev) => engine.run(&mut dev, &mut sink),
+        Err(e) => {
+            let _ = sink.finish();
+            Outcome::Failed(JobError::Hardware {
+                source: e,
+                stopped: None,
+            })
+        }
+    };
+    let Some(mut recorder) = sink.into_inner() else {
+        // The recorder's thread panicked: the session cannot be closed here; the next
+        // start marks it incomplete.
+        return (outcome, None, Vec::new(), Vec::new());
+    };
+    let (runs, images) = match recorder.processor.take().and_then(|p| p.into_inner()) {
+        Some(p) => (p.results, p.images),
+        None => (Vec::new(), Vec::new()),
+    };
+    (outcome, Some(recorder.session), runs, images)
+}
+
+fn devices(rig: &mut Rig, stage: StageKind) -> Result<Devices<'_>, crate::hw::HwError> {
+    let stage: &mut dyn crate::hw::Stage = match stage {
+        StageKind::Axis => rig.axis.as_mut(),
+        StageKind::Piezo => match rig.piezo.as_deref_mut() {
+            Some(p) => p,
+            None => {
+                return Err(crate::hw::HwError::Other {
+                    device: "piezo".into(),
+                    message: "this rig has no piezo".into(),
+                })
+            }
         },
     };
+    Ok(Devices {
+        stage,
+        camera: rig.camera.as_mut(),
+        log: rig.log.as_deref_mut(),
+    })
+}
+
+/// Once a step is on disk: count it and tell the clients.
+fn step_recorded(shared: &Arc<Shared>, id: u64) -> crate::daemon::recorder::OnRecorded {
+    let shared = shared.clone();
+    Box::new(move |rec| {
+        if let Some(r) = shared.jobs().get_mut(id) {
+            r.frames_done = rec.index + 1;
+        }
+        shared.events.emit(id, EventBody::step(rec));
+    })
+}
+
+fn processor_events(shared: &Arc<Shared>, id: u64) -> crate::acquisition::processor::Emit {
+    let shared = shared.clone();
+    Box::new(move |ev| {
+        let body = match ev {
+            ProcessorEvent::Frame {
+                index,
+                process_ms,
+                targets_found,
+            } => EventBody::Processed {
+                index,
+                process_ms,
+                targets_found,
+            },
+            ProcessorEvent::Run(r) => EventBody::Result {
+                run: r.run,
+                case: r.case,
+                repeat: r.repeat,
+                objects: r.result.as_ref().map(|x| x.objects.len()),
+                error: r.error,
+            },
+        };
+        shared.events.emit(id, body);
+    })
+}
+
+/// Write the result and the final manifest. A write failing here keeps the job's own
+/// reason first (on a full disk that names the frame that did not fit).
+fn close(
+    session: Option<SessionWriter>,
+    outcome: Outcome,
+    result: &JobResult,
+    images: &[(String, Image16)],
+) -> Outcome {
+    let Some(mut session) = session else {
+        return outcome;
+    };
+    let closing_failed = |outcome: &Outcome, e| {
+        let e = crate::acquisition::engine::sink_error(disk_error(e));
+        Outcome::Failed(e.after(outcome.reason()))
+    };
+    let outcome = match session.write_result(result, images) {
+        Ok(()) => outcome,
+        Err(e) => closing_failed(&outcome, e),
+    };
+    let state = match &outcome {
+        Outcome::Finished => SessionState::Finished,
+        Outcome::Cancelled(_) => SessionState::Cancelled,
+        Outcome::Failed(_) => SessionState::Failed,
+    };
+    match session.close(state, outcome.reason(), outcome.detail()) {
+        Ok(()) => outcome,
+        Err(e) => closing_failed(&outcome, e),
+    }
+}
+
+/// Record the job's end in the table and tell the clients.
+fn end(shared: &Shared, id: u64, session: Option<String>, outcome: Outcome) {
+    let reason = outcome.reason();
+    let detail = outcome.detail();
+    let (state, body) = match outcome {
+        Outcome::Finished => (
+            JobState::Finished,
+            EventBody::Finished {
+                session: session.unwrap_or_default(),
+            },
+        ),
+        Outcome::Cancelled(_) => (
+            JobState::Cancelled,
+            EventBody::Cancelled {
+                session,
+                reason: reason.clone(),
+                detail,
+            },
+        ),
+        Outcome::Failed(_) => (
+            JobState::Failed,
+            EventBody::Failed {
+                reason: reason.clone().unwrap_or_default(),
+                session,
+                detail,
+            },
+        ),
+    };
+    tracing::info!(job = id, state = ?state, reason = ?reason, "job ended");
+    shared.jobs().finish(id, state, reason);
     shared.events.emit(id, body);
 }

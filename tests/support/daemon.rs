@@ -2,10 +2,11 @@
 //! or the `rigd` binary as a child process; a client that submits jobs and follows their
 //! events to the end; the session a job wrote; a fast GRBL emulator for hardware-mode rigs.
 
+use rigd::acquisition::JobSpec;
 use rigd::cli::client::Client;
 use rigd::config::Config;
 use rigd::daemon::hwrig::rig_from_config;
-use rigd::daemon::protocol::{EventBody, JobSpec, Request};
+use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::rig::Rig;
 use rigd::daemon::server::Background;
 use rigd::daemon::session::Session;

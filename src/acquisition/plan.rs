@@ -1,15 +1,39 @@
-//! A job spec checked against the rig and expanded into runs, before anything moves.
+//! A job checked against the rig and expanded into runs, before anything moves. Every
+//! reason the job could fail on later is checked here: shape, limits, the disk, and each
+//! run's complete processing options (the pipeline validates them, so a job with a `k` it
+//! cannot reconstruct is refused at submit, not after the rig has moved).
 
-use crate::daemon::protocol::{
-    CaseScan, ErrorCode, JobRegistration, JobSpec, Processing, ProtoError,
+use crate::acquisition::job::{
+    combine_for, CaseScan, JobRegistration, JobSpec, Processing, StageKind,
 };
 use crate::daemon::rig::RigInfo;
-use crate::pipeline::{Combine, Estimator};
+use crate::pipeline::ProcessOptions;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// Most frames one job may ask for.
 pub const MAX_FRAMES: u32 = 100_000;
+/// Longest settle a step may ask for: longer is a typo, not a rig (a minute).
+pub const MAX_SETTLE_MS: u64 = 60_000;
+
+/// A job the plan refuses, with the reason naming the field.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct PlanError(pub String);
+
+fn rejected(msg: impl Into<String>) -> PlanError {
+    PlanError(msg.into())
+}
+
+/// A length for a message: plain up to a kilometre, scientific beyond (no 309-digit
+/// numbers in a refusal).
+pub fn um(v: f64) -> String {
+    if v.is_finite() && v.abs() < 1e9 {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
 
 /// One scan of one case in one repeat.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -19,6 +43,10 @@ pub struct RunPlan {
     pub repeat: u32,
     /// Commanded position of every frame.
     pub positions_um: Vec<f64>,
+    /// The complete processing options of this run, validated by the pipeline at submit
+    /// (`None`: the job does not process; absent from sessions recorded before rigd 0.2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub processing: Option<ProcessOptions>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -27,36 +55,30 @@ pub struct Plan {
     pub total_frames: u32,
 }
 
-fn rejected(msg: impl Into<String>) -> ProtoError {
-    ProtoError::new(ErrorCode::Rejected, msg)
+/// The processing options of one scan of `spec` (resolved: see `JobSpec::with_defaults`),
+/// checked by the pipeline.
+pub fn run_options(spec: &JobSpec, k: u32, rig: &RigInfo) -> Result<ProcessOptions, PlanError> {
+    let o = ProcessOptions {
+        scale_um_per_px: rig.scale_um_per_px,
+        k,
+        estimator: spec.estimator.unwrap_or_default(),
+        combine: spec.combine.unwrap_or(combine_for(k)),
+        registration: spec.registration.unwrap_or_default().pipeline(),
+        axis_dir: rig.axis_dir,
+        whole_frame: spec.whole_frame.unwrap_or(false),
+    };
+    validate_options(&o)?;
+    Ok(o)
 }
 
-/// `spec` with every processing field it leaves out filled in: from the rig's `[pipeline]`
-/// defaults where the config sets them, else the protocol's own. A study's cases keep their
-/// own k, and without a configured `combine` each case combines by its k (interp above 1,
-/// else mean), so a study's `k` and possibly `combine` stay unset.
-pub fn resolve_defaults(spec: &JobSpec, d: &Processing) -> JobSpec {
-    let mut s = spec.clone();
-    s.estimator = s.estimator.or(d.estimator).or(Some(Estimator::default()));
-    s.combine = s.combine.or(d.combine);
-    if s.study.is_none() {
-        let k = *s.k.get_or_insert(d.k.unwrap_or(1));
-        s.combine.get_or_insert(if k > 1 {
-            Combine::Interp
-        } else {
-            Combine::Mean
-        });
-    }
-    s.registration = s
-        .registration
-        .or(d.registration)
-        .or(Some(JobRegistration::Image));
-    s.whole_frame = s.whole_frame.or(d.whole_frame).or(Some(false));
-    s
+fn validate_options(o: &ProcessOptions) -> Result<(), PlanError> {
+    crate::pipeline::Pipeline::new(o.clone(), None)
+        .map(|_| ())
+        .map_err(|e| rejected(e.to_string()))
 }
 
 /// The scans a job asks for, checked for shape.
-fn cases(spec: &JobSpec) -> Result<Vec<CaseScan>, ProtoError> {
+fn cases(spec: &JobSpec) -> Result<Vec<CaseScan>, PlanError> {
     match &spec.study {
         Some(study) => {
             if spec.step_um.is_some() || spec.steps.is_some() || spec.k.is_some() {
@@ -127,51 +149,21 @@ pub fn plan(
     rig: &RigInfo,
     data_root: &Path,
     committed_bytes: u64,
-) -> Result<Plan, ProtoError> {
+) -> Result<Plan, PlanError> {
+    check_job(spec, rig)?;
     let cases = cases(spec)?;
-    if spec.repeats == 0 {
-        return Err(rejected("`repeats` must be at least 1"));
-    }
-    if spec.registration == Some(JobRegistration::Interferometer) && !rig.interferometer {
-        return Err(rejected(
-            "`registration`: \"interferometer\" needs an interferometer, and this rig has none \
-             (no [xl80] section in its configuration)",
-        ));
-    }
     let limits = rig
         .limits_um(spec.stage)
-        .ok_or_else(|| rejected(format!("this rig has no {:?} stage", spec.stage)))?;
-    for (name, v) in [
-        ("start_um", spec.start_um.unwrap_or(0.0)),
-        ("repeat_shift_um", spec.repeat_shift_um),
-    ] {
-        if !v.is_finite() {
-            return Err(rejected(format!("`{name}` must be a finite number")));
-        }
-    }
+        .ok_or_else(|| rejected(format!("this rig has no {} stage", spec.stage)))?;
     let start = spec.start_um.unwrap_or(match spec.stage {
-        crate::daemon::protocol::StageKind::Axis => rig.default_start_um,
-        crate::daemon::protocol::StageKind::Piezo => limits[0],
+        StageKind::Axis => rig.default_start_um,
+        StageKind::Piezo => limits[0],
     });
     let mut runs = Vec::new();
     let mut total: u64 = 0;
     for repeat in 0..spec.repeats {
         for c in &cases {
-            if c.frames == 0 {
-                return Err(rejected(format!("{}: `steps` must be at least 1", c.name)));
-            }
-            if c.k == 0 || c.k > 64 {
-                return Err(rejected(format!(
-                    "{}: `k` must be 1..=64, got {}",
-                    c.name, c.k
-                )));
-            }
-            if !c.step_um.is_finite() || (c.frames > 1 && c.step_um == 0.0) {
-                return Err(rejected(format!(
-                    "{}: `step_um` must be a non-zero finite number for {} frames, got {}",
-                    c.name, c.frames, c.step_um
-                )));
-            }
+            check_case(c)?;
             total += c.frames as u64;
             if total > MAX_FRAMES as u64 {
                 return Err(rejected(format!(
@@ -182,36 +174,147 @@ pub fn plan(
             let positions_um: Vec<f64> = (0..c.frames)
                 .map(|i| first + i as f64 * c.step_um)
                 .collect();
-            for &p in [positions_um[0], positions_um[positions_um.len() - 1]].iter() {
-                if p < limits[0] || p > limits[1] {
-                    return Err(rejected(format!(
-                        "{} repeat {repeat}: position {p} µm leaves the {:?} soft limits [{}, {}] µm",
-                        c.name, spec.stage, limits[0], limits[1]
-                    )));
-                }
-            }
+            check_limits(&positions_um, limits, spec.stage, &c.name, repeat)?;
+            let processing = match spec.process {
+                true => Some(run_options(spec, c.k, rig).map_err(|e| in_case(&c.name, e))?),
+                false => None,
+            };
             runs.push(RunPlan {
                 run: runs.len() as u32,
                 case: c.clone(),
                 repeat,
                 positions_um,
+                processing,
             });
         }
     }
-    let total_frames = total as u32;
-    let need = estimated_bytes(total, rig.frame_size);
-    if let Some(free) = free_bytes(data_root) {
-        if need.saturating_add(committed_bytes) > free {
-            return Err(rejected(disk_message(
-                total_frames,
-                need,
-                committed_bytes,
-                data_root,
-                free,
+    let plan = Plan {
+        runs,
+        total_frames: total as u32,
+    };
+    check_disk(&plan, rig, data_root, committed_bytes)?;
+    Ok(plan)
+}
+
+fn in_case(name: &str, e: PlanError) -> PlanError {
+    rejected(format!("{name}: {}", e.0))
+}
+
+/// What concerns the whole job, whatever its scans.
+fn check_job(spec: &JobSpec, rig: &RigInfo) -> Result<(), PlanError> {
+    if spec.repeats == 0 {
+        return Err(rejected("`repeats` must be at least 1"));
+    }
+    if spec.settle_ms > MAX_SETTLE_MS {
+        return Err(rejected(format!(
+            "`settle_ms` must be at most {MAX_SETTLE_MS} ms, got {}",
+            spec.settle_ms
+        )));
+    }
+    if spec.registration == Some(JobRegistration::Interferometer) && !rig.interferometer {
+        return Err(rejected(
+            "`registration`: \"interferometer\" needs an interferometer, and this rig has none \
+             (no [xl80] section in its configuration)",
+        ));
+    }
+    for (name, v) in [
+        ("start_um", spec.start_um.unwrap_or(0.0)),
+        ("repeat_shift_um", spec.repeat_shift_um),
+    ] {
+        if !v.is_finite() {
+            return Err(rejected(format!("`{name}` must be a finite number")));
+        }
+    }
+    Ok(())
+}
+
+fn check_case(c: &CaseScan) -> Result<(), PlanError> {
+    if c.frames == 0 {
+        return Err(rejected(format!("{}: `steps` must be at least 1", c.name)));
+    }
+    if !c.step_um.is_finite() || (c.frames > 1 && c.step_um == 0.0) {
+        return Err(rejected(format!(
+            "{}: `step_um` must be a non-zero finite number for {} frames, got {}",
+            c.name,
+            c.frames,
+            um(c.step_um)
+        )));
+    }
+    Ok(())
+}
+
+fn check_limits(
+    positions_um: &[f64],
+    limits: [f64; 2],
+    stage: StageKind,
+    case: &str,
+    repeat: u32,
+) -> Result<(), PlanError> {
+    // Positions are monotonic within a scan: its ends bound it.
+    for &p in [positions_um[0], positions_um[positions_um.len() - 1]].iter() {
+        if !(p >= limits[0] && p <= limits[1]) {
+            return Err(rejected(format!(
+                "{case} repeat {repeat}: position {} µm leaves the {stage} soft limits [{}, {}] µm",
+                um(p),
+                um(limits[0]),
+                um(limits[1])
             )));
         }
     }
-    Ok(Plan { runs, total_frames })
+    Ok(())
+}
+
+fn check_disk(
+    plan: &Plan,
+    rig: &RigInfo,
+    data_root: &Path,
+    committed_bytes: u64,
+) -> Result<(), PlanError> {
+    let need = estimated_bytes(plan.total_frames as u64, rig.frame_size);
+    match free_bytes(data_root) {
+        Some(free) if need.saturating_add(committed_bytes) > free => Err(rejected(disk_message(
+            plan.total_frames,
+            need,
+            committed_bytes,
+            data_root,
+            free,
+        ))),
+        _ => Ok(()),
+    }
+}
+
+impl Plan {
+    /// This plan for a replay of a session that holds `frames` frames: cut to them, `k`
+    /// and processing overridden, every run's options rebuilt and checked as at submit.
+    pub fn for_replay(
+        &self,
+        frames: usize,
+        spec: &JobSpec,
+        ov: &Processing,
+        rig: &RigInfo,
+    ) -> Result<Plan, PlanError> {
+        let mut plan = self.clone();
+        let mut left = frames;
+        plan.runs.retain(|r| {
+            let keep = left > 0;
+            left = left.saturating_sub(r.positions_um.len());
+            keep
+        });
+        let mut left = frames;
+        for r in &mut plan.runs {
+            let n = r.positions_um.len().min(left);
+            r.positions_um.truncate(n);
+            r.case.frames = n as u32;
+            left -= n;
+            if let Some(k) = ov.k {
+                r.case.k = k;
+            }
+            r.processing =
+                Some(run_options(spec, r.case.k, rig).map_err(|e| in_case(&r.case.name, e))?);
+        }
+        plan.total_frames = plan.runs.iter().map(|r| r.positions_um.len() as u32).sum();
+        Ok(plan)
+    }
 }
 
 /// Free bytes for an unprivileged writer on the filesystem holding `path`.
@@ -227,8 +330,9 @@ pub fn free_bytes(path: &Path) -> Option<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::daemon::protocol::PaperCase;
+    use crate::acquisition::job::PaperCase;
     use crate::pipeline::Registration;
+    use crate::pipeline::{Combine, Estimator};
 
     fn rig() -> RigInfo {
         RigInfo {
@@ -255,7 +359,7 @@ mod tests {
             ..JobSpec::default()
         };
         // No configured defaults (rigd --sim): the protocol's own, k-dependent combine.
-        let r = resolve_defaults(&scan, &Processing::default());
+        let r = scan.with_defaults(&Processing::default());
         assert_eq!(
             (r.k, r.estimator, r.combine, r.registration, r.whole_frame),
             (
@@ -266,13 +370,11 @@ mod tests {
                 Some(false)
             )
         );
-        let k4 = resolve_defaults(
-            &JobSpec {
-                k: Some(4),
-                ..scan.clone()
-            },
-            &Processing::default(),
-        );
+        let k4 = JobSpec {
+            k: Some(4),
+            ..scan.clone()
+        }
+        .with_defaults(&Processing::default());
         assert_eq!(k4.combine, Some(Combine::Interp));
         let rig = Processing {
             k: Some(6),
@@ -282,7 +384,7 @@ mod tests {
             registration: Some(Registration::Positions.into()),
             whole_frame: Some(true),
         };
-        let r = resolve_defaults(&scan, &rig);
+        let r = scan.with_defaults(&rig);
         assert_eq!(
             (r.k, r.estimator, r.combine, r.registration, r.whole_frame),
             (
@@ -294,7 +396,7 @@ mod tests {
             )
         );
         // ...and processing runs with them.
-        let o = crate::daemon::protocol::process_options(&r, 6, 774.0, [-1.0, 0.0]);
+        let o = run_options(&r, 6, &super::tests::rig()).unwrap();
         assert_eq!(
             (o.k, o.estimator, o.combine, o.registration, o.whole_frame),
             (
@@ -313,13 +415,13 @@ mod tests {
             whole_frame: Some(false),
             ..scan.clone()
         };
-        assert_eq!(resolve_defaults(&explicit, &rig), explicit);
+        assert_eq!(explicit.with_defaults(&rig), explicit);
         // A study's cases keep their own k (and combine by it when nothing is configured).
         let study = JobSpec {
             study: Some(PaperCase::ALL.to_vec()),
             ..JobSpec::default()
         };
-        let s = resolve_defaults(&study, &rig);
+        let s = study.with_defaults(&rig);
         assert_eq!(
             (s.k, s.combine, s.estimator),
             (None, None, Some(Estimator::Paper))
@@ -345,8 +447,7 @@ mod tests {
         let need = estimated_bytes(6, rig.frame_size);
         assert!(plan(&six, &rig, t, 0).is_ok());
         let e = plan(&six, &rig, t, need).unwrap_err();
-        assert_eq!(e.code, ErrorCode::Rejected);
-        let m = e.message;
+        let m = e.0;
         assert!(m.starts_with("6 frames need about "), "{m}");
         assert!(
             m.contains(&format!(
@@ -367,7 +468,7 @@ mod tests {
             0,
         )
         .unwrap_err();
-        assert!(e.message.contains(" MB but /tmp has "), "{}", e.message);
+        assert!(e.0.contains(" MB but /tmp has "), "{}", e.0);
         assert_eq!(estimated_bytes(2, (10, 10)), 2 * (300 + 4096) + (1 << 20));
     }
 
@@ -398,26 +499,17 @@ mod tests {
             step_um: Some(0.0),
             ..base.clone()
         };
-        assert!(plan(&zero, &r, t, 0)
-            .unwrap_err()
-            .message
-            .contains("non-zero"));
+        assert!(plan(&zero, &r, t, 0).unwrap_err().0.contains("non-zero"));
         let far = JobSpec {
             step_um: Some(5000.0),
             ..base.clone()
         };
-        assert!(plan(&far, &r, t, 0)
-            .unwrap_err()
-            .message
-            .contains("soft limits"));
+        assert!(plan(&far, &r, t, 0).unwrap_err().0.contains("soft limits"));
         let piezo = JobSpec {
-            stage: crate::daemon::protocol::StageKind::Piezo,
+            stage: StageKind::Piezo,
             ..base.clone()
         };
-        assert!(plan(&piezo, &r, t, 0)
-            .unwrap_err()
-            .message
-            .contains("no Piezo"));
+        assert!(plan(&piezo, &r, t, 0).unwrap_err().0.contains("no piezo"));
         let huge = RigInfo {
             frame_size: (100_000, 100_000),
             ..rig()
@@ -427,17 +519,14 @@ mod tests {
             step_um: Some(1.0),
             ..base.clone()
         };
-        assert!(plan(&big, &huge, t, 0)
-            .unwrap_err()
-            .message
-            .contains("MB free"));
+        assert!(plan(&big, &huge, t, 0).unwrap_err().0.contains("MB free"));
         assert!(plan(&base, &r, t, 0).is_ok());
         let by_laser = JobSpec {
             registration: Some(JobRegistration::Interferometer),
             ..base.clone()
         };
         let e = plan(&by_laser, &r, t, 0).unwrap_err();
-        assert!(e.message.contains("[xl80]"), "{}", e.message);
+        assert!(e.0.contains("[xl80]"), "{}", e.0);
         let with_laser = RigInfo {
             interferometer: true,
             ..rig()

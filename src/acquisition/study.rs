@@ -21,6 +21,14 @@ pub struct RunResult {
     pub error: Option<String>,
 }
 
+/// What a job produced: every run's measurement (runs that finished before a fault are
+/// kept) and, for a study, its summary. The session's `result.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobResult {
+    pub runs: Vec<RunResult>,
+    pub study: Option<StudySummary>,
+}
+
 /// One line of the study's summary (what `rigctl demo --json` lists as `cases`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CaseLine {

@@ -1,0 +1,348 @@
+//! The step engine: runs a plan on the devices, one step at a time (move, wait for the
+//! move while watching for a stop, settle, grab a fresh frame, read the interferometer),
+//! and hands one [`StepRecord`] per step to its sink. Blocking code on its own thread; it
+//! knows nothing of sessions, events or the wire.
+//!
+//! Stops: a cancel is seen mid-move (the stage is stopped where it is: GRBL feed hold, GCS
+//! HLT); a shutdown lets the move end. Either, arriving during the settle or the grab, ends
+//! the step without a frame; arriving after the last step, the job still ends cancelled.
+
+use crate::acquisition::job::JobRegistration;
+use crate::acquisition::outcome::{JobError, Outcome, Phase, Stop, StopCause, StoppedAt};
+use crate::acquisition::plan::{Plan, RunPlan};
+use crate::acquisition::record::{ms, StepRecord, StepTimings};
+use crate::acquisition::sink::{SinkError, StepSink};
+use crate::daemon::rig::PositionLog;
+use crate::hw::{Camera, HwError, MotionState, Stage};
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime};
+
+/// A job's stop request, set by clients and signals, read by the engine.
+#[derive(Debug, Default)]
+pub struct StopFlag(AtomicU8);
+
+const RUN: u8 = 0;
+const CANCEL: u8 = 1;
+const SHUTDOWN: u8 = 2;
+
+impl StopFlag {
+    pub fn cancel(&self) {
+        self.0.store(CANCEL, Ordering::SeqCst);
+    }
+    /// The daemon stops; a client's cancel asked for earlier is kept.
+    pub fn shutdown(&self) {
+        let _ = self
+            .0
+            .compare_exchange(RUN, SHUTDOWN, Ordering::SeqCst, Ordering::SeqCst);
+    }
+    pub fn cause(&self) -> Option<StopCause> {
+        match self.0.load(Ordering::SeqCst) {
+            RUN => None,
+            CANCEL => Some(StopCause::Client),
+            _ => Some(StopCause::Shutdown),
+        }
+    }
+}
+
+/// The devices one job drives.
+pub struct Devices<'a> {
+    pub stage: &'a mut dyn Stage,
+    pub camera: &'a mut dyn Camera,
+    pub log: Option<&'a mut (dyn PositionLog + 'static)>,
+}
+
+/// How the engine steps.
+#[derive(Debug, Clone)]
+pub struct EngineSettings {
+    pub settle: Duration,
+    /// How long a grab may wait for a fresh frame ([camera] frame_timeout_ms).
+    pub grab_timeout: Duration,
+    /// How long a move may take.
+    pub move_timeout: Duration,
+    /// Between status polls of a moving stage: how late a cancel stops it, at most.
+    pub move_poll: Duration,
+    /// Where the pipeline's positions come from.
+    pub registration: JobRegistration,
+}
+
+impl Default for EngineSettings {
+    fn default() -> Self {
+        EngineSettings {
+            settle: Duration::from_millis(20),
+            grab_timeout: Duration::from_secs(5),
+            move_timeout: Duration::from_secs(30),
+            move_poll: Duration::from_millis(2),
+            registration: JobRegistration::Image,
+        }
+    }
+}
+
+/// Why a step produced no frame.
+enum StepEnd {
+    Hw(HwError),
+    Stopped(Stop),
+}
+
+impl From<HwError> for StepEnd {
+    fn from(e: HwError) -> StepEnd {
+        StepEnd::Hw(e)
+    }
+}
+
+pub struct Engine<'a> {
+    pub plan: &'a Plan,
+    pub settings: EngineSettings,
+    pub stop: &'a StopFlag,
+}
+
+impl Engine<'_> {
+    /// Run the plan; the sink is flushed (`finish`) whatever the outcome. On any fault or
+    /// stop the stage is stopped before this returns.
+    pub fn run(&self, dev: &mut Devices<'_>, sink: &mut dyn StepSink) -> Outcome {
+        let outcome = self.capture(dev, sink);
+        match (outcome, sink.finish()) {
+            (Outcome::Finished, Err(e)) => Outcome::Failed(sink_error(e)),
+            (Outcome::Cancelled(s), Err(e)) => {
+                Outcome::Failed(sink_error(e).after(Some(s.to_string())))
+            }
+            (o, _) => o,
+        }
+    }
+
+    fn capture(&self, dev: &mut Devices<'_>, sink: &mut dyn StepSink) -> Outcome {
+        let total = self.plan.total_frames;
+        let mut index = 0u32;
+        for run in &self.plan.runs {
+            for &commanded_um in &run.positions_um {
+                if let Some(cause) = self.stop.cause() {
+                    return self.stopped(dev, cause, None);
+                }
+                let rec = match self.step(dev, run, index, commanded_um, total) {
+                    Ok(r) => r,
+                    Err(StepEnd::Stopped(s)) => return self.stopped(dev, s.cause, s.during),
+                    Err(StepEnd::Hw(source)) => {
+                        let stopped = stop_stage(dev.stage);
+                        return Outcome::Failed(JobError::Hardware { source, stopped });
+                    }
+                };
+                let unreadable = self.settings.registration == JobRegistration::Interferometer
+                    && rec.interferometer_um.is_none();
+                if let Err(e) = sink.step(Arc::new(rec)) {
+                    return self.failed(dev, sink_error(e));
+                }
+                if unreadable {
+                    let e = JobError::NoInterferometerReading {
+                        index,
+                        stopped: None,
+                    };
+                    return self.failed(dev, e);
+                }
+                index += 1;
+            }
+            if let Err(e) = sink.end_run(run.run) {
+                return self.failed(dev, sink_error(e));
+            }
+        }
+        // A stop that came during the last step still ends the job as it was told.
+        match self.stop.cause() {
+            Some(cause) => self.stopped(dev, cause, None),
+            None => Outcome::Finished,
+        }
+    }
+
+    fn stopped(
+        &self,
+        dev: &mut Devices<'_>,
+        cause: StopCause,
+        during: Option<(Phase, f64)>,
+    ) -> Outcome {
+        let stopped = stop_stage(dev.stage);
+        Outcome::Cancelled(Stop {
+            cause,
+            during,
+            stopped,
+        })
+    }
+
+    fn failed(&self, dev: &mut Devices<'_>, e: JobError) -> Outcome {
+        Outcome::Failed(e.with_stopped(stop_stage(dev.stage)))
+    }
+
+    /// Move, settle, grab one fresh frame, read the interferometer at its time.
+    fn step(
+        &self,
+        dev: &mut Devices<'_>,
+        run: &RunPlan,
+        index: u32,
+        commanded_um: f64,
+        total_frames: u32,
+    ) -> Result<StepRecord, StepEnd> {
+        let t0 = Instant::now();
+        dev.stage.move_abs(commanded_um)?;
+        let axis_um = self.finish_move(dev.stage, commanded_um)?;
+        let t1 = Instant::now();
+        self.settle(commanded_um)?;
+        let t2 = Instant::now();
+        let frame = dev
+            .camera
+            .grab_fresh(SystemTime::now(), self.settings.grab_timeout)?;
+        let t3 = Instant::now();
+        if let Some(cause) = self.stop.cause() {
+            // The frame may show the stage stopping: not a good frame.
+            return Err(StepEnd::Stopped(Stop {
+                cause,
+                during: Some((Phase::Grab, commanded_um)),
+                stopped: None,
+            }));
+        }
+        let (interferometer_um, samples, log_source) = match dev.log.as_deref_mut() {
+            Some(log) => {
+                let at = log.position_at(frame.timestamp);
+                (at, log.take_samples(), Some(log.source()))
+            }
+            None => (None, Vec::new(), None),
+        };
+        let registration_um = match self.settings.registration {
+            JobRegistration::Interferometer => interferometer_um.unwrap_or(commanded_um),
+            _ => commanded_um,
+        };
+        Ok(StepRecord {
+            index,
+            run: run.run,
+            case: run.case.name.clone(),
+            repeat: run.repeat,
+            commanded_um,
+            axis_um,
+            interferometer_um,
+            registration_um,
+            samples,
+            log_source,
+            frame,
+            timings: StepTimings {
+                move_ms: ms(t1 - t0),
+                settle_ms: ms(t2 - t1),
+                grab_ms: ms(t3 - t2),
+            },
+            total_frames,
+        })
+    }
+
+    /// Wait out the settle time in short sleeps, so a stop is not held up by it.
+    fn settle(&self, commanded_um: f64) -> Result<(), StepEnd> {
+        let t = Instant::now();
+        let settle = self.settings.settle;
+        loop {
+            if let Some(cause) = self.stop.cause() {
+                return Err(StepEnd::Stopped(Stop {
+                    cause,
+                    during: Some((Phase::Settle, commanded_um)),
+                    stopped: None,
+                }));
+            }
+            let left = settle.saturating_sub(t.elapsed());
+            if left.is_zero() {
+                return Ok(());
+            }
+            std::thread::sleep(left.min(Duration::from_millis(20)));
+        }
+    }
+
+    /// Wait for the move to `target_um` just commanded to finish, watching for a cancel
+    /// while the stage reports it moving. Returns the settled position.
+    ///
+    /// A stage that stops moving in `Holding` (feed hold or safety door: never rigd's doing
+    /// here) or in `Alarm` fails the step at once, naming the state and where the stage is,
+    /// rather than waiting out the deadline for a move that will not finish by itself.
+    fn finish_move(&self, stage: &mut dyn Stage, target_um: f64) -> Result<f64, StepEnd> {
+        let deadline = Instant::now() + self.settings.move_timeout;
+        loop {
+            if self.stop.cause() == Some(StopCause::Client) {
+                return Err(StepEnd::Stopped(Stop {
+                    cause: StopCause::Client,
+                    during: Some((Phase::Move, target_um)),
+                    stopped: None,
+                }));
+            }
+            let st = stage.status()?;
+            match st.state {
+                MotionState::Moving | MotionState::Homing => {}
+                MotionState::Idle => break,
+                MotionState::Holding => return Err(held(stage.name(), st.position_um, target_um)),
+                MotionState::Alarm => return Err(alarm(stage, st.position_um, target_um)),
+            }
+            if Instant::now() >= deadline {
+                return Err(StepEnd::Hw(HwError::Timeout {
+                    device: stage.name().into(),
+                    timeout_ms: self.settings.move_timeout.as_millis() as u64,
+                    waiting_for: "the move to finish (still moving)".into(),
+                }));
+            }
+            std::thread::sleep(self.settings.move_poll);
+        }
+        // The driver's own wait confirms the end of the move (and reports alarms and timeouts).
+        let left = deadline.saturating_duration_since(Instant::now());
+        Ok(stage.wait_settled(left.max(Duration::from_millis(1)))?)
+    }
+}
+
+fn held(device: &str, at_um: f64, target_um: f64) -> StepEnd {
+    StepEnd::Hw(HwError::Other {
+        device: device.into(),
+        message: format!(
+            "feed hold at {at_um:.1} µm during the move to {target_um} µm (the controller \
+             holds: feed hold or safety door, not asked for by rigd)"
+        ),
+    })
+}
+
+/// The driver names the alarm (its code and meaning) if it knows it.
+fn alarm(stage: &mut dyn Stage, at_um: f64, target_um: f64) -> StepEnd {
+    StepEnd::Hw(match stage.wait_settled(Duration::from_millis(1)) {
+        Err(e @ HwError::Alarm { .. }) => e,
+        _ => HwError::Other {
+            device: stage.name().into(),
+            message: format!("alarm at {at_um:.1} µm during the move to {target_um} µm"),
+        },
+    })
+}
+
+/// Stop the stage and say where it was left.
+pub fn stop_stage(stage: &mut dyn Stage) -> Option<StoppedAt> {
+    let stop_error = stage.stop().err().map(|e| {
+        tracing::warn!(stage = stage.name(), "stopping after the job: {e}");
+        e.to_string()
+    });
+    let (position_um, state, status_error) = match stage.status() {
+        Ok(st) => (Some(st.position_um), Some(st.state), None),
+        Err(e) => (None, None, Some(e.to_string())),
+    };
+    Some(StoppedAt {
+        device: stage.name().to_string(),
+        position_um,
+        state,
+        stop_error,
+        status_error,
+    })
+}
+
+/// A sink's failure as the job's.
+pub fn sink_error(e: SinkError) -> JobError {
+    match e {
+        SinkError::Disk {
+            file,
+            disk_full,
+            message,
+        } => JobError::Disk {
+            file,
+            disk_full,
+            message,
+            stopped: None,
+            earlier: None,
+        },
+        SinkError::Panicked { sink, message } => JobError::Processing {
+            message: format!("{sink}: {message}"),
+            stopped: None,
+        },
+    }
+}

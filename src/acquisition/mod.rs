@@ -1,0 +1,28 @@
+//! Acquisition: the job as the rig runs it, checked before anything moves, and the step
+//! engine that runs it.
+//!
+//! - `job`: the domain's job (stage, scans, processing choices) and its defaults;
+//! - `plan`: a job checked against the rig and the disk and expanded into runs, each with
+//!   its complete, validated processing options; every reason to refuse a job lives here;
+//! - `engine`: move, settle, grab, read the interferometer, one `StepRecord` per step;
+//! - `sink`: the engine's consumers (`StepSink`), and `Threaded` to keep them off the
+//!   motion path; `processor`: the pipeline as a sink;
+//! - `outcome`: how a job ended, typed; `study`: a job's runs reduced to the paper's tables;
+//! - `fake`: scripted devices for testing the engine without hardware or time.
+
+pub mod engine;
+pub mod fake;
+pub mod job;
+pub mod outcome;
+pub mod plan;
+pub mod processor;
+pub mod record;
+pub mod sink;
+pub mod study;
+
+pub use engine::{Devices, Engine, EngineSettings, StopFlag};
+pub use job::{CaseScan, JobRegistration, JobSpec, PaperCase, Processing, StageKind};
+pub use outcome::{EndDetail, JobError, Outcome, Stop, StopCause, StoppedAt};
+pub use plan::{Plan, PlanError, RunPlan};
+pub use record::{StepRecord, StepTimings};
+pub use sink::{SinkError, StepSink, Threaded};

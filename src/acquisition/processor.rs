@@ -1,0 +1,128 @@
+//! The processing sink: one pipeline per run, fed as frames arrive, each run's result when
+//! its last frame is in. Runs behind the capture (on its own thread, see `sink::Threaded`).
+
+use crate::acquisition::plan::RunPlan;
+use crate::acquisition::record::{ms, StepRecord};
+use crate::acquisition::sink::{SinkError, StepSink};
+use crate::acquisition::study::RunResult;
+use crate::board::Board;
+use crate::pipeline::run::Finished;
+use crate::pipeline::Pipeline;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// A reconstruction as the pipeline makes it: 16-bit grey.
+pub type Image16 = image::ImageBuffer<image::Luma<u16>, Vec<u16>>;
+
+/// What processing tells the world as it goes.
+#[derive(Debug, Clone)]
+pub enum ProcessorEvent {
+    /// A frame was processed.
+    Frame {
+        index: u32,
+        process_ms: f64,
+        targets_found: usize,
+    },
+    /// A run has its measurement (or the reason it has none).
+    Run(Box<RunResult>),
+}
+
+pub type Emit = Box<dyn Fn(ProcessorEvent) + Send>;
+
+pub struct Processor {
+    runs: Vec<RunPlan>,
+    board: Option<Board>,
+    emit: Emit,
+    /// The run being fed, and its pipeline or why it has none.
+    current: Option<(u32, Result<Pipeline, String>)>,
+    pub results: Vec<RunResult>,
+    /// Reconstructions, named `run-NNN-<name>`.
+    pub images: Vec<(String, Image16)>,
+}
+
+impl Processor {
+    pub fn new(runs: Vec<RunPlan>, board: Option<Board>, emit: Emit) -> Processor {
+        Processor {
+            runs,
+            board,
+            emit,
+            current: None,
+            results: Vec::new(),
+            images: Vec::new(),
+        }
+    }
+
+    fn pipeline_for(&self, run: u32) -> Result<Pipeline, String> {
+        let plan = self
+            .runs
+            .get(run as usize)
+            .ok_or_else(|| format!("run {run} is not in the plan"))?;
+        let opts = plan
+            .processing
+            .clone()
+            .ok_or_else(|| format!("run {run} has no processing options"))?;
+        Pipeline::new(opts, self.board.clone()).map_err(|e| e.to_string())
+    }
+
+    fn record(&mut self, run: u32, outcome: Result<Finished, String>) {
+        let Some(plan) = self.runs.get(run as usize) else {
+            return;
+        };
+        let (result, error) = match outcome {
+            Ok(f) => {
+                for im in f.images {
+                    self.images
+                        .push((format!("run-{run:03}-{}", im.name), im.image));
+                }
+                (Some(f.result), None)
+            }
+            Err(e) => (None, Some(e)),
+        };
+        let r = RunResult {
+            run,
+            case: plan.case.name.clone(),
+            repeat: plan.repeat,
+            frames: plan.case.frames,
+            step_um: plan.case.step_um,
+            k: plan.case.k,
+            result,
+            error,
+        };
+        (self.emit)(ProcessorEvent::Run(Box::new(r.clone())));
+        self.results.push(r);
+    }
+}
+
+impl StepSink for Processor {
+    fn step(&mut self, rec: Arc<StepRecord>) -> Result<(), SinkError> {
+        if self.current.as_ref().map(|c| c.0) != Some(rec.run) {
+            self.current = Some((rec.run, self.pipeline_for(rec.run)));
+        }
+        let Some((_, Ok(p))) = self.current.as_mut() else {
+            return Ok(());
+        };
+        let t = Instant::now();
+        match p.push(&rec.frame.image, rec.registration_um) {
+            Ok(r) => (self.emit)(ProcessorEvent::Frame {
+                index: rec.index,
+                process_ms: ms(t.elapsed()),
+                targets_found: r.targets_found,
+            }),
+            Err(e) => {
+                let e = format!("frame {}: {e}", rec.index);
+                self.current = Some((rec.run, Err(e)));
+            }
+        }
+        Ok(())
+    }
+
+    fn end_run(&mut self, run: u32) -> Result<(), SinkError> {
+        let outcome = match self.current.take() {
+            Some((r, Ok(p))) if r == run => p.finish().map_err(|e| e.to_string()),
+            Some((r, Err(e))) if r == run => Err(e),
+            _ => Err("no frame reached processing".into()),
+        };
+        self.record(run, outcome);
+        Ok(())
+    }
+}

@@ -1,0 +1,495 @@
+//! The step engine on scripted devices: every way a step can end, in milliseconds, with no
+//! emulator, socket or wall-clock wait. The scripts check the exact calls the engine makes
+//! (a stop after every fault, no grab after a stop) and `done()` that none was skipped.
+
+use rigd::acquisition::fake::{
+    frame, grab, move_abs, plain_move, status, status_fails, stop, stop_fails, wait_settled,
+    wait_settled_fails, IdealStage, ScriptedCamera, ScriptedLog, ScriptedStage,
+};
+use rigd::acquisition::outcome::{EndKind, Phase, StopCause};
+use rigd::acquisition::plan::{Plan, RunPlan};
+use rigd::acquisition::sink::{Collect, SinkError, StepSink, Threaded};
+use rigd::acquisition::{
+    CaseScan, Devices, Engine, EngineSettings, JobError, JobRegistration, Outcome, StepRecord,
+    StopFlag,
+};
+use rigd::hw::{HwError, MotionState};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+fn plan(positions_um: &[f64]) -> Plan {
+    Plan {
+        runs: vec![RunPlan {
+            run: 0,
+            case: CaseScan {
+                name: "scan".into(),
+                frames: positions_um.len() as u32,
+                step_um: 50.0,
+                k: 1,
+            },
+            repeat: 0,
+            positions_um: positions_um.to_vec(),
+            processing: None,
+        }],
+        total_frames: positions_um.len() as u32,
+    }
+}
+
+fn settings(settle_ms: u64) -> EngineSettings {
+    EngineSettings {
+        settle: Duration::from_millis(settle_ms),
+        move_poll: Duration::from_micros(10),
+        ..EngineSettings::default()
+    }
+}
+
+/// Run `plan` on the scripted devices; returns the outcome (scripts checked used up).
+fn run(
+    plan: &Plan,
+    settings: EngineSettings,
+    flag: &StopFlag,
+    stage: &mut ScriptedStage,
+    camera: &mut ScriptedCamera,
+    sink: &mut dyn StepSink,
+) -> Outcome {
+    let engine = Engine {
+        plan,
+        settings,
+        stop: flag,
+    };
+    let mut dev = Devices {
+        stage,
+        camera,
+        log: None,
+    };
+    let out = engine.run(&mut dev, sink);
+    stage.done();
+    camera.done();
+    out
+}
+
+fn stopped_idle_at(
+    p: f64,
+) -> Vec<rigd::acquisition::fake::Expect<rigd::acquisition::fake::StageCall>> {
+    vec![stop(), status(MotionState::Idle, p)]
+}
+
+#[test]
+fn every_step_is_recorded_in_order_and_the_sink_is_flushed() {
+    let p = plan(&[100.0, 150.0, 200.0]);
+    let mut stage = ScriptedStage::new(
+        "axis",
+        [100.0, 150.0, 200.0].into_iter().flat_map(plain_move),
+    );
+    let mut camera = ScriptedCamera::frames(3);
+    let mut sink = Collect::default();
+    let flag = StopFlag::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    assert!(matches!(out, Outcome::Finished), "{out:?}");
+    let got: Vec<(u32, f64, u64)> = sink
+        .records
+        .iter()
+        .map(|r| (r.index, r.commanded_um, r.frame.sequence))
+        .collect();
+    assert_eq!(got, vec![(0, 100.0, 0), (1, 150.0, 1), (2, 200.0, 2)]);
+    assert_eq!(sink.runs_ended, vec![0]);
+    assert!(sink.finished);
+}
+
+#[test]
+fn a_feed_hold_mid_move_fails_the_step_naming_where_the_stage_held() {
+    let p = plan(&[5000.0]);
+    let mut script = vec![
+        move_abs(5000.0),
+        status(MotionState::Moving, 1200.0),
+        status(MotionState::Holding, 1482.0),
+    ];
+    script.extend(stopped_idle_at(1482.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::new([]);
+    let flag = StopFlag::default();
+    let out = run(
+        &p,
+        settings(0),
+        &flag,
+        &mut stage,
+        &mut camera,
+        &mut Collect::default(),
+    );
+    let reason = out.reason().unwrap();
+    assert!(
+        reason.starts_with("axis: feed hold at 1482.0 µm during the move to 5000 µm"),
+        "{reason}"
+    );
+    assert!(
+        reason.ends_with("; axis stopped at 1482.000 µm (idle)"),
+        "{reason}"
+    );
+    let d = out.detail().unwrap();
+    assert_eq!(
+        (d.kind, d.device.as_deref()),
+        (EndKind::Hardware, Some("axis"))
+    );
+    assert_eq!(d.stopped.unwrap().position_um, Some(1482.0));
+}
+
+#[test]
+fn an_alarm_is_named_by_the_driver_and_a_failing_stop_is_reported() {
+    let p = plan(&[300.0]);
+    let alarm = HwError::Alarm {
+        device: "axis".into(),
+        code: 1,
+        message: "hard limit triggered".into(),
+    };
+    let gone = || HwError::PortGone {
+        device: "axis".into(),
+        message: "read: EIO".into(),
+    };
+    let mut stage = ScriptedStage::new(
+        "axis",
+        [
+            move_abs(300.0),
+            status(MotionState::Alarm, 120.0),
+            wait_settled_fails(alarm),
+            stop_fails(gone()),
+            status_fails(gone()),
+        ],
+    );
+    let mut camera = ScriptedCamera::new([]);
+    let flag = StopFlag::default();
+    let out = run(
+        &p,
+        settings(0),
+        &flag,
+        &mut stage,
+        &mut camera,
+        &mut Collect::default(),
+    );
+    assert_eq!(
+        out.reason().unwrap(),
+        "axis: alarm 1: hard limit triggered; axis did not stop (axis: port gone: read: EIO) \
+         and did not report (axis: port gone: read: EIO)"
+    );
+    let stopped = out.detail().unwrap().stopped.unwrap();
+    assert!(stopped.stop_error.is_some() && stopped.position_um.is_none());
+}
+
+#[test]
+fn a_cancel_mid_move_stops_the_stage_where_it_is_and_grabs_nothing() {
+    let p = plan(&[100.0, 9000.0]);
+    let flag = Arc::new(StopFlag::default());
+    let f = flag.clone();
+    let mut script = plain_move(100.0);
+    script.extend([
+        move_abs(9000.0),
+        status(MotionState::Moving, 2000.0).then(move || f.cancel()),
+    ]);
+    script.extend(stopped_idle_at(2010.5));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::frames(1);
+    let mut sink = Collect::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    let Outcome::Cancelled(s) = &out else {
+        panic!("{out:?}")
+    };
+    assert_eq!(
+        (s.cause, s.during),
+        (StopCause::Client, Some((Phase::Move, 9000.0)))
+    );
+    assert_eq!(
+        out.reason().unwrap(),
+        "cancelled by a client during the move to 9000 µm; axis stopped at 2010.500 µm (idle)"
+    );
+    assert_eq!(sink.records.len(), 1);
+}
+
+#[test]
+fn a_cancel_during_a_long_settle_ends_the_step_at_once_without_a_frame() {
+    let p = plan(&[100.0]);
+    let flag = Arc::new(StopFlag::default());
+    let f = flag.clone();
+    let mut stage = ScriptedStage::new(
+        "axis",
+        [
+            move_abs(100.0),
+            status(MotionState::Idle, 100.0),
+            wait_settled(100.0).then(move || f.cancel()),
+            stop(),
+            status(MotionState::Idle, 100.0),
+        ],
+    );
+    // No grab is scripted: a grab would panic.
+    let mut camera = ScriptedCamera::new([]);
+    let mut sink = Collect::default();
+    let t = Instant::now();
+    let out = run(
+        &p,
+        settings(10_000),
+        &flag,
+        &mut stage,
+        &mut camera,
+        &mut sink,
+    );
+    // The 10 s settle was cut short, not waited out.
+    assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
+    let Outcome::Cancelled(s) = &out else {
+        panic!("{out:?}")
+    };
+    assert_eq!(s.during, Some((Phase::Settle, 100.0)));
+    assert!(sink.records.is_empty());
+}
+
+#[test]
+fn a_stop_arriving_during_the_grab_discards_that_frame() {
+    let p = plan(&[100.0]);
+    let flag = Arc::new(StopFlag::default());
+    let f = flag.clone();
+    let mut script = plain_move(100.0);
+    script.extend(stopped_idle_at(100.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::new([grab(Ok(frame(7))).then(move || f.shutdown())]);
+    let mut sink = Collect::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    let Outcome::Cancelled(s) = &out else {
+        panic!("{out:?}")
+    };
+    assert_eq!(
+        (s.cause, s.during),
+        (StopCause::Shutdown, Some((Phase::Grab, 100.0)))
+    );
+    assert!(sink.records.is_empty(), "the frame was recorded as good");
+    assert!(out
+        .reason()
+        .unwrap()
+        .starts_with("the daemon is shutting down while grabbing"));
+}
+
+/// Cancels the job when it receives its `n`-th record.
+struct CancelAt(usize, Arc<StopFlag>, Collect);
+impl StepSink for CancelAt {
+    fn step(&mut self, rec: Arc<StepRecord>) -> Result<(), SinkError> {
+        self.2.step(rec)?;
+        if self.2.records.len() == self.0 {
+            self.1.cancel();
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn a_cancel_after_the_last_frame_still_ends_the_job_cancelled() {
+    let p = plan(&[100.0, 150.0]);
+    let flag = Arc::new(StopFlag::default());
+    let mut script: Vec<_> = [100.0, 150.0].into_iter().flat_map(plain_move).collect();
+    script.extend(stopped_idle_at(150.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::frames(2);
+    let mut sink = CancelAt(2, flag.clone(), Collect::default());
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    assert!(matches!(out, Outcome::Cancelled(_)), "{out:?}");
+    assert_eq!(sink.2.records.len(), 2);
+}
+
+#[test]
+fn a_shutdown_mid_move_lets_the_move_end_then_stops_before_the_grab() {
+    let p = plan(&[400.0]);
+    let flag = Arc::new(StopFlag::default());
+    let f = flag.clone();
+    let mut script = vec![
+        move_abs(400.0),
+        status(MotionState::Moving, 200.0).then(move || f.shutdown()),
+        status(MotionState::Idle, 400.0),
+        wait_settled(400.0),
+    ];
+    script.extend(stopped_idle_at(400.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::new([]);
+    let out = run(
+        &p,
+        settings(0),
+        &flag,
+        &mut stage,
+        &mut camera,
+        &mut Collect::default(),
+    );
+    let Outcome::Cancelled(s) = &out else {
+        panic!("{out:?}")
+    };
+    assert_eq!(
+        (s.cause, s.during),
+        (StopCause::Shutdown, Some((Phase::Settle, 400.0)))
+    );
+}
+
+#[test]
+fn a_camera_stall_fails_the_job_naming_the_camera_and_stops_the_stage() {
+    let p = plan(&[100.0, 150.0]);
+    let mut script: Vec<_> = [100.0, 150.0].into_iter().flat_map(plain_move).collect();
+    script.extend(stopped_idle_at(150.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    let stall = HwError::Timeout {
+        device: "camera".into(),
+        timeout_ms: 500,
+        waiting_for: "a frame exposed after the move settled".into(),
+    };
+    let mut camera = ScriptedCamera::new([grab(Ok(frame(0))), grab(Err(stall))]);
+    let mut sink = Collect::default();
+    let flag = StopFlag::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    assert!(
+        out.reason()
+            .unwrap()
+            .starts_with("camera: no reply within 500 ms"),
+        "{out:?}"
+    );
+    assert_eq!(out.detail().unwrap().device.as_deref(), Some("camera"));
+    assert_eq!(sink.records.len(), 1);
+}
+
+#[test]
+fn a_status_that_fails_mid_poll_fails_the_step() {
+    let p = plan(&[100.0]);
+    let gone = || HwError::PortGone {
+        device: "axis".into(),
+        message: "unplugged".into(),
+    };
+    let mut stage = ScriptedStage::new(
+        "axis",
+        [
+            move_abs(100.0),
+            status(MotionState::Moving, 10.0),
+            status_fails(gone()),
+            stop_fails(gone()),
+            status_fails(gone()),
+        ],
+    );
+    let mut camera = ScriptedCamera::new([]);
+    let flag = StopFlag::default();
+    let out = run(
+        &p,
+        settings(0),
+        &flag,
+        &mut stage,
+        &mut camera,
+        &mut Collect::default(),
+    );
+    let Outcome::Failed(JobError::Hardware { source, .. }) = &out else {
+        panic!("{out:?}")
+    };
+    assert!(matches!(source, HwError::PortGone { .. }));
+}
+
+/// Fails with a full disk at its `n`-th record.
+struct DiskFullAt(usize, usize);
+impl StepSink for DiskFullAt {
+    fn step(&mut self, _rec: Arc<StepRecord>) -> Result<(), SinkError> {
+        self.1 += 1;
+        if self.1 == self.0 {
+            return Err(SinkError::Disk {
+                file: Some("/data/s/frames/000001.png".into()),
+                disk_full: true,
+                message: "session /data/s/frames/000001.png: disk full".into(),
+            });
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn a_sink_that_cannot_write_fails_the_job_naming_the_file() {
+    let p = plan(&[100.0, 150.0, 200.0]);
+    let mut script: Vec<_> = [100.0, 150.0].into_iter().flat_map(plain_move).collect();
+    script.extend(stopped_idle_at(150.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::frames(2);
+    let flag = StopFlag::default();
+    let out = run(
+        &p,
+        settings(0),
+        &flag,
+        &mut stage,
+        &mut camera,
+        &mut DiskFullAt(2, 0),
+    );
+    assert_eq!(
+        out.reason().unwrap(),
+        "disk: session /data/s/frames/000001.png: disk full; axis stopped at 150.000 µm (idle)"
+    );
+    let d = out.detail().unwrap();
+    assert_eq!((d.kind, d.disk_full), (EndKind::Disk, Some(true)));
+    assert_eq!(d.file.as_deref(), Some("/data/s/frames/000001.png"));
+}
+
+/// Panics at its first record, like a processing bug.
+struct Panics;
+impl StepSink for Panics {
+    fn step(&mut self, _rec: Arc<StepRecord>) -> Result<(), SinkError> {
+        panic!("index out of bounds: the len is 0")
+    }
+}
+
+#[test]
+fn a_panic_on_a_sink_thread_fails_the_job_with_its_message() {
+    let p = plan(&[100.0, 150.0, 200.0, 250.0]);
+    let flag = StopFlag::default();
+    let mut sink = Threaded::spawn("processor", Panics, 1);
+    // The panic surfaces at a later step or at the flush, whichever comes first.
+    let mut stage = IdealStage::default();
+    let mut camera = ScriptedCamera::new((0..4).map(|i| grab(Ok(frame(i)))));
+    let engine = Engine {
+        plan: &p,
+        settings: settings(0),
+        stop: &flag,
+    };
+    let mut dev = Devices {
+        stage: &mut stage,
+        camera: &mut camera,
+        log: None,
+    };
+    let out = engine.run(&mut dev, &mut sink);
+    let reason = out.reason().unwrap();
+    assert!(
+        reason.starts_with("processing failed: processor: index out of bounds: the len is 0"),
+        "{reason}"
+    );
+    assert_eq!(out.detail().unwrap().kind, EndKind::Processing);
+}
+
+#[test]
+fn registration_by_interferometer_fails_at_a_frame_the_log_does_not_cover() {
+    let p = plan(&[100.0, 150.0]);
+    let mut script: Vec<_> = [100.0, 150.0].into_iter().flat_map(plain_move).collect();
+    script.extend(stopped_idle_at(150.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::frames(2);
+    let mut log = ScriptedLog::new([Some(-100.25), None]);
+    let mut sink = Collect::default();
+    let flag = StopFlag::default();
+    let engine = Engine {
+        plan: &p,
+        settings: EngineSettings {
+            registration: JobRegistration::Interferometer,
+            ..settings(0)
+        },
+        stop: &flag,
+    };
+    let mut dev = Devices {
+        stage: &mut stage,
+        camera: &mut camera,
+        log: Some(&mut log),
+    };
+    let out = engine.run(&mut dev, &mut sink);
+    stage.done();
+    log.done();
+    assert!(
+        out.reason()
+            .unwrap()
+            .starts_with("frame 1: no interferometer reading at its time"),
+        "{out:?}"
+    );
+    assert_eq!(out.detail().unwrap().index, Some(1));
+    // The first frame registers by its reading, and carries the samples read for it.
+    let first = &sink.records[0];
+    assert_eq!(first.registration_um, -100.25);
+    assert_eq!(first.samples.len(), 1);
+}
