@@ -5,10 +5,12 @@
 
 mod support;
 
+use rigd::acquisition::outcome::{EndDetail, Phase};
 use rigd::acquisition::JobSpec;
 use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::session::{Session, SessionState};
 use rigd::daemon::simrig::{sim_rig_with_truth, Fault, SimSettings, SimTruth};
+use rigd::hw::MotionState;
 use rigd::sim::motion::AxisParams;
 use std::time::{Duration, Instant};
 use support::daemon::{
@@ -51,15 +53,20 @@ fn check_captured(s: &Session, reported: &[(u32, f64)]) {
     assert_frames_decode(s, (48, 32));
 }
 
-/// `(position_um, state)` from a reason's "axis stopped at 123.456 µm (idle)".
-fn stopped_at(reason: &str) -> (f64, String) {
-    let rest = reason
-        .split("axis stopped at ")
-        .nth(1)
-        .unwrap_or_else(|| panic!("no stop position in {reason:?}"));
-    let (pos, rest) = rest.split_once(" µm (").unwrap();
-    let state = rest.split(')').next().unwrap();
-    (pos.parse().unwrap(), state.to_string())
+/// `(position_um, state)` where the job left the stage, from the event's `detail` (the
+/// reason's text says the same: "axis stopped at 123.456 µm (idle)").
+fn stopped_at(detail: &Option<EndDetail>, reason: &str) -> (f64, MotionState) {
+    let st = detail
+        .as_ref()
+        .and_then(|d| d.stopped.clone())
+        .unwrap_or_else(|| panic!("no stop position with {reason:?}"));
+    assert_eq!(st.device, "axis");
+    let at = st.position_um.unwrap();
+    assert!(
+        reason.contains(&format!("axis stopped at {at:.3} µm")),
+        "{reason}"
+    );
+    (at, st.state.unwrap())
 }
 
 /// The true axis has stopped at what the driver reported (within its positioning error).
@@ -82,7 +89,7 @@ fn a_stalled_camera_fails_the_job_naming_the_camera_and_the_next_job_runs() {
     let mut c = d.subscribed();
     let id = submit(&mut c, scan(1_000.0, 50.0, 10));
     let ev = events_until_end(&mut c, id);
-    let Some(EventBody::Failed { reason, .. }) = ev.last() else {
+    let Some(EventBody::Failed { reason, detail, .. }) = ev.last() else {
         panic!("{ev:?}")
     };
     // The driver's deadline ran out: the reason names the camera and the wait.
@@ -99,9 +106,16 @@ fn a_stalled_camera_fails_the_job_naming_the_camera_and_the_next_job_runs() {
     check_captured(&s, &reported);
     // The axis was stopped where the failed step left it: at frame 4's position (the
     // emulator's stop takes the true position, within the 2 µm RMS positioning error).
-    let (at, state) = stopped_at(reason);
+    let (at, state) = stopped_at(detail, reason);
     assert!((at - 1_150.0).abs() < 12.0, "{reason}");
-    assert!(state == "idle" || state == "holding", "{reason}");
+    assert!(
+        matches!(state, MotionState::Idle | MotionState::Holding),
+        "{reason}"
+    );
+    assert_eq!(
+        detail.as_ref().unwrap().device.as_deref(),
+        Some("sim-camera")
+    );
     check_axis_stopped(&truth, at);
     // The driver restarted the stalled stream: the next job captures every frame.
     let id = submit(&mut c, scan(2_000.0, 50.0, 3));
@@ -159,9 +173,17 @@ fn a_cancel_stops_the_axis_mid_move_and_the_next_job_runs() {
     assert_eq!(st["state"], "cancelled");
     let reason = st["reason"].as_str().unwrap();
     assert!(reason.contains("during the move to 101000 µm"), "{reason}");
+    let Some(EventBody::Cancelled { detail, .. }) = ev.last() else {
+        unreachable!()
+    };
+    let end = detail.as_ref().unwrap();
+    assert_eq!((end.phase, end.target_um), (Some(Phase::Move), Some(target)));
     // Stopped by the controller short of the target, not moving.
-    let (at, state) = stopped_at(reason);
-    assert!(state == "idle" || state == "holding", "{reason}");
+    let (at, state) = stopped_at(detail, reason);
+    assert!(
+        matches!(state, MotionState::Idle | MotionState::Holding),
+        "{reason}"
+    );
     assert!(at > 1_100.0 && at < target - 1_000.0, "{reason}");
     check_axis_stopped(&truth, at);
     // The frame of the first step is kept, nothing of the interrupted one.
