@@ -1,7 +1,8 @@
 //! rigd: a rig-control and acquisition daemon for offset-image averaging metrology.
 //!
 //! The map of the code is `docs/architecture.md`. In short:
-//! - `pipeline`: frames + positions -> measured target offsets (the science).
+//! - `pipeline`, `board`: frames + positions -> measured target offsets (the science), and
+//!   the target boards; re-exported from the `rigd-core` crate.
 //! - `folder`: the `rigctl process` folder contract (frames/*.png + steps.csv).
 //! - `atomic_file`: files written whole or not at all (temporary name, sync, rename).
 //! - `report`: the paper's tables and figures from repeated runs.
@@ -17,8 +18,9 @@ pub mod config;
 pub mod daemon;
 pub mod folder;
 pub mod hw;
-pub mod pipeline;
 pub mod report;
 pub mod xl80;
 
 pub use rigd_sim as sim;
+// The board and the pipeline live in rigd-core; `crate::pipeline::...` stays a path.
+pub use rigd_core::{board, pipeline};

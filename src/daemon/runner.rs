@@ -361,7 +361,10 @@ fn process_frames(
                     let case = &ctx.plan.runs[run as usize].case;
                     let opts =
                         process_options(ctx.spec, case.k, info.scale_um_per_px, info.axis_dir);
-                    let p = Pipeline::new(opts, info.board.clone()).map_err(|e| e.to_string());
+                    let p = opts
+                        .validate()
+                        .map(|o| Pipeline::new(o, info.board.clone()))
+                        .map_err(|e| e.to_string());
                     current = Some((run, p));
                 }
                 let Some((_, Ok(p))) = current.as_mut() else {
