@@ -97,7 +97,7 @@ pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
     // Every option is checked before a frame is read.
     let options = args.options()?;
     let board = match &args.board {
-        Some(p) => Some(crate::sim::Board::load(p)?),
+        Some(p) => Some(crate::board::Board::load(p)?),
         None => None,
     };
     let dir = folder::open(&args.dir, args.frames)?;
