@@ -17,7 +17,7 @@
 
 use criterion::{criterion_group, Criterion};
 use rigd::pipeline::reconstruct::{self, View};
-use rigd::pipeline::{plane::Plane, Combine, Estimator, Pipeline, ProcessOptions};
+use rigd::pipeline::{plane::Plane, Combine, Estimator, Pipeline, ProcessOptions, ValidOptions};
 use rigd::sim::render::{render_frame, View as CamView};
 use rigd::sim::{Board, CameraModel};
 use std::hint::black_box;
@@ -36,13 +36,15 @@ fn frames(n: usize) -> Vec<image::RgbImage> {
         .collect()
 }
 
-fn opts(k: u32, combine: Combine, estimator: Estimator) -> ProcessOptions {
+fn opts(k: u32, combine: Combine, estimator: Estimator) -> ValidOptions {
     ProcessOptions {
         k,
         combine,
         estimator,
         ..ProcessOptions::default()
     }
+    .validate()
+    .unwrap()
 }
 
 fn bench_frames(c: &mut Criterion) {
@@ -51,11 +53,11 @@ fn bench_frames(c: &mut Criterion) {
     for est in [Estimator::Paper, Estimator::Fit] {
         g.bench_function(format!("first/{est:?}"), |b| {
             b.iter(|| {
-                let mut p = Pipeline::new(opts(1, Combine::Mean, est), None).unwrap();
+                let mut p = Pipeline::new(opts(1, Combine::Mean, est), None);
                 black_box(p.push(&f[0], 0.0).unwrap());
             })
         });
-        let mut p = Pipeline::new(opts(1, Combine::Mean, est), None).unwrap();
+        let mut p = Pipeline::new(opts(1, Combine::Mean, est), None);
         p.push(&f[0], 0.0).unwrap();
         g.bench_function(format!("next/{est:?}"), |b| {
             b.iter(|| {
@@ -87,7 +89,7 @@ fn bench_job(c: &mut Criterion) {
         g.bench_function(format!("20x50um_k10/{est:?}"), |b| {
             b.iter(|| {
                 let folder = rigd::folder::open(dir.path(), None).unwrap();
-                let mut p = Pipeline::new(opts(10, Combine::Interp, est), None).unwrap();
+                let mut p = Pipeline::new(opts(10, Combine::Interp, est), None);
                 p.keep_images(false);
                 let mut reader = rigd::folder::FrameReader::default();
                 let mut buf = None;

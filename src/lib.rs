@@ -2,7 +2,8 @@
 //!
 //! The map of the code is `docs/architecture.md`. In short:
 //! - `acquisition`: the job, its plan (every check before anything moves), the step engine.
-//! - `pipeline`: frames + positions -> measured target offsets (the science).
+//! - `pipeline`, `board`: frames + positions -> measured target offsets (the science), and
+//!   the target boards; re-exported from the `rigd-core` crate.
 //! - `folder`: the `rigctl process` folder contract (frames/*.png + steps.csv).
 //! - `atomic_file`: files written whole or not at all (temporary name, sync, rename).
 //! - `report`: the paper's tables and figures from repeated runs.
@@ -19,10 +20,9 @@ pub mod config;
 pub mod daemon;
 pub mod folder;
 pub mod hw;
-pub mod pipeline;
 pub mod report;
 pub mod xl80;
 
 pub use rigd_sim as sim;
-// TEMP until the core crate lands: the board's home.
-pub use rigd_sim::board;
+// The board and the pipeline live in rigd-core; `crate::pipeline::...` stays a path.
+pub use rigd_core::{board, pipeline};

@@ -30,7 +30,7 @@ fn opts(combine: Combine) -> ProcessOptions {
 }
 
 fn whole(frames: &[image::RgbImage], pos: &[f64], o: &ProcessOptions) -> ProcessResult {
-    let mut p = Pipeline::new(o.clone(), None).unwrap();
+    let mut p = Pipeline::new(o.clone().validate().unwrap(), None);
     for (f, &x) in frames.iter().zip(pos) {
         p.push(f, x).unwrap();
     }
@@ -44,7 +44,7 @@ fn rows_below_the_needed_ones_are_never_read() {
     for combine in [Combine::Interp, Combine::Mean] {
         let o = opts(combine);
         let want = whole(&frames, &pos, &o);
-        let mut p = Pipeline::new(o.clone(), None).unwrap();
+        let mut p = Pipeline::new(o.clone().validate().unwrap(), None);
         assert_eq!(p.rows_needed(0), None, "frame 0 is searched whole");
         p.push(&frames[0], pos[0]).unwrap();
         for (f, &x) in frames.iter().zip(&pos).skip(1) {
@@ -69,7 +69,7 @@ fn too_few_rows_leave_the_pipeline_unchanged() {
     let (frames, pos) = scan(3);
     let o = opts(Combine::Interp);
     let want = whole(&frames, &pos, &o);
-    let mut p = Pipeline::new(o, None).unwrap();
+    let mut p = Pipeline::new(o.validate().unwrap(), None);
     // Frame 0 is never taken partial.
     assert!(p.push_rows(&frames[0], 10, pos[0]).unwrap().is_none());
     assert_eq!(p.frames(), 0);
@@ -90,7 +90,7 @@ fn whole_frame_runs_need_every_row_and_images_can_be_left_out() {
     let (frames, pos) = scan(2);
     let mut o = opts(Combine::Interp);
     o.whole_frame = true;
-    let mut p = Pipeline::new(o.clone(), None).unwrap();
+    let mut p = Pipeline::new(o.clone().validate().unwrap(), None);
     p.push(&frames[0], pos[0]).unwrap();
     assert_eq!(p.rows_needed(0), None);
     assert!(p.push_rows(&frames[1], 150, pos[1]).unwrap().is_none());
@@ -98,7 +98,7 @@ fn whole_frame_runs_need_every_row_and_images_can_be_left_out() {
     let with = p.finish().unwrap();
     assert_eq!(with.images.len(), 3, "two targets and the whole frame");
 
-    let mut p = Pipeline::new(o, None).unwrap();
+    let mut p = Pipeline::new(o.validate().unwrap(), None);
     p.keep_images(false);
     for (f, &x) in frames.iter().zip(&pos) {
         p.push(f, x).unwrap();

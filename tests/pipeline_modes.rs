@@ -2,7 +2,9 @@
 
 mod support;
 
-use rigd::pipeline::{process_frames, Combine, Estimator, ProcessOptions, Registration};
+use rigd::pipeline::{
+    process_frames, Combine, Estimator, ProcessOptions, Registration, ValidOptions,
+};
 use rigd::sim::render::SceneRenderer;
 use rigd::sim::View;
 use support::*;
@@ -94,7 +96,7 @@ fn a_stale_frame_shows_in_the_step_residuals() {
 #[test]
 fn frame_of_another_size_and_bad_options_are_errors() {
     let (frames, _) = scan(1);
-    let mut p = rigd::pipeline::Pipeline::new(ProcessOptions::default(), None).unwrap();
+    let mut p = rigd::pipeline::Pipeline::new(ValidOptions::default(), None);
     p.push(&frames[0], 0.0).unwrap();
     let e = p
         .push(&image::RgbImage::new(10, 10), 50.0)
@@ -105,7 +107,10 @@ fn frame_of_another_size_and_bad_options_are_errors() {
         k: 0,
         ..ProcessOptions::default()
     };
-    assert!(rigd::pipeline::Pipeline::new(bad, None).is_err());
-    let none = rigd::pipeline::Pipeline::new(ProcessOptions::default(), None).unwrap();
+    let Err(e) = process_frames(&frames, &[0.0], &bad, None) else {
+        panic!("k = 0 accepted")
+    };
+    assert_eq!(e.to_string(), "`k` must be 1..=32, got 0");
+    let none = rigd::pipeline::Pipeline::new(ValidOptions::default(), None);
     assert!(none.finish().is_err(), "no frames");
 }

@@ -264,3 +264,21 @@ fn bad_option_is_refused() {
     assert!(!r.status.success());
     assert!(stderr(&r).contains('k'), "{}", stderr(&r));
 }
+
+#[test]
+fn options_out_of_the_pipelines_limits_are_refused_before_the_folder_is_read() {
+    let missing = "/nonexistent/rigd-folder";
+    let e = stderr(&rigctl(&[missing, "--k", "40"]));
+    assert!(e.contains("`k` must be 1..=32, got 40"), "{e}");
+    let r = rigctl(&[missing, "--axis-dir", "0,0"]);
+    assert!(!r.status.success());
+    let e = stderr(&r);
+    assert!(
+        e.contains("`axis_dir` must be a finite non-zero vector"),
+        "{e}"
+    );
+    assert!(
+        !e.contains("nonexistent"),
+        "the folder is not looked at: {e}"
+    );
+}

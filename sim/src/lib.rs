@@ -4,7 +4,6 @@
 //! serial protocols on pseudo-terminals, and the XL-80 synthesizer writes the real file
 //! formats, so a driver test against them is not circular.
 
-pub mod board;
 pub mod camera;
 pub mod camera_clock;
 pub mod crb;
@@ -18,9 +17,11 @@ pub mod rig;
 pub mod serve;
 pub mod xl80;
 
-pub use board::Board;
+// The boards live in rigd-core (the pipeline reads them too); `rigd_sim::board` stays a path.
 pub use camera::CameraModel;
 pub use camera_clock::{FrameClockCamera, SimFrame};
 pub use frames::FrameRenderer;
 pub use render::{SceneRenderer, View};
 pub use rig::{SimRig, SimRigConfig};
+pub use rigd_core::board;
+pub use rigd_core::board::Board;

@@ -7,7 +7,7 @@ use crate::acquisition::job::{
     combine_for, CaseScan, JobRegistration, JobSpec, Processing, StageKind,
 };
 use crate::daemon::rig::RigInfo;
-use crate::pipeline::ProcessOptions;
+use crate::pipeline::{ProcessOptions, ValidOptions};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -46,7 +46,7 @@ pub struct RunPlan {
     /// The complete processing options of this run, validated by the pipeline at submit
     /// (`None`: the job does not process; absent from sessions recorded before rigd 0.2).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub processing: Option<ProcessOptions>,
+    pub processing: Option<ValidOptions>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -57,8 +57,8 @@ pub struct Plan {
 
 /// The processing options of one scan of `spec` (resolved: see `JobSpec::with_defaults`),
 /// checked by the pipeline.
-pub fn run_options(spec: &JobSpec, k: u32, rig: &RigInfo) -> Result<ProcessOptions, PlanError> {
-    let o = ProcessOptions {
+pub fn run_options(spec: &JobSpec, k: u32, rig: &RigInfo) -> Result<ValidOptions, PlanError> {
+    ProcessOptions {
         scale_um_per_px: rig.scale_um_per_px,
         k,
         estimator: spec.estimator.unwrap_or_default(),
@@ -66,15 +66,9 @@ pub fn run_options(spec: &JobSpec, k: u32, rig: &RigInfo) -> Result<ProcessOptio
         registration: spec.registration.unwrap_or_default().pipeline(),
         axis_dir: rig.axis_dir,
         whole_frame: spec.whole_frame.unwrap_or(false),
-    };
-    validate_options(&o)?;
-    Ok(o)
-}
-
-fn validate_options(o: &ProcessOptions) -> Result<(), PlanError> {
-    crate::pipeline::Pipeline::new(o.clone(), None)
-        .map(|_| ())
-        .map_err(|e| rejected(e.to_string()))
+    }
+    .validate()
+    .map_err(|e| rejected(e.to_string()))
 }
 
 /// The scans a job asks for, checked for shape.

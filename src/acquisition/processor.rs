@@ -61,7 +61,7 @@ impl Processor {
             .processing
             .clone()
             .ok_or_else(|| format!("run {run} has no processing options"))?;
-        Pipeline::new(opts, self.board.clone()).map_err(|e| e.to_string())
+        Ok(Pipeline::new(opts, self.board.clone()))
     }
 
     fn record(&mut self, run: u32, outcome: Result<Finished, String>) {

@@ -2,28 +2,11 @@
 //! The folder contract and the output are documented in docs/folder-format.md.
 
 use crate::folder;
-use crate::pipeline::{Combine, Estimator, Pipeline, ProcessOptions, Registration};
+use crate::pipeline::{
+    Combine, Estimator, OptionError, Pipeline, ProcessOptions, Registration, ValidOptions, K_RANGE,
+};
 use anyhow::Context;
 use std::path::PathBuf;
-
-#[derive(Clone, Copy, clap::ValueEnum)]
-pub enum EstimatorArg {
-    Paper,
-    Fit,
-}
-
-#[derive(Clone, Copy, clap::ValueEnum)]
-pub enum CombineArg {
-    Interp,
-    Splat,
-    Mean,
-}
-
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum RegistrationArg {
-    Image,
-    Positions,
-}
 
 #[derive(clap::Args)]
 pub struct ProcessArgs {
@@ -32,17 +15,17 @@ pub struct ProcessArgs {
     /// Size of one camera pixel on the board.
     #[arg(long, default_value_t = 774.0)]
     pub scale_um_per_px: f64,
-    /// Upsampling factor of the reconstruction (1 = none).
-    #[arg(long, default_value_t = 1)]
+    /// Upsampling factor of the reconstruction (1 = none; at most 32).
+    #[arg(long, default_value_t = 1, value_parser = parse_k)]
     pub k: u32,
     #[arg(long, value_enum, default_value = "fit")]
-    pub estimator: EstimatorArg,
+    pub estimator: Estimator,
     /// How frames are combined [default: interp when k > 1, else mean].
     #[arg(long, value_enum)]
-    pub combine: Option<CombineArg>,
+    pub combine: Option<Combine>,
     /// Where each frame's displacement comes from.
     #[arg(long, value_enum, default_value = "image")]
-    pub registration: RegistrationArg,
+    pub registration: Registration,
     /// Image displacement per unit of axis travel, "x,y" (the scene moves against the camera).
     #[arg(long, value_parser = parse_dir, default_value = "-1,0")]
     pub axis_dir: [f64; 2],
@@ -63,6 +46,15 @@ pub struct ProcessArgs {
     pub json: bool,
 }
 
+/// `--k` in the pipeline's [`K_RANGE`], refused with the pipeline's own message.
+pub(crate) fn parse_k(s: &str) -> Result<u32, String> {
+    let k: u32 = s.parse().map_err(|e| format!("`{s}`: {e}"))?;
+    if !K_RANGE.contains(&k) {
+        return Err(OptionError::K { got: k }.to_string());
+    }
+    Ok(k)
+}
+
 fn parse_dir(s: &str) -> Result<[f64; 2], String> {
     let v: Vec<f64> = s
         .split(',')
@@ -75,28 +67,22 @@ fn parse_dir(s: &str) -> Result<[f64; 2], String> {
 }
 
 impl ProcessArgs {
-    pub fn options(&self) -> ProcessOptions {
+    /// The pipeline's options from the flags, checked against its limits.
+    pub fn options(&self) -> Result<ValidOptions, OptionError> {
         ProcessOptions {
             scale_um_per_px: self.scale_um_per_px,
             k: self.k,
-            estimator: match self.estimator {
-                EstimatorArg::Paper => Estimator::Paper,
-                EstimatorArg::Fit => Estimator::Fit,
-            },
-            combine: match self.combine {
-                Some(CombineArg::Interp) => Combine::Interp,
-                Some(CombineArg::Splat) => Combine::Splat,
-                Some(CombineArg::Mean) => Combine::Mean,
-                None if self.k > 1 => Combine::Interp,
-                None => Combine::Mean,
-            },
-            registration: match self.registration {
-                RegistrationArg::Image => Registration::Image,
-                RegistrationArg::Positions => Registration::Positions,
-            },
+            estimator: self.estimator,
+            combine: self.combine.unwrap_or(if self.k > 1 {
+                Combine::Interp
+            } else {
+                Combine::Mean
+            }),
+            registration: self.registration,
             axis_dir: self.axis_dir,
             whole_frame: self.whole_frame,
         }
+        .validate()
     }
 }
 
@@ -108,12 +94,14 @@ pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
     if args.frames == Some(0) {
         anyhow::bail!("--frames must be at least 1");
     }
+    // Every option is checked before a frame is read.
+    let options = args.options()?;
     let board = match &args.board {
-        Some(p) => Some(crate::sim::Board::load(p)?),
+        Some(p) => Some(crate::board::Board::load(p)?),
         None => None,
     };
     let dir = folder::open(&args.dir, args.frames)?;
-    let mut pipeline = Pipeline::new(args.options(), board)?;
+    let mut pipeline = Pipeline::new(options, board);
     // The reconstructions are written only with --out: otherwise not converted at all.
     pipeline.keep_images(args.out.is_some());
     // PNG decoding is most of a frame's cost: decoder threads (one per core) take every

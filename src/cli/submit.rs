@@ -47,15 +47,15 @@ pub struct SubmitArgs {
 /// a job the rig's `[pipeline]` default, else the protocol's; for a replay the recorded value.
 #[derive(clap::Args, Debug)]
 pub struct ProcessingArgs {
-    /// Upsampling factor of the reconstruction (a study's cases keep their own).
-    #[arg(long)]
+    /// Upsampling factor of the reconstruction, 1..=32 (a study's cases keep their own).
+    #[arg(long, value_parser = crate::cli::process::parse_k)]
     pub k: Option<u32>,
     /// Default: the rig's ([pipeline] estimator), else fit.
     #[arg(long, value_enum)]
-    pub estimator: Option<EstimatorArg>,
+    pub estimator: Option<Estimator>,
     /// Default: the rig's ([pipeline] combine), else interp if k > 1, else mean.
     #[arg(long, value_enum)]
-    pub combine: Option<CombineArg>,
+    pub combine: Option<Combine>,
     /// Where frame displacements come from: the image, the commanded positions or the
     /// interferometer's readings. Default: the rig's ([pipeline] registration), else image.
     #[arg(long, value_enum)]
@@ -69,40 +69,10 @@ impl ProcessingArgs {
     pub fn processing(&self) -> Processing {
         Processing {
             k: self.k,
-            estimator: self.estimator.map(Into::into),
-            combine: self.combine.map(Into::into),
+            estimator: self.estimator,
+            combine: self.combine,
             registration: self.registration,
             whole_frame: self.whole_frame.then_some(true),
-        }
-    }
-}
-
-#[derive(clap::ValueEnum, Clone, Copy, Debug)]
-pub enum EstimatorArg {
-    Paper,
-    Fit,
-}
-#[derive(clap::ValueEnum, Clone, Copy, Debug)]
-pub enum CombineArg {
-    Interp,
-    Splat,
-    Mean,
-}
-
-impl From<EstimatorArg> for Estimator {
-    fn from(e: EstimatorArg) -> Self {
-        match e {
-            EstimatorArg::Paper => Estimator::Paper,
-            EstimatorArg::Fit => Estimator::Fit,
-        }
-    }
-}
-impl From<CombineArg> for Combine {
-    fn from(c: CombineArg) -> Self {
-        match c {
-            CombineArg::Interp => Combine::Interp,
-            CombineArg::Splat => Combine::Splat,
-            CombineArg::Mean => Combine::Mean,
         }
     }
 }

@@ -9,13 +9,14 @@
 
 use super::detect::{self, Candidate, DetectConfig};
 use super::estimate::{estimate, CentreEstimate};
+use super::options::WINDOW_MARGIN_PX;
 use super::plane::{Plane, Roi};
 use super::reconstruct::{self, Fine, View};
 use super::register;
 use super::*;
+use crate::board::Board;
 use image::RgbImage;
 use rayon::prelude::*;
-use rigd_sim::Board;
 use std::time::Instant;
 
 /// What one pushed frame gave.
@@ -40,16 +41,9 @@ pub struct Finished {
     pub images: Vec<NamedImage>,
 }
 
-/// Camera pixels kept around a target's outer rim in its reconstruction window: the
-/// estimators want the rim plus 3.5 px, the cubic kernel 2 more.
-const WINDOW_MARGIN_PX: f64 = 6.0;
-
-/// Largest accepted upsampling factor (a whole 1280x720 frame at k = 32 would be 3.8 GB).
-pub const MAX_K: u32 = 32;
-
 /// Push-based pipeline: `new`, `push` each frame with its position, `finish`.
 pub struct Pipeline {
-    opts: ProcessOptions,
+    opts: ValidOptions,
     board: Option<Board>,
     detect_cfg: DetectConfig,
     size: Option<(u32, u32)>,
@@ -70,25 +64,10 @@ pub struct Pipeline {
 }
 
 impl Pipeline {
-    pub fn new(opts: ProcessOptions, board: Option<Board>) -> Result<Pipeline, PipelineError> {
-        let bad = |name, message: String| Err(PipelineError::Option { name, message });
-        if !(opts.scale_um_per_px.is_finite() && opts.scale_um_per_px > 0.0) {
-            return bad(
-                "scale_um_per_px",
-                format!("must be positive, got {}", opts.scale_um_per_px),
-            );
-        }
-        if !(1..=MAX_K).contains(&opts.k) {
-            return bad("k", format!("must be 1..={MAX_K}, got {}", opts.k));
-        }
-        let [ax, ay] = opts.axis_dir;
-        if !(ax.is_finite() && ay.is_finite()) || ax.hypot(ay) == 0.0 {
-            return bad(
-                "axis_dir",
-                format!("must be a non-zero vector, got {:?}", opts.axis_dir),
-            );
-        }
-        Ok(Pipeline {
+    /// A pipeline for one run. The options were checked by [`ProcessOptions::validate`]:
+    /// nothing about them can fail later.
+    pub fn new(opts: ValidOptions, board: Option<Board>) -> Pipeline {
+        Pipeline {
             opts,
             board,
             detect_cfg: DetectConfig::default(),
@@ -102,7 +81,7 @@ impl Pipeline {
             per_frame: Vec::new(),
             image_shifts_px: Vec::new(),
             keep_images: true,
-        })
+        }
     }
 
     /// Whether `finish` hands back the reconstructions as 16-bit images (the default). A
@@ -412,7 +391,7 @@ impl Pipeline {
         }
         Ok(Finished {
             result: ProcessResult {
-                options: self.opts.clone(),
+                options: self.opts.clone().into_inner(),
                 frames: n,
                 width,
                 height,
@@ -661,10 +640,10 @@ fn name_objects(objects: &mut [ObjectResult], board: &Board, scale_um_per_px: f6
         .targets
         .iter()
         .map(|t| match t.outer {
-            rigd_sim::board::Shape::Ring {
+            crate::board::Shape::Ring {
                 inner_radius_um, ..
             } => inner_radius_um,
-            rigd_sim::board::Shape::Disk { radius_um } => radius_um,
+            crate::board::Shape::Disk { radius_um } => radius_um,
         })
         .fold(f64::INFINITY, f64::min)
         * 0.5;
@@ -677,7 +656,7 @@ fn name_objects(objects: &mut [ObjectResult], board: &Board, scale_um_per_px: f6
     }
 }
 
-/// Process frames already in memory.
+/// Process frames already in memory (the options are validated here).
 pub fn process_frames(
     frames: &[RgbImage],
     positions_um: &[f64],
@@ -691,7 +670,7 @@ pub fn process_frames(
             positions_um.len()
         )));
     }
-    let mut p = Pipeline::new(opts.clone(), board)?;
+    let mut p = Pipeline::new(opts.clone().validate()?, board);
     for (f, &x) in frames.iter().zip(positions_um) {
         p.push(f, x)?;
     }

@@ -2,7 +2,8 @@
 //!
 //! detect targets -> register frames -> (reconstruct on a k-times finer grid) -> measure.
 //! Push-based so the daemon can process frame i while the axis moves to i+1:
-//! `let mut p = Pipeline::new(opts)?; p.push(frame, position_um)?; ... p.finish()`.
+//! `let mut p = Pipeline::new(opts.validate()?, board); p.push(frame, position_um)?; ...`
+//! then `p.finish()`. The options' limits are checked once, by [`ProcessOptions::validate`].
 //! `process_frames` is the same for a folder of frames already on disk.
 //!
 //! Conventions: image coordinates in pixels with pixel centres at integers (OpenCV's);
@@ -11,79 +12,64 @@
 pub mod detect;
 pub mod estimate;
 pub mod layout;
+pub mod options;
 pub mod plane;
 pub mod reconstruct;
 pub mod register;
 pub mod run;
 pub mod stats;
 
+pub use options::{OptionError, ProcessOptions, ValidOptions, K_RANGE, MAX_K};
 pub use run::{process_frames, Pipeline};
 
 use serde::{Deserialize, Serialize};
 
+// With feature `clap` the three option enums below are command-line values; each `value(name)`
+// pins rigctl's spelling (the same as serde's), so renaming a variant cannot change the CLI.
+
 /// How a circle centre is estimated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum Estimator {
     /// What the paper did: centroids of the thresholded red regions.
+    #[cfg_attr(feature = "clap", value(name = "paper"))]
     Paper,
     /// Least-squares fit of a blurred ring-and-disk model to the pixels (default).
+    #[cfg_attr(feature = "clap", value(name = "fit"))]
     #[default]
     Fit,
 }
 
 /// How frames are combined before (or instead of) measuring.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum Combine {
     /// The paper's: interpolate each frame by k (cubic), shift on the fine grid, average.
+    #[cfg_attr(feature = "clap", value(name = "interp"))]
     Interp,
     /// Direct shift-and-add: each low-resolution pixel accumulated onto the fine grid.
+    #[cfg_attr(feature = "clap", value(name = "splat"))]
     Splat,
     /// No reconstruction: measure every frame, average the per-frame estimates.
+    #[cfg_attr(feature = "clap", value(name = "mean"))]
     #[default]
     Mean,
 }
 
 /// Where each frame's displacement comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum Registration {
     /// Measured in the image from the targets' outer circles (the paper's).
+    #[cfg_attr(feature = "clap", value(name = "image"))]
     #[default]
     Image,
     /// From the recorded positions (commanded or interferometer) and the scale.
+    #[cfg_attr(feature = "clap", value(name = "positions"))]
     Positions,
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ProcessOptions {
-    pub scale_um_per_px: f64,
-    /// Upsampling factor of the reconstruction (1 = none).
-    pub k: u32,
-    pub estimator: Estimator,
-    pub combine: Combine,
-    pub registration: Registration,
-    /// Image displacement (px per px of axis travel) of the scene when the axis moves +1:
-    /// the camera rides the axis, so the scene moves the other way.
-    pub axis_dir: [f64; 2],
-    /// Also reconstruct the whole frame (not only per-target ROIs) and keep it.
-    pub whole_frame: bool,
-}
-
-impl Default for ProcessOptions {
-    fn default() -> Self {
-        ProcessOptions {
-            scale_um_per_px: 774.0,
-            k: 1,
-            estimator: Estimator::default(),
-            combine: Combine::default(),
-            registration: Registration::default(),
-            axis_dir: [-1.0, 0.0],
-            whole_frame: false,
-        }
-    }
 }
 
 /// One measured target.
@@ -151,8 +137,8 @@ pub enum PipelineError {
     NoTarget { index: usize },
     #[error("no frames")]
     NoFrames,
-    #[error("bad option {name}: {message}")]
-    Option { name: &'static str, message: String },
+    #[error(transparent)]
+    Option(#[from] OptionError),
     #[error("{0}")]
     Other(String),
 }
