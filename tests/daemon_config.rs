@@ -1,12 +1,12 @@
-//! `rigd --config FILE`: the daemon's rig built from a config's sections through `hw::open`.
+//! `rigd --config FILE`: the daemon's rig built from a config's sections through `rig::from_config`.
 //! With every driver "sim" the stages and the camera are one `SimRig`, so a job's frames and
 //! interferometer readings follow the axis.
 
 mod support;
 
-use rigd::daemon::hwrig::rig_from_config;
 use rigd::daemon::protocol::{JobSpec, Request};
 use rigd::daemon::session::SessionState;
+use rigd::rig::from_config;
 use std::time::Instant;
 use support::daemon::{
     assert_finished, capture_job, config, fast_grbl, run_job, subscribe, Daemon,
@@ -40,8 +40,8 @@ exposure_ms = 1.0
 #[test]
 fn a_sim_config_runs_a_job_whose_interferometer_follows_the_axis() {
     let dir = tempfile::tempdir().unwrap();
-    let rig = rig_from_config(&config(dir.path(), SIM_RIG)).unwrap();
-    assert_eq!(rig.info.mode, "sim");
+    let rig = from_config(&config(dir.path(), SIM_RIG)).unwrap();
+    assert_eq!(rig.info.mode, rigd::rig::RigMode::Sim);
     assert_eq!(rig.info.axis_limits_um, [0.0, 100_000.0]);
     assert_eq!(rig.info.frame_size, (64, 48));
     assert!(rig.piezo.is_none(), "no [piezo] section: no piezo");
@@ -71,7 +71,7 @@ fn a_sim_config_runs_a_job_whose_interferometer_follows_the_axis() {
 fn a_config_without_a_camera_is_refused_naming_the_section() {
     let dir = tempfile::tempdir().unwrap();
     let text = SIM_RIG.split("[camera]").next().unwrap();
-    let Err(e) = rig_from_config(&config(dir.path(), text)) else {
+    let Err(e) = from_config(&config(dir.path(), text)) else {
         panic!("a rig without a camera was built")
     };
     assert!(e.to_string().contains("[camera]"), "{e}");
@@ -92,8 +92,8 @@ fn a_hardware_rig_takes_its_scan_start_and_axis_direction_from_the_config() {
          [pipeline]\naxis_dir = [0.0, -1.0]\n",
         grbl.path().display()
     );
-    let rig = rig_from_config(&config(dir.path(), &text)).unwrap();
-    assert_eq!(rig.info.mode, "hardware");
+    let rig = from_config(&config(dir.path(), &text)).unwrap();
+    assert_eq!(rig.info.mode, rigd::rig::RigMode::Hardware);
     assert_eq!(rig.info.default_start_um, 7_250.0);
     assert_eq!(rig.info.axis_dir, [0.0, -1.0]);
     let d = Daemon::start_in(rig, dir);

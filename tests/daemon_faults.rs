@@ -7,7 +7,7 @@ mod support;
 
 use rigd::daemon::protocol::{EventBody, JobSpec, Request};
 use rigd::daemon::session::{Session, SessionState};
-use rigd::daemon::simrig::{sim_rig_with_truth, Fault, SimSettings, SimTruth};
+use rigd::rig::{simulated_with_truth, Fault, SimSettings, SimTruth};
 use rigd::sim::motion::AxisParams;
 use std::time::{Duration, Instant};
 use support::daemon::{
@@ -26,7 +26,7 @@ fn settings(faults: Vec<Fault>, axis: AxisParams) -> SimSettings {
 
 /// The daemon on the sim rig `s`, and the rig's true state.
 fn start(s: SimSettings) -> (Daemon, SimTruth) {
-    let (mut rig, truth) = sim_rig_with_truth(&s).unwrap();
+    let (mut rig, truth) = simulated_with_truth(&s).unwrap();
     // As `rigd --sim --grab-timeout-ms 500`: a stalled camera fails the job in 0.5 s, not 5
     // (frames come every millisecond here).
     rig.info.grab_timeout_ms = 500;

@@ -3,8 +3,8 @@
 use crate::daemon::protocol::{
     CaseScan, ErrorCode, JobRegistration, JobSpec, Processing, ProtoError,
 };
-use crate::daemon::rig::RigInfo;
 use crate::pipeline::{Combine, Estimator};
+use crate::rig::RigInfo;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -232,9 +232,13 @@ mod tests {
 
     fn rig() -> RigInfo {
         RigInfo {
-            mode: "sim".into(),
+            mode: crate::rig::RigMode::Sim,
             axis_limits_um: [0.0, 10_000.0],
             piezo_limits_um: None,
+            axis_max_step_um: None,
+            piezo_max_step_um: None,
+            axis_settle_ms: None,
+            piezo_settle_ms: None,
             default_start_um: 1000.0,
             scale_um_per_px: 774.0,
             axis_dir: [-1.0, 0.0],

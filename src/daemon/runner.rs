@@ -9,11 +9,11 @@
 use crate::daemon::interferometer;
 use crate::daemon::plan::Plan;
 use crate::daemon::protocol::{process_options, EventBody, JobRegistration, JobSpec, StepTimings};
-use crate::daemon::rig::Rig;
 use crate::daemon::session::{unix_s, Image16, SessionWriter, StepRow};
 use crate::daemon::study::{summarize, RunResult};
 use crate::hw::{HwError, MotionState, Stage};
 use crate::pipeline::Pipeline;
+use crate::rig::Rig;
 use image::RgbImage;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::mpsc;
@@ -343,7 +343,7 @@ type Images = Vec<(String, Image16)>;
 /// The processing side: one pipeline per run, fed as frames arrive.
 fn process_frames(
     ctx: &JobContext<'_>,
-    info: &crate::daemon::rig::RigInfo,
+    info: &crate::rig::RigInfo,
     rx: mpsc::Receiver<ToProcessor>,
 ) -> (Vec<RunResult>, Images) {
     let mut results = Vec::new();

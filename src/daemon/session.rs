@@ -14,7 +14,7 @@
 use crate::atomic_file::{self, AtomicWriteError};
 use crate::daemon::plan::Plan;
 use crate::daemon::protocol::{JobSpec, PROTOCOL_VERSION};
-use crate::daemon::rig::{LogSample, LogSource, RigInfo};
+use crate::rig::{LogSample, LogSource, RigInfo};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use std::fs;

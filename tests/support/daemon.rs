@@ -4,12 +4,12 @@
 
 use rigd::cli::client::Client;
 use rigd::config::Config;
-use rigd::daemon::hwrig::rig_from_config;
+use rigd::config::DaemonSettings;
 use rigd::daemon::protocol::{EventBody, JobSpec, Request};
-use rigd::daemon::rig::Rig;
 use rigd::daemon::server::Background;
 use rigd::daemon::session::Session;
-use rigd::daemon::DaemonSettings;
+use rigd::rig::from_config;
+use rigd::rig::Rig;
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
 use rigd::sim::motion::{Axis, AxisParams};
 use rigd::sim::CameraModel;
@@ -42,7 +42,7 @@ pub fn config(dir: &Path, text: &str) -> Config {
 
 /// The rig a config `text` (read from `dir/rig.toml`) builds.
 pub fn rig_from_toml(dir: &Path, text: &str) -> Rig {
-    rig_from_config(&config(dir, text)).unwrap()
+    from_config(&config(dir, text)).unwrap()
 }
 
 /// A small fast sim camera for `rigd --sim` rigs: 48x32 frames every millisecond.

@@ -3,20 +3,31 @@
 //! path to the GRBL emulator on a pseudo-terminal, the piezo by the GCS driver to the PI GCS
 //! emulator; the camera is the rig's frame-clock camera (frames show where the line of sight
 //! truly was during the exposure, motion blur included); the simulated XL-80 writes its live
-//! log to a file that the daemon follows as it would a real one (`daemon::interferometer`).
+//! log to a file that the daemon follows as it would a real one (`rig::FollowedLog`).
 //!
 //! Faults can be injected (`rigd --sim --fault alarm@5`): alarms and serial loss through the
 //! GRBL emulator's own fault injection, camera timeouts through the frame-clock camera's
 //! (its stream stalls; the driver's deadline runs out).
+//!
+//! Also here: the in-process devices a config with `driver = "sim"` opens (`stage`, `camera`,
+//! `from_config`) and the sim's XL-80 (`xl80`). The whole module is the cargo feature `sim`.
 
-use crate::daemon::rig::{Rig, RigInfo};
-use crate::daemon::simxl80::SimXl80;
+pub mod camera;
+mod from_config;
+pub mod stage;
+pub mod xl80;
+
+pub use camera::{SimCamera, SimRigCamera};
+pub(crate) use from_config::{devices_from_config, open_camera, open_stage};
+pub use from_config::{open_sim_rig, SimHardware};
+pub use stage::SimStage;
+pub use xl80::SimXl80;
+
+use super::devices::{HwError, Stage, StageStatus};
+use super::{Rig, RigInfo, RigMode};
 use crate::hw::gcs::{GcsOptions, GcsStage};
 use crate::hw::grbl::{GrblOptions, GrblStage};
 use crate::hw::limits::TravelLimits;
-use crate::hw::open::SimRigCamera;
-use crate::hw::sim_camera::SimCamera;
-use crate::hw::{HwError, Stage, StageStatus};
 use crate::xl80::Xl80Format;
 use rigd_sim::gcs::{GcsSim, GcsSimOptions};
 use rigd_sim::grbl::{GrblSim, GrblSimOptions};
@@ -118,8 +129,8 @@ fn limits(device: &str, l: [f64; 2]) -> Result<TravelLimits, HwError> {
 
 /// Build the simulated rig: start the `SimRig`, serve its axis and piezo on two ptys and
 /// connect rigd's drivers to them.
-pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
-    sim_rig_with_truth(s).map(|(rig, _)| rig)
+pub fn simulated(s: &SimSettings) -> Result<Rig, HwError> {
+    simulated_with_truth(s).map(|(rig, _)| rig)
 }
 
 /// What the simulated stages truly do, whatever the drivers report (for tests).
@@ -128,8 +139,8 @@ pub struct SimTruth {
     pub piezo: Arc<Axis>,
 }
 
-/// [`sim_rig`], also handing out the simulated stages themselves.
-pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
+/// [`simulated`], also handing out the simulated stages themselves.
+pub fn simulated_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
     let rc = SimRigConfig {
         board_file: s.board_file.clone(),
         camera: s.camera.clone(),
@@ -162,9 +173,14 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
 
     let fault_at = |want: fn(&Fault) -> Option<u32>| s.faults.iter().find_map(want);
     let info = RigInfo {
-        mode: "sim".into(),
+        mode: RigMode::Sim,
         axis_limits_um: s.axis_limits_um,
         piezo_limits_um: Some(s.piezo_limits_um),
+        // The drivers' step limit is the whole travel: no step within it is refused.
+        axis_max_step_um: None,
+        piezo_max_step_um: None,
+        axis_settle_ms: None,
+        piezo_settle_ms: None,
         default_start_um: 1_000.0,
         scale_um_per_px: s.camera.scale_um_per_px,
         // The camera rides the axis: the board moves the other way in the image.
@@ -181,7 +197,7 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
             "axis_driver": "grbl (emulated, pty)",
             "piezo_driver": "gcs (emulated, pty)",
             "xl80": rigd_sim::xl80::Xl80Params {
-                sample_rate_hz: crate::daemon::simxl80::SIM_RATE_HZ,
+                sample_rate_hz: xl80::SIM_RATE_HZ,
                 ..rc.xl80.clone()
             },
             "xl80_log": "live CSV in a temporary file, a new capture per job, followed",
@@ -189,7 +205,7 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
         }),
         // The protocol's own defaults; `rigd --sim --grab-timeout-ms` may shorten the grab's.
         job_defaults: Default::default(),
-        grab_timeout_ms: crate::daemon::rig::DEFAULT_GRAB_TIMEOUT_MS,
+        grab_timeout_ms: super::DEFAULT_GRAB_TIMEOUT_MS,
     };
     let truth = SimTruth {
         axis: Arc::clone(&rig.axis),
