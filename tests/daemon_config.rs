@@ -9,7 +9,8 @@ use rigd::daemon::session::SessionState;
 use rigd::rig::from_config;
 use std::time::Instant;
 use support::daemon::{
-    assert_finished, capture_job, config, fast_grbl, run_job, subscribe, Daemon,
+    assert_finished, capture_job, config, fast_grbl, run_job, subscribe, Daemon, RigdProcess,
+    SIM_RIG_SMALL,
 };
 
 const SIM_RIG: &str = r#"
@@ -110,4 +111,67 @@ fn a_hardware_rig_takes_its_scan_start_and_axis_direction_from_the_config() {
     assert_eq!(s.manifest.rig.axis_dir, [0.0, -1.0]);
     // The controller really took the axis there.
     assert!((axis.position_at(Instant::now()) - 7_350.0).abs() < 1e-6);
+}
+
+/// `rigd --config FILE` reads FILE once for its rig and its `[daemon]` settings, under the
+/// command line's: a file without a `[daemon]` table is fine when the command line says where.
+#[test]
+fn rigd_takes_its_socket_and_data_root_from_the_command_line_over_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, socket, data) = (
+        dir.path().join("rig.toml"),
+        dir.path().join("cli.sock"),
+        dir.path().join("cli-data"),
+    );
+    std::fs::write(&cfg, SIM_RIG_SMALL).unwrap();
+    let args = [
+        "--config".as_ref(),
+        cfg.as_os_str(),
+        "--socket".as_ref(),
+        socket.as_os_str(),
+        "--data-root".as_ref(),
+        data.as_os_str(),
+    ];
+    let _rigd = RigdProcess::spawn(&args, &socket);
+    let hello = rigd::cli::client::Client::connect(&socket)
+        .unwrap()
+        .request(&Request::Hello)
+        .unwrap();
+    assert_eq!(hello["rig"]["mode"], "sim");
+    assert_eq!(hello["data_root"], data.display().to_string());
+}
+
+/// `rigctl hw` looks for a daemon where rigd binds with the same config: `[daemon] socket`.
+#[test]
+fn rigctl_hw_refuses_while_rigd_serves_the_configs_socket() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, socket, data) = (
+        dir.path().join("rig.toml"),
+        dir.path().join("file.sock"),
+        dir.path().join("data"),
+    );
+    let text = format!(
+        "{SIM_RIG_SMALL}[daemon]\nsocket = \"{}\"\n",
+        socket.display()
+    );
+    std::fs::write(&cfg, text).unwrap();
+    let args = [
+        "--config".as_ref(),
+        cfg.as_os_str(),
+        "--data-root".as_ref(),
+        data.as_os_str(),
+    ];
+    let _rigd = RigdProcess::spawn(&args, &socket);
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args(["hw", "--config"])
+        .arg(&cfg)
+        .arg("position")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("rigd is running") && stderr.contains("file.sock"),
+        "{stderr}"
+    );
 }

@@ -198,11 +198,20 @@ pub struct RigdProcess(pub Option<Child>);
 impl RigdProcess {
     /// Start `rigd --sim` on `socket` and `data`, and wait until it answers.
     pub fn spawn_sim(socket: &Path, data: &Path) -> RigdProcess {
+        let args = [
+            "--sim".as_ref(),
+            "--socket".as_ref(),
+            socket.as_os_str(),
+            "--data-root".as_ref(),
+            data.as_os_str(),
+        ];
+        RigdProcess::spawn(&args, socket)
+    }
+
+    /// Start `rigd ARGS`, and wait until it answers on `socket`.
+    pub fn spawn(args: &[&std::ffi::OsStr], socket: &Path) -> RigdProcess {
         let child = Command::new(env!("CARGO_BIN_EXE_rigd"))
-            .args(["--sim", "--socket"])
-            .arg(socket)
-            .arg("--data-root")
-            .arg(data)
+            .args(args)
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
             .stderr(Stdio::null())
