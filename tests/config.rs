@@ -56,6 +56,7 @@ fn documented_example_loads() {
 }
 
 #[test]
+#[cfg(feature = "sim")] // reads the typed [axis.sim] and [camera.sim] tables
 fn every_documented_key_is_a_real_key() {
     // Uncomment every commented-out `key = value` line of the example: it must still load,
     // so the documentation cannot drift from the struct.

@@ -2,6 +2,8 @@
 //! With every driver "sim" the stages and the camera are one `SimRig`, so a job's frames and
 //! interferometer readings follow the axis.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::daemon::protocol::{JobSpec, Request};

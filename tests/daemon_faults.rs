@@ -3,6 +3,8 @@
 //! controller is told to stop where it is). Each time the axis is left stopped, what was
 //! captured is kept, and the daemon runs the next job.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::daemon::protocol::{EventBody, JobSpec, Request};

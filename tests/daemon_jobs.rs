@@ -1,6 +1,8 @@
 //! The daemon over its real Unix socket, in-process, on a small fast simulated rig:
 //! queueing, cancel, faults, disconnecting clients, many clients, replay, and a short soak.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::cli::client::Client;

@@ -2,6 +2,8 @@
 //! and bad requests over a live socket: each gets an error reply before anything moves and
 //! the connection keeps serving.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use proptest::prelude::*;

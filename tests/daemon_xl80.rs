@@ -2,6 +2,8 @@
 //! follows the file (the hardware path), the session records the samples covering the job,
 //! each frame's reading comes from them, and replay gives the recorded readings back.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::cli::client::Client;

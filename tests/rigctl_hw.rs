@@ -1,6 +1,8 @@
 //! `rigctl hw` end to end: the real binary, a config file, and the simulated hardware (the
 //! GRBL emulator on a pseudo-terminal through the real serialport path; the sim camera).
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
 use rigd::sim::motion::{Axis, AxisParams};
 use std::path::Path;

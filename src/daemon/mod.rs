@@ -7,6 +7,7 @@
 //! - `plan`: checks a job before anything moves; `session`: the crash-safe session folder;
 //! - `replay`: a session's job run again (on `rig::replay`); `study`: Tables 1-3;
 //! - `events`: the event bus; `interferometer`: the rig's position log in a job.
+//!
 //! The rig a job runs on is `crate::rig`; the daemon's settings are `config::DaemonSettings`.
 
 pub mod commands;

@@ -33,7 +33,7 @@ fn missing(section: &str, cfg: &Config) -> HwError {
 }
 
 /// The error for a "sim" driver in a build without the simulator.
-#[cfg_attr(feature = "sim", allow(dead_code))]
+#[cfg(not(feature = "sim"))]
 pub(crate) fn no_sim(device: &str) -> HwError {
     HwError::Other {
         device: device.into(),
