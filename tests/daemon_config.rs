@@ -6,7 +6,7 @@
 
 mod support;
 
-use rigd::daemon::protocol::{JobSpec, Request};
+use rigd::daemon::protocol::{JobSpec, Request, StageKind};
 use rigd::daemon::session::SessionState;
 use rigd::rig::from_config;
 use std::time::Instant;
@@ -99,6 +99,14 @@ fn a_hardware_rig_takes_its_scan_start_and_axis_direction_from_the_config() {
     assert_eq!(rig.info.mode, rigd::rig::RigMode::Hardware);
     assert_eq!(rig.info.default_start_um, 7_250.0);
     assert_eq!(rig.info.axis_dir, [0.0, -1.0]);
+    // What a plan checks a job's moves against: the section's limits and step, no settle.
+    let bounds = rig.info.bounds(StageKind::Axis).unwrap();
+    assert_eq!(bounds.limits_um, [-2_000.0, 100_000.0]);
+    assert_eq!(
+        (bounds.max_step_um, bounds.settle_ms),
+        (Some(100_000.0), None)
+    );
+    assert!(rig.info.bounds(StageKind::Piezo).is_none(), "no [piezo]");
     let d = Daemon::start_in(rig, dir);
     let mut c = d.client();
     let hello = c.request(&Request::Hello).unwrap();

@@ -155,3 +155,52 @@ impl Rig {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A `rig` as sessions recorded it before the mode was an enum and the step and settle
+    /// bounds were kept.
+    const OLD_MANIFEST_RIG: &str = r#"{
+        "mode": "replay", "axis_limits_um": [0.0, 250000.0], "piezo_limits_um": [0.0, 1400.0],
+        "default_start_um": 1000.0, "scale_um_per_px": 774.0, "axis_dir": [-1.0, 0.0],
+        "frame_size": [64, 48], "board": null, "config": null
+    }"#;
+
+    #[test]
+    fn old_manifests_read_and_the_mode_keeps_its_strings() {
+        let info: RigInfo = serde_json::from_str(OLD_MANIFEST_RIG).unwrap();
+        assert_eq!(info.mode, RigMode::Replay);
+        assert_eq!(info.axis_max_step_um, None);
+        assert_eq!(info.grab_timeout_ms, DEFAULT_GRAB_TIMEOUT_MS);
+        for (mode, s) in [
+            (RigMode::Sim, "sim"),
+            (RigMode::Replay, "replay"),
+            (RigMode::Hardware, "hardware"),
+        ] {
+            assert_eq!(serde_json::to_value(mode).unwrap(), s);
+            assert_eq!(mode.to_string(), s);
+        }
+        let json = serde_json::to_value(&info).unwrap();
+        assert!(json.get("axis_max_step_um").is_none(), "{json}");
+    }
+
+    #[test]
+    fn bounds_are_per_stage_and_none_without_the_stage() {
+        let mut info: RigInfo = serde_json::from_str(OLD_MANIFEST_RIG).unwrap();
+        info.piezo_max_step_um = Some(20.0);
+        info.piezo_settle_ms = Some(15);
+        assert_eq!(
+            info.bounds(StageKind::Piezo),
+            Some(StageBounds {
+                limits_um: [0.0, 1400.0],
+                max_step_um: Some(20.0),
+                settle_ms: Some(15),
+            })
+        );
+        assert_eq!(info.bounds(StageKind::Axis).unwrap().max_step_um, None);
+        info.piezo_limits_um = None;
+        assert_eq!(info.bounds(StageKind::Piezo), None);
+    }
+}

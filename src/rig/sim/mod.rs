@@ -151,7 +151,39 @@ pub fn simulated_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError>
     let board = rc.board().map_err(|e| sim_error("sim-rig", e))?;
     let rig = SimRig::start(rc.clone()).map_err(|e| sim_error("sim-rig", e))?;
     let log = SimXl80::new(&rig, None, Xl80Format::Csv, 1000.0)?;
+    let axis = emulated_axis(&rig, s)?;
+    let piezo = emulated_piezo(&rig, s)?;
+    if let Some(n) = s.fault_at(|f| match f {
+        Fault::CameraTimeout(n) => Some(*n),
+        _ => None,
+    }) {
+        rig.camera.stall_from_grab(n.into());
+    }
+    let truth = SimTruth {
+        axis: Arc::clone(&rig.axis),
+        piezo: Arc::clone(&rig.piezo),
+    };
+    let cam = SimCamera::new(Arc::clone(&rig.camera));
+    let rig = Rig {
+        info: sim_info(s, &rc, board),
+        axis: Box::new(axis),
+        piezo: Some(Box::new(piezo)),
+        camera: Box::new(SimRigCamera::new(rig, cam)),
+        log: Some(Box::new(log)),
+    };
+    Ok((rig, truth))
+}
 
+impl SimSettings {
+    /// The call number of the first fault `want` picks.
+    fn fault_at(&self, want: fn(&Fault) -> Option<u32>) -> Option<u32> {
+        self.faults.iter().find_map(want)
+    }
+}
+
+/// The axis: the GRBL emulator on a pty, rigd's GRBL driver connected to it, the axis faults
+/// armed.
+fn emulated_axis(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError> {
     let grbl = GrblSim::spawn(Arc::clone(&rig.axis), GrblSimOptions::default(), None)
         .map_err(|e| sim_error("sim-grbl", e))?;
     let mut go = GrblOptions::new(
@@ -160,7 +192,24 @@ pub fn simulated_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError>
     );
     go.feed_um_s = s.axis.max_speed_um_s;
     let axis = GrblStage::connect("axis", go)?;
+    Ok(EmulatedStage {
+        faults: grbl.faults().clone(),
+        stage: Box::new(axis),
+        _emulator: Box::new(grbl),
+        moves: 0,
+        alarm_at: s.fault_at(|f| match f {
+            Fault::Alarm(n) => Some(*n),
+            _ => None,
+        }),
+        loss_at: s.fault_at(|f| match f {
+            Fault::SerialLoss(n) => Some(*n),
+            _ => None,
+        }),
+    })
+}
 
+/// The piezo: the PI GCS emulator on a pty and rigd's GCS driver connected to it.
+fn emulated_piezo(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError> {
     let gcs = GcsSim::spawn(Arc::clone(&rig.piezo), GcsSimOptions::default(), None)
         .map_err(|e| sim_error("sim-gcs", e))?;
     let piezo = GcsStage::connect(
@@ -170,9 +219,19 @@ pub fn simulated_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError>
             limits("piezo", s.piezo_limits_um)?,
         ),
     )?;
+    Ok(EmulatedStage {
+        faults: gcs.faults().clone(),
+        stage: Box::new(piezo),
+        _emulator: Box::new(gcs),
+        moves: 0,
+        alarm_at: None,
+        loss_at: None,
+    })
+}
 
-    let fault_at = |want: fn(&Fault) -> Option<u32>| s.faults.iter().find_map(want);
-    let info = RigInfo {
+/// What the daemon knows of the simulated rig up front.
+fn sim_info(s: &SimSettings, rc: &SimRigConfig, board: rigd_sim::Board) -> RigInfo {
+    RigInfo {
         mode: RigMode::Sim,
         axis_limits_um: s.axis_limits_um,
         piezo_limits_um: Some(s.piezo_limits_um),
@@ -187,7 +246,6 @@ pub fn simulated_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError>
         axis_dir: [-rc.axis_dir[0], -rc.axis_dir[1]],
         frame_size: (s.camera.width, s.camera.height),
         interferometer: true,
-        board: Some(board.clone()),
         config: serde_json::json!({
             "sim": true,
             "axis": s.axis,
@@ -203,51 +261,11 @@ pub fn simulated_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError>
             "xl80_log": "live CSV in a temporary file, a new capture per job, followed",
             "faults": s.faults.iter().map(|f| format!("{f:?}")).collect::<Vec<_>>(),
         }),
+        board: Some(board),
         // The protocol's own defaults; `rigd --sim --grab-timeout-ms` may shorten the grab's.
         job_defaults: Default::default(),
         grab_timeout_ms: super::DEFAULT_GRAB_TIMEOUT_MS,
-    };
-    let truth = SimTruth {
-        axis: Arc::clone(&rig.axis),
-        piezo: Arc::clone(&rig.piezo),
-    };
-    let rig = Rig {
-        info,
-        axis: Box::new(EmulatedStage {
-            faults: grbl.faults().clone(),
-            stage: Box::new(axis),
-            _emulator: Box::new(grbl),
-            moves: 0,
-            alarm_at: fault_at(|f| match f {
-                Fault::Alarm(n) => Some(*n),
-                _ => None,
-            }),
-            loss_at: fault_at(|f| match f {
-                Fault::SerialLoss(n) => Some(*n),
-                _ => None,
-            }),
-        }),
-        piezo: Some(Box::new(EmulatedStage {
-            faults: gcs.faults().clone(),
-            stage: Box::new(piezo),
-            _emulator: Box::new(gcs),
-            moves: 0,
-            alarm_at: None,
-            loss_at: None,
-        })),
-        camera: {
-            if let Some(n) = fault_at(|f| match f {
-                Fault::CameraTimeout(n) => Some(*n),
-                _ => None,
-            }) {
-                rig.camera.stall_from_grab(n.into());
-            }
-            let cam = SimCamera::new(Arc::clone(&rig.camera));
-            Box::new(SimRigCamera::new(rig, cam))
-        },
-        log: Some(Box::new(log)),
-    };
-    Ok((rig, truth))
+    }
 }
 
 /// A driver connected to an emulated controller, which it keeps alive; arms the
