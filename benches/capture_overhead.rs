@@ -7,11 +7,11 @@
 
 use rigd::acquisition::JobSpec;
 use rigd::cli::client::Client;
+use rigd::config::DaemonSettings;
 use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::server::Background;
 use rigd::daemon::session::Session;
-use rigd::daemon::simrig::{sim_rig, SimSettings};
-use rigd::daemon::DaemonSettings;
+use rigd::rig::{simulated, SimSettings};
 
 const JOBS: usize = 5;
 
@@ -62,7 +62,7 @@ fn main() {
         group: None,
         data_root: data.clone(),
     };
-    let rig = sim_rig(&SimSettings::default()).unwrap();
+    let rig = simulated(&SimSettings::default()).unwrap();
     let _bg = Background::start(settings, rig).unwrap();
     let mut c = Client::connect(&dir.path().join("rigd.sock")).unwrap();
     c.request(&Request::Subscribe { job_id: None }).unwrap();

@@ -5,14 +5,28 @@
 //! the file and the missing section. Unknown keys are errors (a typo must not silently fall
 //! back to a default on a metrology rig), and every error names the file and the key.
 
-use crate::acquisition::Processing;
 use crate::hw::gcs::GcsOptions;
 use crate::hw::grbl::{GrblOptions, OnAlarm};
 use crate::hw::limits::TravelLimits;
 use crate::hw::pixfmt::PixelFormat;
-use crate::pipeline::ProcessOptions;
+use crate::hw::v4l2_options::V4l2Options;
+use crate::pipeline::{Combine, Estimator, Registration};
+pub use crate::xl80::Xl80Format;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// `[axis.sim]`/`[piezo.sim]`: the simulated axis' kinematics. Without the `sim` feature the
+/// table is kept as plain data (a config naming driver "sim" is refused when opened).
+#[cfg(feature = "sim")]
+pub type SimAxisTable = rigd_sim::motion::AxisParams;
+#[cfg(not(feature = "sim"))]
+pub type SimAxisTable = toml::Table;
+/// `[camera.sim]`: the simulated camera's model (plain data without the `sim` feature).
+#[cfg(feature = "sim")]
+pub type SimCameraTable = rigd_sim::CameraModel;
+#[cfg(not(feature = "sim"))]
+pub type SimCameraTable = toml::Table;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -51,16 +65,11 @@ pub struct Config {
     pub camera: Option<CameraConfig>,
     pub xl80: Option<Xl80Config>,
     #[serde(default)]
-    pub daemon: DaemonConfig,
+    pub daemon: DaemonSettings,
     pub board: Option<BoardConfig>,
-    /// Default processing options for jobs that do not set their own.
+    /// The rig's image geometry and the processing defaults of jobs that do not set their own.
     #[serde(default)]
-    pub pipeline: ProcessOptions,
-    /// `pipeline`'s job defaults, only those the file sets (not a key; set by
-    /// [`Config::from_toml_str`]): a key left out leaves a job that omits it to the protocol's
-    /// own default (for `combine` that depends on the scan's k).
-    #[serde(skip)]
-    pub job_defaults: Processing,
+    pub pipeline: PipelineConfig,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -130,7 +139,7 @@ pub struct StageConfig {
     pub default_start_um: Option<f64>,
     /// sim: kinematics of the simulated axis (defaults when absent).
     #[serde(default)]
-    pub sim: Option<rigd_sim::motion::AxisParams>,
+    pub sim: Option<SimAxisTable>,
 }
 
 fn default_baud() -> u32 {
@@ -202,7 +211,7 @@ pub struct CameraConfig {
     pub frame_timeout_ms: u64,
     /// sim: the simulated camera's model (defaults when absent).
     #[serde(default)]
-    pub sim: Option<rigd_sim::CameraModel>,
+    pub sim: Option<SimCameraTable>,
 }
 
 fn default_width() -> u32 {
@@ -217,37 +226,8 @@ fn default_format() -> PixelFormat {
 fn default_buffers() -> u32 {
     4
 }
-/// The job defaults among `[pipeline]`'s keys that `text` sets (already parsed into `p`).
-fn job_defaults(text: &str, p: &ProcessOptions) -> Processing {
-    let set: Vec<String> = text
-        .parse::<toml::Table>()
-        .ok()
-        .and_then(|t| match t.get("pipeline") {
-            Some(toml::Value::Table(t)) => Some(t.keys().cloned().collect()),
-            _ => None,
-        })
-        .unwrap_or_default();
-    let has = |k: &str| set.iter().any(|s| s == k);
-    Processing {
-        k: has("k").then_some(p.k),
-        estimator: has("estimator").then_some(p.estimator),
-        combine: has("combine").then_some(p.combine),
-        registration: has("registration").then_some(p.registration.into()),
-        whole_frame: has("whole_frame").then_some(p.whole_frame),
-    }
-}
-
 fn default_frame_timeout_ms() -> u64 {
     2_000
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Xl80Format {
-    /// LaserXL/CARTO CSV export.
-    Csv,
-    /// CARTO dynamic capture (.rtx).
-    Rtx,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -278,9 +258,49 @@ fn default_plateau_tol_um() -> f64 {
     5.0
 }
 
+/// `[pipeline]`: how the camera sees the rig (every job on this rig uses it) and the
+/// processing defaults of jobs that leave a setting out. A default left out here leaves such
+/// a job to the protocol's own default (for `combine` that depends on the scan's k).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct DaemonConfig {
+pub struct PipelineConfig {
+    /// Size of one camera pixel on the board, µm.
+    pub scale_um_per_px: f64,
+    /// Image displacement per unit of axis travel, [x, y] in image axes.
+    pub axis_dir: [f64; 2],
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub k: Option<u32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub estimator: Option<Estimator>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub combine: Option<Combine>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub registration: Option<Registration>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub whole_frame: Option<bool>,
+}
+
+impl Default for PipelineConfig {
+    fn default() -> Self {
+        PipelineConfig {
+            scale_um_per_px: 774.0,
+            axis_dir: [-1.0, 0.0],
+            k: None,
+            estimator: None,
+            combine: None,
+            registration: None,
+            whole_frame: None,
+        }
+    }
+}
+
+/// Where the daemon listens and records: `[daemon]` in a config file, overridden by
+/// `rigd --socket/--data-root`, defaulted when neither says ([`DaemonSettings::default`]).
+/// `rigd` serves on these and `rigctl hw` checks this socket for a daemon holding the
+/// hardware, so both resolve it the same way ([`DaemonSettings::overridden`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DaemonSettings {
     /// The Unix socket clients connect to.
     pub socket: PathBuf,
     /// Group given access to the socket (mode 0660); absent: owner only (0600).
@@ -289,14 +309,40 @@ pub struct DaemonConfig {
     pub data_root: PathBuf,
 }
 
-impl Default for DaemonConfig {
+impl Default for DaemonSettings {
+    /// The socket clients look for by default ([`default_socket`]) and `./rigd-sessions`.
     fn default() -> Self {
-        DaemonConfig {
-            socket: PathBuf::from("/run/rigd/rigd.sock"),
+        DaemonSettings {
+            socket: default_socket(),
             group: None,
-            data_root: PathBuf::from("/var/lib/rigd"),
+            data_root: PathBuf::from("rigd-sessions"),
         }
     }
+}
+
+impl DaemonSettings {
+    /// These settings with whatever the command line gives instead.
+    pub fn overridden(self, socket: Option<PathBuf>, data_root: Option<PathBuf>) -> Self {
+        DaemonSettings {
+            socket: socket.unwrap_or(self.socket),
+            data_root: data_root.unwrap_or(self.data_root),
+            ..self
+        }
+    }
+}
+
+/// The socket path when neither the command line nor a config names one:
+/// `$RIGD_SOCKET`, else `$XDG_RUNTIME_DIR/rigd.sock`, else `/tmp/rigd-<uid>.sock`.
+pub fn default_socket() -> PathBuf {
+    if let Some(p) = std::env::var_os("RIGD_SOCKET") {
+        return PathBuf::from(p);
+    }
+    if let Some(d) = std::env::var_os("XDG_RUNTIME_DIR") {
+        return PathBuf::from(d).join("rigd.sock");
+    }
+    // SAFETY: getuid cannot fail.
+    let uid = unsafe { libc::getuid() };
+    PathBuf::from(format!("/tmp/rigd-{uid}.sock"))
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -326,7 +372,6 @@ impl Config {
         })?;
         cfg.source = origin.to_path_buf();
         cfg.validate()?;
-        cfg.job_defaults = job_defaults(text, &cfg.pipeline);
         let base = origin.parent().unwrap_or(Path::new(""));
         let anchor = |p: &mut PathBuf| {
             if p.is_relative() {
@@ -406,7 +451,7 @@ impl Config {
         if !(p.scale_um_per_px.is_finite() && p.scale_um_per_px > 0.0) {
             return Err(self.invalid("pipeline.scale_um_per_px", "must be a positive number"));
         }
-        if p.k == 0 {
+        if p.k == Some(0) {
             return Err(self.invalid("pipeline.k", "must be at least 1"));
         }
         Ok(())
@@ -582,41 +627,58 @@ impl StageConfig {
     }
 
     /// Deadline for a move to finish and settle.
-    pub fn move_timeout(&self) -> std::time::Duration {
-        std::time::Duration::from_millis(self.move_timeout_ms)
+    pub fn move_timeout(&self) -> Duration {
+        Duration::from_millis(self.move_timeout_ms)
     }
 
     /// The settle wait after a move.
-    pub fn settle(&self) -> std::time::Duration {
-        std::time::Duration::from_millis(self.settle_ms)
+    pub fn settle(&self) -> Duration {
+        Duration::from_millis(self.settle_ms)
+    }
+}
+
+impl CameraConfig {
+    /// The V4L2 driver's options from this section.
+    pub fn v4l2_options(&self) -> V4l2Options {
+        V4l2Options {
+            device: self.device.clone().unwrap_or_default(),
+            width: self.width,
+            height: self.height,
+            format: self.format,
+            exposure_us: self.exposure_us,
+            gain: self.gain,
+            white_balance_k: self.white_balance_k,
+            buffers: self.buffers,
+            frame_timeout: Duration::from_millis(self.frame_timeout_ms),
+        }
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pipeline::Combine;
 
     #[test]
-    fn job_defaults_are_only_the_pipeline_keys_the_file_sets() {
+    fn pipeline_defaults_are_only_the_keys_the_file_sets() {
         let origin = Path::new("/etc/rigd/rigd.toml");
         let cfg = Config::from_toml_str(
             "[pipeline]\nk = 4\ncombine = \"splat\"\nwhole_frame = false\n",
             origin,
         )
         .unwrap();
+        let p = &cfg.pipeline;
         assert_eq!(
-            cfg.job_defaults,
-            Processing {
-                k: Some(4),
-                estimator: None,
-                combine: Some(Combine::Splat),
-                registration: None,
-                whole_frame: Some(false),
-            }
+            (p.k, p.estimator, p.combine, p.registration, p.whole_frame),
+            (Some(4), None, Some(Combine::Splat), None, Some(false))
         );
         let none = Config::from_toml_str("[pipeline]\nscale_um_per_px = 500.0\n", origin).unwrap();
-        assert_eq!(none.job_defaults, Processing::default());
+        assert_eq!(
+            none.pipeline,
+            PipelineConfig {
+                scale_um_per_px: 500.0,
+                ..PipelineConfig::default()
+            }
+        );
         assert_eq!(none.frame_timeout_ms(), 2000, "the [camera] default");
         let cam = Config::from_toml_str(
             "[camera]\ndriver = \"sim\"\nframe_timeout_ms = 750\n",
@@ -624,5 +686,22 @@ mod tests {
         )
         .unwrap();
         assert_eq!(cam.frame_timeout_ms(), 750);
+    }
+
+    #[test]
+    fn daemon_settings_come_from_the_command_line_then_the_file_then_defaults() {
+        let origin = Path::new("/etc/rigd/rigd.toml");
+        let file = Config::from_toml_str("[daemon]\nsocket = \"/run/x.sock\"\n", origin).unwrap();
+        assert_eq!(file.daemon.socket, PathBuf::from("/run/x.sock"));
+        assert_eq!(file.daemon.data_root, PathBuf::from("rigd-sessions"));
+        let cli = file
+            .daemon
+            .clone()
+            .overridden(None, Some(PathBuf::from("/data")));
+        assert_eq!(cli.socket, PathBuf::from("/run/x.sock"));
+        assert_eq!(cli.data_root, PathBuf::from("/data"));
+        let bare = Config::from_toml_str("", origin).unwrap();
+        assert_eq!(bare.daemon, DaemonSettings::default());
+        assert_eq!(bare.daemon.socket, default_socket());
     }
 }

@@ -7,7 +7,8 @@
 //! - `folder`: the `rigctl process` folder contract (frames/*.png + steps.csv).
 //! - `atomic_file`: files written whole or not at all (temporary name, sync, rename).
 //! - `report`: the paper's tables and figures from repeated runs.
-//! - `hw`: hardware traits and drivers (GRBL axis, PI GCS piezo, V4L2 camera, sim adapters).
+//! - `hw`: hardware drivers (GRBL axis, PI GCS piezo, V4L2 camera) and their options.
+//! - `rig`: the device traits, `Rig`/`RigInfo`, and the rig builders (config, sim, replay).
 //! - `xl80`: Renishaw XL-80 interferometer logs (CSV export, CARTO .rtx), following and alignment.
 //! - `config`: the rig's TOML configuration.
 //! - `daemon`: protocol, server, job runner, sessions, replay.
@@ -21,8 +22,11 @@ pub mod daemon;
 pub mod folder;
 pub mod hw;
 pub mod report;
+pub mod rig;
 pub mod xl80;
 
+/// The simulator (feature `sim`, on by default).
+#[cfg(feature = "sim")]
 pub use rigd_sim as sim;
 // The board and the pipeline live in rigd-core; `crate::pipeline::...` stays a path.
 pub use rigd_core::{board, pipeline};

@@ -1,16 +1,19 @@
-//! `rigd --config FILE`: the daemon's rig built from a config's sections through `hw::open`.
+//! `rigd --config FILE`: the daemon's rig built from a config's sections through `rig::from_config`.
 //! With every driver "sim" the stages and the camera are one `SimRig`, so a job's frames and
 //! interferometer readings follow the axis.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
-use rigd::acquisition::JobSpec;
-use rigd::daemon::hwrig::rig_from_config;
+use rigd::acquisition::{JobSpec, StageKind};
 use rigd::daemon::protocol::Request;
 use rigd::daemon::session::SessionState;
+use rigd::rig::from_config;
 use std::time::Instant;
 use support::daemon::{
-    assert_finished, capture_job, config, fast_grbl, run_job, subscribe, Daemon,
+    assert_finished, capture_job, config, fast_grbl, run_job, subscribe, Daemon, RigdProcess,
+    SIM_RIG_SMALL,
 };
 
 const SIM_RIG: &str = r#"
@@ -41,8 +44,8 @@ exposure_ms = 1.0
 #[test]
 fn a_sim_config_runs_a_job_whose_interferometer_follows_the_axis() {
     let dir = tempfile::tempdir().unwrap();
-    let rig = rig_from_config(&config(dir.path(), SIM_RIG)).unwrap();
-    assert_eq!(rig.info.mode, "sim");
+    let rig = from_config(&config(dir.path(), SIM_RIG)).unwrap();
+    assert_eq!(rig.info.mode, rigd::rig::RigMode::Sim);
     assert_eq!(rig.info.axis_limits_um, [0.0, 100_000.0]);
     assert_eq!(rig.info.frame_size, (64, 48));
     assert!(rig.piezo.is_none(), "no [piezo] section: no piezo");
@@ -72,7 +75,7 @@ fn a_sim_config_runs_a_job_whose_interferometer_follows_the_axis() {
 fn a_config_without_a_camera_is_refused_naming_the_section() {
     let dir = tempfile::tempdir().unwrap();
     let text = SIM_RIG.split("[camera]").next().unwrap();
-    let Err(e) = rig_from_config(&config(dir.path(), text)) else {
+    let Err(e) = from_config(&config(dir.path(), text)) else {
         panic!("a rig without a camera was built")
     };
     assert!(e.to_string().contains("[camera]"), "{e}");
@@ -93,10 +96,18 @@ fn a_hardware_rig_takes_its_scan_start_and_axis_direction_from_the_config() {
          [pipeline]\naxis_dir = [0.0, -1.0]\n",
         grbl.path().display()
     );
-    let rig = rig_from_config(&config(dir.path(), &text)).unwrap();
-    assert_eq!(rig.info.mode, "hardware");
+    let rig = from_config(&config(dir.path(), &text)).unwrap();
+    assert_eq!(rig.info.mode, rigd::rig::RigMode::Hardware);
     assert_eq!(rig.info.default_start_um, 7_250.0);
     assert_eq!(rig.info.axis_dir, [0.0, -1.0]);
+    // What a plan checks a job's moves against: the section's limits and step, no settle.
+    let bounds = rig.info.bounds(StageKind::Axis).unwrap();
+    assert_eq!(bounds.limits_um, [-2_000.0, 100_000.0]);
+    assert_eq!(
+        (bounds.max_step_um, bounds.settle_ms),
+        (Some(100_000.0), None)
+    );
+    assert!(rig.info.bounds(StageKind::Piezo).is_none(), "no [piezo]");
     let d = Daemon::start_in(rig, dir);
     let mut c = d.client();
     let hello = c.request(&Request::Hello).unwrap();
@@ -111,4 +122,67 @@ fn a_hardware_rig_takes_its_scan_start_and_axis_direction_from_the_config() {
     assert_eq!(s.manifest.rig.axis_dir, [0.0, -1.0]);
     // The controller really took the axis there.
     assert!((axis.position_at(Instant::now()) - 7_350.0).abs() < 1e-6);
+}
+
+/// `rigd --config FILE` reads FILE once for its rig and its `[daemon]` settings, under the
+/// command line's: a file without a `[daemon]` table is fine when the command line says where.
+#[test]
+fn rigd_takes_its_socket_and_data_root_from_the_command_line_over_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, socket, data) = (
+        dir.path().join("rig.toml"),
+        dir.path().join("cli.sock"),
+        dir.path().join("cli-data"),
+    );
+    std::fs::write(&cfg, SIM_RIG_SMALL).unwrap();
+    let args = [
+        "--config".as_ref(),
+        cfg.as_os_str(),
+        "--socket".as_ref(),
+        socket.as_os_str(),
+        "--data-root".as_ref(),
+        data.as_os_str(),
+    ];
+    let _rigd = RigdProcess::spawn(&args, &socket);
+    let hello = rigd::cli::client::Client::connect(&socket)
+        .unwrap()
+        .request(&Request::Hello)
+        .unwrap();
+    assert_eq!(hello["rig"]["mode"], "sim");
+    assert_eq!(hello["data_root"], data.display().to_string());
+}
+
+/// `rigctl hw` looks for a daemon where rigd binds with the same config: `[daemon] socket`.
+#[test]
+fn rigctl_hw_refuses_while_rigd_serves_the_configs_socket() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cfg, socket, data) = (
+        dir.path().join("rig.toml"),
+        dir.path().join("file.sock"),
+        dir.path().join("data"),
+    );
+    let text = format!(
+        "{SIM_RIG_SMALL}[daemon]\nsocket = \"{}\"\n",
+        socket.display()
+    );
+    std::fs::write(&cfg, text).unwrap();
+    let args = [
+        "--config".as_ref(),
+        cfg.as_os_str(),
+        "--data-root".as_ref(),
+        data.as_os_str(),
+    ];
+    let _rigd = RigdProcess::spawn(&args, &socket);
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args(["hw", "--config"])
+        .arg(&cfg)
+        .arg("position")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("rigd is running") && stderr.contains("file.sock"),
+        "{stderr}"
+    );
 }

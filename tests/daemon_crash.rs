@@ -1,5 +1,7 @@
 //! The `rigd` binary: `kill -9` mid-job then restart, and a clean stop on SIGTERM.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::acquisition::JobSpec;

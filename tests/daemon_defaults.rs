@@ -1,6 +1,8 @@
 //! The rig's configuration reaches its jobs: `[pipeline]` defaults fill what a job leaves
 //! out (recorded in the session and echoed on `accepted`), explicit values win.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::acquisition::{JobRegistration, JobSpec};

@@ -2,6 +2,8 @@
 //! paper's study through it (3 repeats here, 93 full 1280x720 frames: ~10 s), the report
 //! as JSON.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 use std::process::Command;
 
 #[test]

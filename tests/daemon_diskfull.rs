@@ -5,6 +5,8 @@
 //! namespaces; without them the test says SKIPPED on stderr (with `CI` set and run as root
 //! it fails instead, so CI cannot skip it silently).
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::acquisition::JobSpec;

@@ -3,14 +3,16 @@
 //! controller is told to stop where it is). Each time the axis is left stopped, what was
 //! captured is kept, and the daemon runs the next job.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::acquisition::outcome::{EndDetail, Phase};
 use rigd::acquisition::JobSpec;
 use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::session::{Session, SessionState};
-use rigd::daemon::simrig::{sim_rig_with_truth, Fault, SimSettings, SimTruth};
 use rigd::hw::MotionState;
+use rigd::rig::{simulated_with_truth, Fault, SimSettings, SimTruth};
 use rigd::sim::motion::AxisParams;
 use std::time::{Duration, Instant};
 use support::daemon::{
@@ -29,7 +31,7 @@ fn settings(faults: Vec<Fault>, axis: AxisParams) -> SimSettings {
 
 /// The daemon on the sim rig `s`, and the rig's true state.
 fn start(s: SimSettings) -> (Daemon, SimTruth) {
-    let (mut rig, truth) = sim_rig_with_truth(&s).unwrap();
+    let (mut rig, truth) = simulated_with_truth(&s).unwrap();
     // As `rigd --sim --grab-timeout-ms 500`: a stalled camera fails the job in 0.5 s, not 5
     // (frames come every millisecond here).
     rig.info.grab_timeout_ms = 500;
@@ -177,7 +179,10 @@ fn a_cancel_stops_the_axis_mid_move_and_the_next_job_runs() {
         unreachable!()
     };
     let end = detail.as_ref().unwrap();
-    assert_eq!((end.phase, end.target_um), (Some(Phase::Move), Some(target)));
+    assert_eq!(
+        (end.phase, end.target_um),
+        (Some(Phase::Move), Some(target))
+    );
     // Stopped by the controller short of the target, not moving.
     let (at, state) = stopped_at(detail, reason);
     assert!(

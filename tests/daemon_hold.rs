@@ -3,6 +3,8 @@
 //! deadline), naming the stage, the hold and where it stopped; the stage is left stopped.
 //! The axis is rigd's GRBL driver over a real pseudo-terminal to the GRBL emulator.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::acquisition::JobSpec;

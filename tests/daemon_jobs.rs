@@ -1,13 +1,15 @@
 //! The daemon over its real Unix socket, in-process, on a small fast simulated rig:
 //! queueing, cancel, faults, disconnecting clients, many clients, replay, and a short soak.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::acquisition::{JobSpec, Processing};
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::session::SessionState;
-use rigd::daemon::simrig::{sim_rig, Fault, SimSettings};
+use rigd::rig::{simulated, Fault, SimSettings};
 use serde_json::Value;
 use support::daemon::{
     assert_finished, assert_frames_decode, capture_job, events_until_end, fast_camera, job_id,
@@ -15,7 +17,7 @@ use support::daemon::{
 };
 
 fn start(faults: Vec<Fault>) -> Daemon {
-    let mut rig = sim_rig(&SimSettings {
+    let mut rig = simulated(&SimSettings {
         camera: fast_camera(),
         faults,
         ..SimSettings::default()
@@ -237,7 +239,7 @@ fn replay_feeds_the_recorded_frames_and_positions_through_the_job_path() {
         rs.manifest.replay_of.as_deref(),
         Some(live_s.manifest.name.as_str())
     );
-    assert_eq!(rs.manifest.rig.mode, "replay");
+    assert_eq!(rs.manifest.rig.mode, rigd::rig::RigMode::Replay);
     assert_eq!(rs.steps.len(), 4);
     for (a, b) in live_s.steps.iter().zip(&rs.steps) {
         assert_eq!(

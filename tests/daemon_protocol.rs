@@ -2,11 +2,13 @@
 //! and bad requests over a live socket: each gets an error reply before anything moves and
 //! the connection keeps serving.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use proptest::prelude::*;
 use rigd::daemon::protocol::{decode_request, ErrorCode, MAX_LINE_BYTES};
-use rigd::daemon::simrig::{sim_rig, SimSettings};
+use rigd::rig::{simulated, SimSettings};
 use rigd::sim::CameraModel;
 use serde_json::Value;
 use std::io::{BufRead, BufReader, Write};
@@ -109,7 +111,7 @@ fn bad_requests_get_error_replies_and_the_connection_keeps_serving() {
         },
         ..SimSettings::default()
     };
-    let mut d = Daemon::start(sim_rig(&sim).unwrap());
+    let mut d = Daemon::start(simulated(&sim).unwrap());
     let bg = &mut d.bg;
     // The socket is group read-write, nobody else.
     use std::os::unix::fs::PermissionsExt;

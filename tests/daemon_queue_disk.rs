@@ -2,6 +2,8 @@
 //! free space alone is refused while another one still has that space to fill, naming the
 //! figures, and accepted once that one has ended.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::acquisition::plan::{estimated_bytes, free_bytes};

@@ -2,16 +2,18 @@
 //! follows the file (the hardware path), the session records the samples covering the job,
 //! each frame's reading comes from them, and replay gives the recorded readings back.
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 mod support;
 
 use rigd::acquisition::{JobRegistration, JobSpec, Processing};
 use rigd::cli::client::Client;
 use rigd::config::Config;
-use rigd::daemon::hwrig::rig_from_config;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::rig::LogSample;
 use rigd::daemon::session::{Session, SessionState, INTERFEROMETER_HEADER};
-use rigd::daemon::simrig::{sim_rig, SimSettings};
+use rigd::rig::from_config;
+use rigd::rig::LogSample;
+use rigd::rig::{simulated, SimSettings};
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
 use rigd::sim::motion::AxisParams;
 use rigd::sim::xl80::{LiveOptions, LogFormat};
@@ -113,7 +115,7 @@ fn settled_noise_um(samples: &[LogSample], s: &Session, window_s: f64) -> f64 {
 fn a_sim_job_records_the_live_log_and_reads_each_frame_from_it() {
     let dir = tempfile::tempdir().unwrap();
     let settings = sim_settings(dir.path());
-    let d = Daemon::start_in(sim_rig(&settings).unwrap(), dir);
+    let d = Daemon::start_in(simulated(&settings).unwrap(), dir);
     let mut c = d.subscribed();
     let job = capture_job(100.0, 8, 60);
     let (_, ev) = run_job(&mut c, job);
@@ -174,7 +176,7 @@ fn a_sim_job_records_the_live_log_and_reads_each_frame_from_it() {
 fn registration_interferometer_uses_the_readings_and_replays_the_same() {
     let dir = tempfile::tempdir().unwrap();
     let settings = sim_settings(dir.path());
-    let d = Daemon::start_in(sim_rig(&settings).unwrap(), dir);
+    let d = Daemon::start_in(simulated(&settings).unwrap(), dir);
     let mut c = d.subscribed();
     let job = JobSpec {
         step_um: Some(154.8),
@@ -304,8 +306,8 @@ poll_ms = 5
         port = grbl.path().display()
     );
     let cfg = Config::from_toml_str(&text, &dir.path().join("rig.toml")).unwrap();
-    let rig = rig_from_config(&cfg).unwrap();
-    assert_eq!(rig.info.mode, "hardware");
+    let rig = from_config(&cfg).unwrap();
+    assert_eq!(rig.info.mode, rigd::rig::RigMode::Hardware);
     let d = Daemon::start(rig);
     let mut c = d.subscribed();
     let job = JobSpec {

@@ -1,6 +1,8 @@
 //! `rigctl hw` end to end: the real binary, a config file, and the simulated hardware (the
 //! GRBL emulator on a pseudo-terminal through the real serialport path; the sim camera).
 
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
 use rigd::sim::motion::{Axis, AxisParams};
 use std::path::Path;
@@ -213,7 +215,7 @@ fn sim_rig_camera_sees_the_axis_move() {
         &format!("[axis]\ndriver = \"sim\"\nsoft_min_um = 0.0\nsoft_max_um = 100000.0\nmax_step_um = 100000.0\n{SIM_CAMERA}"),
     );
     let cfg = rigd::config::Config::load(cfg).unwrap();
-    let mut hw = rigd::hw::open::open_sim_rig(&cfg).unwrap();
+    let mut hw = rigd::rig::sim::open_sim_rig(&cfg).unwrap();
     assert_eq!(hw.camera.size(), (160, 96));
     let t = Duration::from_secs(5);
     // Horizontal shift between two frames: the integer lag that best aligns their column

@@ -12,8 +12,8 @@ use crate::acquisition::outcome::{JobError, Outcome, Phase, Stop, StopCause, Sto
 use crate::acquisition::plan::{Plan, RunPlan};
 use crate::acquisition::record::{ms, StepRecord, StepTimings};
 use crate::acquisition::sink::{SinkError, StepSink};
-use crate::daemon::rig::PositionLog;
 use crate::hw::{Camera, HwError, MotionState, Stage};
+use crate::rig::PositionLog;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};

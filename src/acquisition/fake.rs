@@ -3,8 +3,8 @@
 //! that the script was used up. They drive the step engine in tests that run in
 //! milliseconds: holds, alarms, stops in each phase, stalls, failing stops and polls.
 
-use crate::daemon::rig::{LogSample, LogSource, PositionLog};
 use crate::hw::{Camera, Frame, HwError, MotionState, Stage, StageStatus};
+use crate::rig::{LogSample, LogSource, PositionLog};
 use image::RgbImage;
 use std::collections::VecDeque;
 use std::time::{Duration, SystemTime};

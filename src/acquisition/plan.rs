@@ -6,8 +6,8 @@
 use crate::acquisition::job::{
     combine_for, CaseScan, JobRegistration, JobSpec, Processing, StageKind,
 };
-use crate::daemon::rig::RigInfo;
 use crate::pipeline::{ProcessOptions, ValidOptions};
+use crate::rig::RigInfo;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -146,9 +146,10 @@ pub fn plan(
 ) -> Result<Plan, PlanError> {
     check_job(spec, rig)?;
     let cases = cases(spec)?;
-    let limits = rig
-        .limits_um(spec.stage)
+    let bounds = rig
+        .bounds(spec.stage)
         .ok_or_else(|| rejected(format!("this rig has no {} stage", spec.stage)))?;
+    let limits = bounds.limits_um;
     let start = spec.start_um.unwrap_or(match spec.stage {
         StageKind::Axis => rig.default_start_um,
         StageKind::Piezo => limits[0],
@@ -186,6 +187,9 @@ pub fn plan(
         runs,
         total_frames: total as u32,
     };
+    if let Some(max) = bounds.max_step_um {
+        check_steps(&plan, max, spec.stage)?;
+    }
     check_disk(&plan, rig, data_root, committed_bytes)?;
     Ok(plan)
 }
@@ -254,6 +258,29 @@ fn check_limits(
                 um(limits[1])
             )));
         }
+    }
+    Ok(())
+}
+
+/// Every move between two frames (within a scan, and from one run's last frame to the next
+/// run's first) within the stage's `max_step_um`. The first move, from wherever the stage
+/// is, is the driver's to check.
+fn check_steps(plan: &Plan, max_step_um: f64, stage: StageKind) -> Result<(), PlanError> {
+    let all = plan
+        .runs
+        .iter()
+        .flat_map(|r| r.positions_um.iter().copied());
+    let mut prev: Option<f64> = None;
+    for p in all {
+        if let Some(q) = prev.filter(|q| (p - q).abs() > max_step_um) {
+            return Err(rejected(format!(
+                "the move from {} µm to {} µm is longer than the {stage}'s max_step_um ({} µm)",
+                um(q),
+                um(p),
+                um(max_step_um)
+            )));
+        }
+        prev = Some(p);
     }
     Ok(())
 }
@@ -330,9 +357,13 @@ mod tests {
 
     fn rig() -> RigInfo {
         RigInfo {
-            mode: "sim".into(),
+            mode: crate::rig::RigMode::Sim,
             axis_limits_um: [0.0, 10_000.0],
             piezo_limits_um: None,
+            axis_max_step_um: None,
+            piezo_max_step_um: None,
+            axis_settle_ms: None,
+            piezo_settle_ms: None,
             default_start_um: 1000.0,
             scale_um_per_px: 774.0,
             axis_dir: [-1.0, 0.0],
@@ -464,6 +495,67 @@ mod tests {
         .unwrap_err();
         assert!(e.0.contains(" MB but /tmp has "), "{}", e.0);
         assert_eq!(estimated_bytes(2, (10, 10)), 2 * (300 + 4096) + (1 << 20));
+    }
+
+    #[test]
+    fn moves_longer_than_the_stages_max_step_are_refused_and_numbers_stay_short() {
+        let rig = RigInfo {
+            axis_max_step_um: Some(5000.0),
+            ..rig()
+        };
+        let t = Path::new("/tmp");
+        let job = |step_um: f64| JobSpec {
+            steps: Some(2),
+            step_um: Some(step_um),
+            ..JobSpec::default()
+        };
+        assert!(plan(&job(5000.0), &rig, t, 0).is_ok());
+        let e = plan(&job(5000.5), &rig, t, 0).unwrap_err();
+        assert_eq!(
+            e.0,
+            "the move from 1000 µm to 6000.5 µm is longer than the axis's max_step_um (5000 µm)"
+        );
+        // A repeat's return to its start counts too: 1000, 3600, 6200, then back to 1000.
+        let back = JobSpec {
+            steps: Some(3),
+            step_um: Some(2600.0),
+            repeats: 2,
+            ..JobSpec::default()
+        };
+        let e = plan(&back, &rig, t, 0).unwrap_err();
+        assert!(
+            e.0.starts_with("the move from 6200 µm to 1000 µm"),
+            "{}",
+            e.0
+        );
+        let huge = plan(&job(1e300), &rig, t, 0).unwrap_err().0;
+        assert!(huge.len() < 200 && huge.contains("e300"), "{huge}");
+        let settle = JobSpec {
+            settle_ms: MAX_SETTLE_MS + 1,
+            ..job(10.0)
+        };
+        assert!(plan(&settle, &rig, t, 0)
+            .unwrap_err()
+            .0
+            .contains("`settle_ms` must be at most"));
+    }
+
+    #[test]
+    fn a_k_the_pipeline_refuses_is_refused_at_submit_naming_the_case() {
+        let job = JobSpec {
+            steps: Some(3),
+            step_um: Some(10.0),
+            k: Some(40),
+            ..JobSpec::default()
+        };
+        let e = plan(&job, &rig(), Path::new("/tmp"), 0).unwrap_err();
+        assert_eq!(e.0, "scan: `k` must be 1..=32, got 40");
+        // Without processing there are no options to refuse.
+        let raw = JobSpec {
+            process: false,
+            ..job
+        };
+        assert!(plan(&raw, &rig(), Path::new("/tmp"), 0).is_ok());
     }
 
     #[test]

@@ -3,10 +3,9 @@
 
 use anyhow::{bail, Context};
 use clap::Parser;
-use rigd::config::Config;
-use rigd::daemon::hwrig::rig_from_config;
-use rigd::daemon::simrig::{sim_rig, Fault, SimSettings};
-use rigd::daemon::{default_socket, server, settings_from_config, DaemonSettings};
+use rigd::config::{Config, DaemonSettings};
+use rigd::daemon::server;
+use rigd::rig::Rig;
 use std::path::PathBuf;
 
 #[derive(Parser)]
@@ -16,6 +15,7 @@ struct Args {
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
     /// Run the simulated rig (no hardware, no configuration needed).
+    #[cfg(feature = "sim")]
     #[arg(long)]
     sim: bool,
     /// Socket path (overrides the configuration).
@@ -26,10 +26,12 @@ struct Args {
     data_root: Option<PathBuf>,
     /// Inject a fault into the simulated rig: alarm@N, serial-loss@N (N-th move),
     /// camera-timeout@N (N-th grab). Repeatable.
+    #[cfg(feature = "sim")]
     #[arg(long = "fault", value_name = "KIND@N")]
-    faults: Vec<Fault>,
+    faults: Vec<rigd::rig::Fault>,
     /// How long a grab waits for a frame on the simulated rig, ms (default 5000; a rig
     /// from --config uses its [camera] frame_timeout_ms).
+    #[cfg(feature = "sim")]
     #[arg(long, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..))]
     grab_timeout_ms: Option<u64>,
 }
@@ -52,50 +54,11 @@ fn main() -> std::process::ExitCode {
 }
 
 fn run(a: Args) -> anyhow::Result<()> {
-    let from_config = match &a.config {
-        Some(p) => {
-            let text =
-                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-            Some(
-                settings_from_config(&text, &p.display().to_string())
-                    .map_err(anyhow::Error::msg)?,
-            )
-        }
-        None => None,
-    };
-    if !a.faults.is_empty() && !a.sim {
-        bail!("--fault needs --sim");
-    }
-    if a.grab_timeout_ms.is_some() && !a.sim {
-        bail!("--grab-timeout-ms needs --sim (a configured rig uses [camera] frame_timeout_ms)");
-    }
-    let settings = DaemonSettings {
-        socket: a
-            .socket
-            .or(from_config.as_ref().map(|c| c.socket.clone()))
-            .unwrap_or_else(default_socket),
-        group: from_config.as_ref().and_then(|c| c.group.clone()),
-        data_root: a
-            .data_root
-            .or(from_config.as_ref().map(|c| c.data_root.clone()))
-            .unwrap_or_else(|| PathBuf::from("rigd-sessions")),
-    };
-    let mut rig = match (&a.config, a.sim) {
-        // --sim wins: the config then only sets the daemon's socket and data root.
-        (_, true) => sim_rig(&SimSettings {
-            faults: a.faults,
-            ..SimSettings::default()
-        })
-        .context("starting the simulated rig")?,
-        (Some(p), false) => {
-            let cfg = Config::load(p)?;
-            rig_from_config(&cfg).with_context(|| format!("opening the rig of {}", p.display()))?
-        }
-        (None, false) => bail!("give --config FILE for a rig, or --sim for the simulated rig"),
-    };
-    if let Some(ms) = a.grab_timeout_ms {
-        rig.info.grab_timeout_ms = ms;
-    }
+    // The config is read once: its [daemon] settings under the command line's, and its rig.
+    let cfg = a.config.as_ref().map(Config::load).transpose()?;
+    let file = cfg.as_ref().map(|c| c.daemon.clone()).unwrap_or_default();
+    let settings: DaemonSettings = file.overridden(a.socket.clone(), a.data_root.clone());
+    let rig = open_rig(&a, cfg.as_ref())?;
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(server::run(
         settings,
@@ -104,4 +67,44 @@ fn run(a: Args) -> anyhow::Result<()> {
         true,
     ))?;
     Ok(())
+}
+
+/// The rig to serve: `--sim`'s (the config then only sets the daemon's socket and data
+/// root), else the config's.
+#[cfg(feature = "sim")]
+fn open_rig(a: &Args, cfg: Option<&Config>) -> anyhow::Result<Rig> {
+    if !a.faults.is_empty() && !a.sim {
+        bail!("--fault needs --sim");
+    }
+    if a.grab_timeout_ms.is_some() && !a.sim {
+        bail!("--grab-timeout-ms needs --sim (a configured rig uses [camera] frame_timeout_ms)");
+    }
+    if !a.sim {
+        return config_rig(cfg);
+    }
+    let mut rig = rigd::rig::simulated(&rigd::rig::SimSettings {
+        faults: a.faults.clone(),
+        ..Default::default()
+    })
+    .context("starting the simulated rig")?;
+    if let Some(ms) = a.grab_timeout_ms {
+        rig.info.grab_timeout_ms = ms;
+    }
+    Ok(rig)
+}
+
+#[cfg(not(feature = "sim"))]
+fn open_rig(_a: &Args, cfg: Option<&Config>) -> anyhow::Result<Rig> {
+    config_rig(cfg)
+}
+
+fn config_rig(cfg: Option<&Config>) -> anyhow::Result<Rig> {
+    let Some(cfg) = cfg else {
+        if cfg!(feature = "sim") {
+            bail!("give --config FILE for a rig, or --sim for the simulated rig");
+        }
+        bail!("give --config FILE for a rig (this rigd was built without the `sim` feature: no --sim)");
+    };
+    rigd::rig::from_config(cfg)
+        .with_context(|| format!("opening the rig of {}", cfg.source.display()))
 }

@@ -19,7 +19,7 @@ impl SocketArg {
     pub fn path(&self) -> PathBuf {
         self.socket
             .clone()
-            .unwrap_or_else(crate::daemon::default_socket)
+            .unwrap_or_else(crate::config::default_socket)
     }
     pub fn connect(&self) -> anyhow::Result<Client> {
         Client::connect(&self.path())

@@ -8,9 +8,10 @@
 use crate::acquisition::study::{tables, StudySummary};
 use crate::acquisition::{JobSpec, PaperCase};
 use crate::cli::client::{follow, report_end, Client};
+use crate::config::DaemonSettings;
 use crate::daemon::protocol::Request;
-use crate::daemon::simrig::{sim_rig, SimSettings};
-use crate::daemon::{server, DaemonSettings};
+use crate::daemon::server;
+use crate::rig::{simulated, SimSettings};
 use anyhow::Context;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -57,7 +58,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     };
     let sim = SimSettings::default();
     let scale = sim.camera.scale_um_per_px;
-    let mut daemon = server::Background::start(settings, sim_rig(&sim)?)?;
+    let mut daemon = server::Background::start(settings, simulated(&sim)?)?;
     let mut c = Client::connect(&socket)?;
     c.request(&Request::Subscribe { job_id: None })?;
     let r = c.request(&Request::Submit {

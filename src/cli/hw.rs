@@ -1,10 +1,10 @@
 //! `rigctl hw`: talk to the configured hardware directly, to bring a rig up and check it
-//! before running jobs. Refuses while a daemon answers on the configured socket (it owns the
-//! ports and the camera then).
+//! before running jobs. Refuses while a daemon answers on the socket rigd would bind with
+//! this config (`[daemon] socket`, else the default; `--socket` for a daemon started with
+//! one): it owns the ports and the camera then.
 
 use crate::config::{Config, StageConfig};
-use crate::hw::open::{open_camera, open_stage};
-use crate::hw::{HwError, Stage};
+use crate::rig::{open_camera, open_stage, HwError, Stage};
 use anyhow::{bail, Context};
 use std::path::PathBuf;
 use std::time::{Duration, Instant, SystemTime};
@@ -17,6 +17,10 @@ pub struct HwArgs {
     /// Address the piezo ([piezo]) instead of the axis ([axis]).
     #[arg(long)]
     pub piezo: bool,
+    /// The socket of a daemon that may hold the hardware, if it was started with
+    /// `--socket` (default: the one the config gives rigd).
+    #[arg(long, value_name = "PATH")]
+    pub socket: Option<PathBuf>,
     #[command(subcommand)]
     pub command: HwCommand,
 }
@@ -59,7 +63,7 @@ pub fn run(args: HwArgs) -> anyhow::Result<()> {
         return cameras();
     }
     let cfg = Config::load(&args.config)?;
-    refuse_if_daemon_running(&cfg)?;
+    refuse_if_daemon_running(&cfg, args.socket.clone())?;
     let section = if args.piezo { "piezo" } else { "axis" };
     let stage_cfg = || -> anyhow::Result<_> {
         let purpose = "talk to a stage";
@@ -86,8 +90,10 @@ pub fn run(args: HwArgs) -> anyhow::Result<()> {
     }
 }
 
-fn refuse_if_daemon_running(cfg: &Config) -> anyhow::Result<()> {
-    let sock = &cfg.daemon.socket;
+fn refuse_if_daemon_running(cfg: &Config, socket: Option<PathBuf>) -> anyhow::Result<()> {
+    // The same resolution as rigd's: the command line, then [daemon], then the default.
+    let settings = cfg.daemon.clone().overridden(socket, None);
+    let sock = &settings.socket;
     if std::os::unix::net::UnixStream::connect(sock).is_ok() {
         bail!(
             "rigd is running and owns the hardware (it answers on {}): stop it first (`sudo systemctl stop rigd`)",

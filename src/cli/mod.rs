@@ -2,6 +2,7 @@
 
 pub mod cancel;
 pub mod client;
+#[cfg(feature = "sim")]
 pub mod demo;
 pub mod fetch;
 pub mod hw;
@@ -28,6 +29,7 @@ pub struct Cli {
 #[derive(Subcommand)]
 pub enum Command {
     /// Run the paper's study on a simulated rig through a temporary daemon, print Tables 1-3.
+    #[cfg(feature = "sim")]
     Demo(demo::DemoArgs),
     /// Queue a capture job and follow it.
     Submit(submit::SubmitArgs),
@@ -53,6 +55,7 @@ pub enum Command {
 pub fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
+        #[cfg(feature = "sim")]
         Command::Demo(a) => demo::run(a),
         Command::Submit(a) => submit::run(a),
         Command::Watch(a) => watch::run(a),

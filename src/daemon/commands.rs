@@ -76,7 +76,7 @@ fn hello(shared: &Shared) -> HelloReply {
         protocol: PROTOCOL_VERSION,
         rigd: env!("CARGO_PKG_VERSION").into(),
         rig: RigSummary {
-            mode: i.mode.clone(),
+            mode: i.mode,
             axis_limits_um: i.axis_limits_um,
             piezo_limits_um: i.piezo_limits_um,
             default_start_um: i.default_start_um,

@@ -6,44 +6,27 @@
 //! - `worker`: takes jobs off the queue onto a blocking thread and runs each through the
 //!   step engine (`acquisition`) with the recorder and processor as its sinks;
 //! - `recorder`: the session as a step sink; `session`: the crash-safe session folder;
-//! - `replay`: a session as a rig; `simrig`: the simulated rig;
-//! - `events`: the event bus; `rig`: the hardware a job uses.
+//! - `replay`: a session's job run again (on `rig::replay`); `events`: the event bus.
+//!
+//! The rig a job runs on is `crate::rig`; the daemon's settings are `config::DaemonSettings`.
 
 pub mod commands;
 pub mod connection;
 pub mod events;
-pub mod hwrig;
-pub mod interferometer;
 pub mod jobs;
 pub mod protocol;
 pub mod recorder;
 pub mod replay;
-pub mod rig;
 pub mod server;
 pub mod session;
-pub mod simrig;
-pub mod simxl80;
 pub mod worker;
 
+use crate::config::DaemonSettings;
+use crate::rig::RigInfo;
 use events::EventBus;
 use jobs::Jobs;
-use rig::RigInfo;
-use std::path::PathBuf;
 use std::sync::{Mutex, MutexGuard};
 use tokio::sync::Notify;
-
-/// The `[daemon]` part of the configuration.
-#[derive(Debug, Clone, serde::Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields)]
-pub struct DaemonSettings {
-    /// Path of the Unix socket.
-    pub socket: PathBuf,
-    /// Group that may use the socket (mode 0660); none: the daemon's own group.
-    #[serde(default)]
-    pub group: Option<String>,
-    /// Where sessions are written.
-    pub data_root: PathBuf,
-}
 
 /// State shared by the server, the connections and the worker.
 pub struct Shared {
@@ -72,29 +55,4 @@ impl Shared {
         // The table stays consistent across a panic (plain data updated in place).
         self.jobs.lock().unwrap_or_else(|e| e.into_inner())
     }
-}
-
-/// The socket path when neither the command line nor a config names one:
-/// `$RIGD_SOCKET`, else `$XDG_RUNTIME_DIR/rigd.sock`, else `/tmp/rigd-<uid>.sock`.
-pub fn default_socket() -> PathBuf {
-    if let Some(p) = std::env::var_os("RIGD_SOCKET") {
-        return PathBuf::from(p);
-    }
-    if let Some(d) = std::env::var_os("XDG_RUNTIME_DIR") {
-        return PathBuf::from(d).join("rigd.sock");
-    }
-    // SAFETY: getuid cannot fail.
-    let uid = unsafe { libc::getuid() };
-    PathBuf::from(format!("/tmp/rigd-{uid}.sock"))
-}
-
-/// Read the `[daemon]` table of a rig configuration file.
-pub fn settings_from_config(text: &str, origin: &str) -> Result<DaemonSettings, String> {
-    let v: toml::Table = toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
-    let d = v
-        .get("daemon")
-        .cloned()
-        .ok_or_else(|| format!("{origin}: no [daemon] table"))?;
-    d.try_into()
-        .map_err(|e: toml::de::Error| format!("{origin}: [daemon]: {e}"))
 }

@@ -10,6 +10,7 @@ use crate::acquisition::record::{StepRecord, StepTimings};
 use crate::acquisition::{JobSpec, Processing};
 use crate::daemon::jobs::JobStatus;
 use crate::daemon::session::SessionState;
+use crate::rig::RigMode;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
@@ -306,7 +307,7 @@ impl EventBody {
 /// The rig as `hello` describes it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RigSummary {
-    pub mode: String,
+    pub mode: RigMode,
     pub axis_limits_um: [f64; 2],
     pub piezo_limits_um: Option<[f64; 2]>,
     pub default_start_um: f64,

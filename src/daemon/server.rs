@@ -2,10 +2,11 @@
 //! accepting, the running job stops after its current step with the axis stopped, queued
 //! jobs are cancelled, the session is closed and the socket removed.
 
+use crate::config::DaemonSettings;
 use crate::daemon::protocol::EventBody;
-use crate::daemon::rig::Rig;
 use crate::daemon::session;
-use crate::daemon::{connection, worker, DaemonSettings, Shared};
+use crate::daemon::{connection, worker, Shared};
+use crate::rig::Rig;
 use std::os::unix::fs::PermissionsExt;
 use std::path::Path;
 use std::sync::atomic::Ordering;

@@ -17,7 +17,7 @@ use crate::acquisition::plan::Plan;
 use crate::acquisition::JobSpec;
 use crate::atomic_file::{self, AtomicWriteError};
 use crate::daemon::protocol::PROTOCOL_VERSION;
-use crate::daemon::rig::{LogSample, LogSource, RigInfo};
+use crate::rig::{LogSample, LogSource, RigInfo};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use std::fs;

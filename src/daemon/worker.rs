@@ -10,10 +10,9 @@ use crate::acquisition::{
 use crate::daemon::jobs::{JobRecord, JobSource, JobState};
 use crate::daemon::protocol::EventBody;
 use crate::daemon::recorder::{disk_error, Recorder};
-use crate::daemon::replay::replay_rig;
-use crate::daemon::rig::Rig;
 use crate::daemon::session::{Session, SessionState, SessionWriter};
 use crate::daemon::Shared;
+use crate::rig::Rig;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};
@@ -56,7 +55,7 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
     let (rig, replay_of): (&mut Rig, Option<String>) = match &job.source {
         JobSource::Live => (live, None),
         JobSource::Replay { dir, .. } => match Session::open(dir).and_then(|s| {
-            let rig = replay_rig(&s)?;
+            let rig = crate::rig::replay(&s)?;
             Ok((rig, s.manifest.name))
         }) {
             Ok((r, name)) => {

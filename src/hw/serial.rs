@@ -323,7 +323,7 @@ impl Deadline {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::pty::Pty;
+    use rigd_sim::pty::Pty;
 
     /// The least driver: counts handshakes and lost ports.
     struct Probe {

@@ -13,8 +13,8 @@
 //!   instant a move settled.
 
 use super::pixfmt::{self, PixelFormat};
+pub use super::v4l2_options::V4l2Options;
 use super::{Camera, Frame, HwError};
-use crate::config::CameraConfig;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant, SystemTime};
 use v4l::buffer::{Flags as BufFlags, Type as BufType};
@@ -39,51 +39,6 @@ mod cid {
 
 /// Longest single wait (the v4l crate's poll timeout is an i32 of milliseconds).
 const MAX_WAIT: Duration = Duration::from_secs(3600);
-
-/// What the camera was asked for.
-#[derive(Debug, Clone, PartialEq)]
-pub struct V4l2Options {
-    /// A device path, or a device name (case-insensitive) as [`list_devices`] shows it.
-    pub device: String,
-    pub width: u32,
-    pub height: u32,
-    pub format: PixelFormat,
-    pub exposure_us: Option<u32>,
-    pub gain: Option<i64>,
-    pub white_balance_k: Option<u32>,
-    pub buffers: u32,
-    pub frame_timeout: Duration,
-}
-
-impl V4l2Options {
-    pub fn new(device: impl Into<String>, width: u32, height: u32, format: PixelFormat) -> Self {
-        V4l2Options {
-            device: device.into(),
-            width,
-            height,
-            format,
-            exposure_us: None,
-            gain: None,
-            white_balance_k: None,
-            buffers: 4,
-            frame_timeout: Duration::from_secs(2),
-        }
-    }
-
-    pub fn from_config(c: &CameraConfig) -> Self {
-        V4l2Options {
-            device: c.device.clone().unwrap_or_default(),
-            width: c.width,
-            height: c.height,
-            format: c.format,
-            exposure_us: c.exposure_us,
-            gain: c.gain,
-            white_balance_k: c.white_balance_k,
-            buffers: c.buffers,
-            frame_timeout: Duration::from_millis(c.frame_timeout_ms),
-        }
-    }
-}
 
 /// How the controls went.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -348,10 +303,6 @@ impl V4l2Camera {
             tracing::warn!("{}: setting {c} failed: {e}", cam.label);
         }
         Ok(cam)
-    }
-
-    pub fn from_config(c: &CameraConfig) -> Result<Self, HwError> {
-        Self::open(&V4l2Options::from_config(c))
     }
 
     pub fn path(&self) -> &Path {

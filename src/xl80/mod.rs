@@ -15,7 +15,6 @@ pub mod csv;
 pub mod follow;
 pub mod rtx;
 
-pub use crate::config::Xl80Format;
 pub use align::{
     align_by_pattern, align_by_time, AlignError, PatternOptions, StepAlignment, StepWindow,
 };
@@ -24,6 +23,16 @@ pub use follow::Follower;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+/// The log file's format (`[xl80] format`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Xl80Format {
+    /// LaserXL/CARTO CSV export.
+    Csv,
+    /// CARTO dynamic capture (.rtx).
+    Rtx,
+}
 
 #[derive(Debug, thiserror::Error)]
 pub enum Xl80Error {

@@ -5,12 +5,12 @@
 use rigd::acquisition::JobSpec;
 use rigd::cli::client::Client;
 use rigd::config::Config;
-use rigd::daemon::hwrig::rig_from_config;
+use rigd::config::DaemonSettings;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::rig::Rig;
 use rigd::daemon::server::Background;
 use rigd::daemon::session::Session;
-use rigd::daemon::DaemonSettings;
+use rigd::rig::from_config;
+use rigd::rig::Rig;
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
 use rigd::sim::motion::{Axis, AxisParams};
 use rigd::sim::CameraModel;
@@ -43,7 +43,7 @@ pub fn config(dir: &Path, text: &str) -> Config {
 
 /// The rig a config `text` (read from `dir/rig.toml`) builds.
 pub fn rig_from_toml(dir: &Path, text: &str) -> Rig {
-    rig_from_config(&config(dir, text)).unwrap()
+    from_config(&config(dir, text)).unwrap()
 }
 
 /// A small fast sim camera for `rigd --sim` rigs: 48x32 frames every millisecond.
@@ -199,11 +199,20 @@ pub struct RigdProcess(pub Option<Child>);
 impl RigdProcess {
     /// Start `rigd --sim` on `socket` and `data`, and wait until it answers.
     pub fn spawn_sim(socket: &Path, data: &Path) -> RigdProcess {
+        let args = [
+            "--sim".as_ref(),
+            "--socket".as_ref(),
+            socket.as_os_str(),
+            "--data-root".as_ref(),
+            data.as_os_str(),
+        ];
+        RigdProcess::spawn(&args, socket)
+    }
+
+    /// Start `rigd ARGS`, and wait until it answers on `socket`.
+    pub fn spawn(args: &[&std::ffi::OsStr], socket: &Path) -> RigdProcess {
         let child = Command::new(env!("CARGO_BIN_EXE_rigd"))
-            .args(["--sim", "--socket"])
-            .arg(socket)
-            .arg("--data-root")
-            .arg(data)
+            .args(args)
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
             .stderr(Stdio::null())

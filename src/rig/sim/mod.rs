@@ -3,20 +3,31 @@
 //! path to the GRBL emulator on a pseudo-terminal, the piezo by the GCS driver to the PI GCS
 //! emulator; the camera is the rig's frame-clock camera (frames show where the line of sight
 //! truly was during the exposure, motion blur included); the simulated XL-80 writes its live
-//! log to a file that the daemon follows as it would a real one (`daemon::interferometer`).
+//! log to a file that the daemon follows as it would a real one (`rig::FollowedLog`).
 //!
 //! Faults can be injected (`rigd --sim --fault alarm@5`): alarms and serial loss through the
 //! GRBL emulator's own fault injection, camera timeouts through the frame-clock camera's
 //! (its stream stalls; the driver's deadline runs out).
+//!
+//! Also here: the in-process devices a config with `driver = "sim"` opens (`stage`, `camera`,
+//! `from_config`) and the sim's XL-80 (`xl80`). The whole module is the cargo feature `sim`.
 
-use crate::daemon::rig::{Rig, RigInfo};
-use crate::daemon::simxl80::SimXl80;
+pub mod camera;
+mod from_config;
+pub mod stage;
+pub mod xl80;
+
+pub use camera::{SimCamera, SimRigCamera};
+pub(crate) use from_config::{devices_from_config, open_camera, open_stage};
+pub use from_config::{open_sim_rig, SimHardware};
+pub use stage::SimStage;
+pub use xl80::SimXl80;
+
+use super::devices::{HwError, Stage, StageStatus};
+use super::{Rig, RigInfo, RigMode};
 use crate::hw::gcs::{GcsOptions, GcsStage};
 use crate::hw::grbl::{GrblOptions, GrblStage};
 use crate::hw::limits::TravelLimits;
-use crate::hw::open::SimRigCamera;
-use crate::hw::sim_camera::SimCamera;
-use crate::hw::{HwError, Stage, StageStatus};
 use crate::xl80::Xl80Format;
 use rigd_sim::gcs::{GcsSim, GcsSimOptions};
 use rigd_sim::grbl::{GrblSim, GrblSimOptions};
@@ -118,8 +129,8 @@ fn limits(device: &str, l: [f64; 2]) -> Result<TravelLimits, HwError> {
 
 /// Build the simulated rig: start the `SimRig`, serve its axis and piezo on two ptys and
 /// connect rigd's drivers to them.
-pub fn sim_rig(s: &SimSettings) -> Result<Rig, HwError> {
-    sim_rig_with_truth(s).map(|(rig, _)| rig)
+pub fn simulated(s: &SimSettings) -> Result<Rig, HwError> {
+    simulated_with_truth(s).map(|(rig, _)| rig)
 }
 
 /// What the simulated stages truly do, whatever the drivers report (for tests).
@@ -128,8 +139,8 @@ pub struct SimTruth {
     pub piezo: Arc<Axis>,
 }
 
-/// [`sim_rig`], also handing out the simulated stages themselves.
-pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
+/// [`simulated`], also handing out the simulated stages themselves.
+pub fn simulated_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
     let rc = SimRigConfig {
         board_file: s.board_file.clone(),
         camera: s.camera.clone(),
@@ -140,7 +151,39 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
     let board = rc.board().map_err(|e| sim_error("sim-rig", e))?;
     let rig = SimRig::start(rc.clone()).map_err(|e| sim_error("sim-rig", e))?;
     let log = SimXl80::new(&rig, None, Xl80Format::Csv, 1000.0)?;
+    let axis = emulated_axis(&rig, s)?;
+    let piezo = emulated_piezo(&rig, s)?;
+    if let Some(n) = s.fault_at(|f| match f {
+        Fault::CameraTimeout(n) => Some(*n),
+        _ => None,
+    }) {
+        rig.camera.stall_from_grab(n.into());
+    }
+    let truth = SimTruth {
+        axis: Arc::clone(&rig.axis),
+        piezo: Arc::clone(&rig.piezo),
+    };
+    let cam = SimCamera::new(Arc::clone(&rig.camera));
+    let rig = Rig {
+        info: sim_info(s, &rc, board),
+        axis: Box::new(axis),
+        piezo: Some(Box::new(piezo)),
+        camera: Box::new(SimRigCamera::new(rig, cam)),
+        log: Some(Box::new(log)),
+    };
+    Ok((rig, truth))
+}
 
+impl SimSettings {
+    /// The call number of the first fault `want` picks.
+    fn fault_at(&self, want: fn(&Fault) -> Option<u32>) -> Option<u32> {
+        self.faults.iter().find_map(want)
+    }
+}
+
+/// The axis: the GRBL emulator on a pty, rigd's GRBL driver connected to it, the axis faults
+/// armed.
+fn emulated_axis(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError> {
     let grbl = GrblSim::spawn(Arc::clone(&rig.axis), GrblSimOptions::default(), None)
         .map_err(|e| sim_error("sim-grbl", e))?;
     let mut go = GrblOptions::new(
@@ -149,7 +192,24 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
     );
     go.feed_um_s = s.axis.max_speed_um_s;
     let axis = GrblStage::connect("axis", go)?;
+    Ok(EmulatedStage {
+        faults: grbl.faults().clone(),
+        stage: Box::new(axis),
+        _emulator: Box::new(grbl),
+        moves: 0,
+        alarm_at: s.fault_at(|f| match f {
+            Fault::Alarm(n) => Some(*n),
+            _ => None,
+        }),
+        loss_at: s.fault_at(|f| match f {
+            Fault::SerialLoss(n) => Some(*n),
+            _ => None,
+        }),
+    })
+}
 
+/// The piezo: the PI GCS emulator on a pty and rigd's GCS driver connected to it.
+fn emulated_piezo(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError> {
     let gcs = GcsSim::spawn(Arc::clone(&rig.piezo), GcsSimOptions::default(), None)
         .map_err(|e| sim_error("sim-gcs", e))?;
     let piezo = GcsStage::connect(
@@ -159,19 +219,33 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
             limits("piezo", s.piezo_limits_um)?,
         ),
     )?;
+    Ok(EmulatedStage {
+        faults: gcs.faults().clone(),
+        stage: Box::new(piezo),
+        _emulator: Box::new(gcs),
+        moves: 0,
+        alarm_at: None,
+        loss_at: None,
+    })
+}
 
-    let fault_at = |want: fn(&Fault) -> Option<u32>| s.faults.iter().find_map(want);
-    let info = RigInfo {
-        mode: "sim".into(),
+/// What the daemon knows of the simulated rig up front.
+fn sim_info(s: &SimSettings, rc: &SimRigConfig, board: crate::board::Board) -> RigInfo {
+    RigInfo {
+        mode: RigMode::Sim,
         axis_limits_um: s.axis_limits_um,
         piezo_limits_um: Some(s.piezo_limits_um),
+        // The drivers' step limit is the whole travel: no step within it is refused.
+        axis_max_step_um: None,
+        piezo_max_step_um: None,
+        axis_settle_ms: None,
+        piezo_settle_ms: None,
         default_start_um: 1_000.0,
         scale_um_per_px: s.camera.scale_um_per_px,
         // The camera rides the axis: the board moves the other way in the image.
         axis_dir: [-rc.axis_dir[0], -rc.axis_dir[1]],
         frame_size: (s.camera.width, s.camera.height),
         interferometer: true,
-        board: Some(board.clone()),
         config: serde_json::json!({
             "sim": true,
             "axis": s.axis,
@@ -181,57 +255,17 @@ pub fn sim_rig_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError> {
             "axis_driver": "grbl (emulated, pty)",
             "piezo_driver": "gcs (emulated, pty)",
             "xl80": rigd_sim::xl80::Xl80Params {
-                sample_rate_hz: crate::daemon::simxl80::SIM_RATE_HZ,
+                sample_rate_hz: xl80::SIM_RATE_HZ,
                 ..rc.xl80.clone()
             },
             "xl80_log": "live CSV in a temporary file, a new capture per job, followed",
             "faults": s.faults.iter().map(|f| format!("{f:?}")).collect::<Vec<_>>(),
         }),
+        board: Some(board),
         // The protocol's own defaults; `rigd --sim --grab-timeout-ms` may shorten the grab's.
         job_defaults: Default::default(),
-        grab_timeout_ms: crate::daemon::rig::DEFAULT_GRAB_TIMEOUT_MS,
-    };
-    let truth = SimTruth {
-        axis: Arc::clone(&rig.axis),
-        piezo: Arc::clone(&rig.piezo),
-    };
-    let rig = Rig {
-        info,
-        axis: Box::new(EmulatedStage {
-            faults: grbl.faults().clone(),
-            stage: Box::new(axis),
-            _emulator: Box::new(grbl),
-            moves: 0,
-            alarm_at: fault_at(|f| match f {
-                Fault::Alarm(n) => Some(*n),
-                _ => None,
-            }),
-            loss_at: fault_at(|f| match f {
-                Fault::SerialLoss(n) => Some(*n),
-                _ => None,
-            }),
-        }),
-        piezo: Some(Box::new(EmulatedStage {
-            faults: gcs.faults().clone(),
-            stage: Box::new(piezo),
-            _emulator: Box::new(gcs),
-            moves: 0,
-            alarm_at: None,
-            loss_at: None,
-        })),
-        camera: {
-            if let Some(n) = fault_at(|f| match f {
-                Fault::CameraTimeout(n) => Some(*n),
-                _ => None,
-            }) {
-                rig.camera.stall_from_grab(n.into());
-            }
-            let cam = SimCamera::new(Arc::clone(&rig.camera));
-            Box::new(SimRigCamera::new(rig, cam))
-        },
-        log: Some(Box::new(log)),
-    };
-    Ok((rig, truth))
+        grab_timeout_ms: super::DEFAULT_GRAB_TIMEOUT_MS,
+    }
 }
 
 /// A driver connected to an emulated controller, which it keeps alive; arms the

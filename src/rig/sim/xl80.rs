@@ -4,9 +4,8 @@
 //! ([`FollowedLog`]). A new capture is started for every job, as an operator starts one per
 //! test, so the file holds one job and does not grow with the daemon's uptime.
 
-use crate::daemon::interferometer::FollowedLog;
-use crate::daemon::rig::{LogSample, LogSource, PositionLog};
-use crate::hw::HwError;
+use crate::rig::devices::{HwError, LogSample, LogSource, PositionLog};
+use crate::rig::FollowedLog;
 use crate::xl80::{Follower, Xl80Format};
 use rigd_sim::motion::TruePosition;
 use rigd_sim::xl80::{LengthUnit, LiveLog, LiveOptions, LogFormat, Xl80Params};

@@ -1,7 +1,7 @@
 //! The interferometer as a job sees it: the XL-80's log file, followed while the laser
 //! software writes it. One implementation for both rigs — `rigd --config` follows `[xl80]
 //! path`, `rigd --sim` follows the file its simulated XL-80 writes live — so every sim job
-//! runs the hardware path.
+//! runs the hardware path. (`daemon::interferometer` records what it reads in the session.)
 //!
 //! Per frame the runner asks for the reading at the frame's exposure time; the log is
 //! polled until it holds a sample at or after that time (or a deadline passes), and the
@@ -18,8 +18,8 @@
 //! poll says nothing (it may be an old file), so until the log has grown under observation
 //! the offset is 0: the date is taken as written.
 
-use crate::daemon::rig::{LogSample, LogSource, PositionLog};
-use crate::daemon::session::{unix_s, SessionError, SessionWriter};
+use super::devices::{LogSample, LogSource, PositionLog};
+use crate::daemon::session::unix_s;
 use crate::xl80::Follower;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant, SystemTime};
@@ -263,36 +263,6 @@ impl PositionLog for FollowedLog {
             replayed_from: None,
         }
     }
-}
-
-/// At a job's start: point the log at the job and record its source in the session.
-pub fn begin_job(
-    log: Option<&mut (dyn PositionLog + 'static)>,
-    session: &mut SessionWriter,
-) -> Result<(), SessionError> {
-    match log {
-        Some(log) => {
-            log.begin(SystemTime::now());
-            session.begin_interferometer(log.source())
-        }
-        None => Ok(()),
-    }
-}
-
-/// For a captured frame: the reading at its time, after the samples read so far are on disk.
-pub fn at_frame(
-    log: Option<&mut (dyn PositionLog + 'static)>,
-    session: &mut SessionWriter,
-    t: SystemTime,
-) -> Result<Option<f64>, SessionError> {
-    let Some(log) = log else {
-        return Ok(None);
-    };
-    let at = log.position_at(t);
-    session.append_interferometer(&log.take_samples())?;
-    // The clock estimate may have moved: the manifest's final write records the last one.
-    session.note_interferometer(log.source());
-    Ok(at)
 }
 
 #[cfg(test)]

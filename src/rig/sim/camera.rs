@@ -5,7 +5,7 @@
 //! `not_before` and waits for the first one exposed at or after it — the fresh-frame rule.
 //! After a timeout the stream is restarted on the next grab, as the V4L2 driver does.
 
-use super::{Camera, Frame, HwError};
+use crate::rig::devices::{Camera, Frame, HwError};
 use rigd_sim::camera_clock::{ClockError, FrameClockCamera, SimFrame};
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};
@@ -71,6 +71,33 @@ impl Camera for SimCamera {
             .cam
             .fresh_frame(self.cam.instant_of(not_before), timeout);
         self.frame(r, "a frame exposed after the settle")
+    }
+}
+
+/// The simulated camera together with the simulated rig it watches (kept alive with it).
+pub struct SimRigCamera {
+    _rig: rigd_sim::SimRig,
+    cam: SimCamera,
+}
+
+impl SimRigCamera {
+    pub fn new(rig: rigd_sim::SimRig, cam: SimCamera) -> SimRigCamera {
+        SimRigCamera { _rig: rig, cam }
+    }
+}
+
+impl Camera for SimRigCamera {
+    fn name(&self) -> &str {
+        self.cam.name()
+    }
+    fn size(&self) -> (u32, u32) {
+        self.cam.size()
+    }
+    fn grab(&mut self, timeout: Duration) -> Result<Frame, HwError> {
+        self.cam.grab(timeout)
+    }
+    fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError> {
+        self.cam.grab_fresh(not_before, timeout)
     }
 }
 

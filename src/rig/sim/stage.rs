@@ -2,9 +2,9 @@
 //! logic. The motion is the same `Axis` the emulators drive (finite speed, positioning error,
 //! hard limits), so a camera or interferometer watching it sees the same thing.
 
-use super::limits::TravelLimits;
-use super::{HwError, MotionState, Stage, StageStatus};
-use crate::sim::motion::{Axis, MotionError};
+use crate::hw::limits::TravelLimits;
+use crate::rig::devices::{HwError, MotionState, Stage, StageStatus};
+use rigd_sim::motion::{Axis, MotionError};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -138,7 +138,7 @@ impl Stage for SimStage {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::motion::AxisParams;
+    use rigd_sim::motion::AxisParams;
 
     fn stage() -> SimStage {
         let axis = Arc::new(Axis::new(AxisParams::default()));

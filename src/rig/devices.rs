@@ -1,0 +1,166 @@
+//! The three devices a job drives, as small blocking traits in the style of embedded-hal:
+//! a [`Stage`] (the axis, the piezo), a [`Camera`] and a [`PositionLog`] (the
+//! interferometer). Positions are micrometres everywhere.
+//!
+//! The traits are synchronous on purpose: serial and V4L2 I/O are blocking calls with
+//! deadlines, and the daemon runs them on a dedicated blocking thread per job. This module
+//! depends on nothing else in rigd: the drivers in `hw` implement it (and re-export it), the
+//! rig builders assemble it.
+
+use image::RgbImage;
+use serde::{Deserialize, Serialize};
+use std::time::{Duration, SystemTime};
+
+/// What went wrong talking to a device. Every variant names the device it came from.
+#[derive(Debug, thiserror::Error)]
+pub enum HwError {
+    #[error("{device}: no reply within {timeout_ms} ms (waiting for {waiting_for})")]
+    Timeout {
+        device: String,
+        timeout_ms: u64,
+        waiting_for: String,
+    },
+    #[error("{device}: port gone: {message}")]
+    PortGone { device: String, message: String },
+    #[error("{device}: alarm {code}: {message}")]
+    Alarm {
+        device: String,
+        code: u32,
+        message: String,
+    },
+    #[error("{device}: error {code}: {message}")]
+    Controller {
+        device: String,
+        code: i32,
+        message: String,
+    },
+    #[error("{device}: unexpected reply {reply:?} (waiting for {waiting_for})")]
+    Protocol {
+        device: String,
+        reply: String,
+        waiting_for: String,
+    },
+    #[error("{device}: move to {target_um} µm refused: {reason}")]
+    Limit {
+        device: String,
+        target_um: f64,
+        reason: String,
+    },
+    #[error("{device}: {message}")]
+    Other { device: String, message: String },
+}
+
+/// Motion state as the controller reports it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MotionState {
+    Idle,
+    Moving,
+    Holding,
+    Homing,
+    Alarm,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageStatus {
+    pub state: MotionState,
+    pub position_um: f64,
+}
+
+/// A single linear axis: the numerically controlled axis or the piezo flexure.
+pub trait Stage: Send {
+    /// Short name for messages ("axis", "piezo").
+    fn name(&self) -> &str;
+    /// Start a relative move; returns once the controller accepted it.
+    fn move_rel(&mut self, delta_um: f64) -> Result<(), HwError>;
+    /// Start an absolute move.
+    fn move_abs(&mut self, target_um: f64) -> Result<(), HwError>;
+    /// Block until motion has finished and the axis is settled; returns the reported position.
+    fn wait_settled(&mut self, timeout: Duration) -> Result<f64, HwError>;
+    /// Reported position.
+    fn position_um(&mut self) -> Result<f64, HwError>;
+    /// Stop now (feed hold / halt), leaving the axis stopped and usable.
+    fn stop(&mut self) -> Result<(), HwError>;
+    /// Run the homing cycle.
+    fn home(&mut self) -> Result<(), HwError>;
+    fn status(&mut self) -> Result<StageStatus, HwError>;
+}
+
+/// One captured frame.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    pub image: RgbImage,
+    /// Driver sequence number (increasing; gaps mean dropped frames).
+    pub sequence: u64,
+    /// When the exposure happened (the driver's timestamp, on the system clock).
+    pub timestamp: SystemTime,
+}
+
+/// A camera that yields RGB frames.
+pub trait Camera: Send {
+    fn name(&self) -> &str;
+    /// Frame size in pixels.
+    fn size(&self) -> (u32, u32);
+    /// The next frame, whatever its age.
+    fn grab(&mut self, timeout: Duration) -> Result<Frame, HwError>;
+    /// The first frame exposed at or after `not_before`: queued older frames are dropped.
+    /// This is the fresh-frame rule after a move has settled.
+    fn grab_fresh(&mut self, not_before: SystemTime, timeout: Duration) -> Result<Frame, HwError>;
+}
+
+/// Where the interferometer says the stage is: the XL-80's live log, followed as it grows
+/// (`rig::FollowedLog`, on the sim rig and on hardware alike), or a
+/// recorded session's log on replay.
+pub trait PositionLog: Send {
+    /// A job starts at `from`: catch up with the log and hand on only samples from then on.
+    fn begin(&mut self, from: SystemTime);
+    /// The reading at `t` (µm, the laser's own datum and sign), waiting briefly for the log
+    /// to reach `t`; `None` if it does not cover `t`.
+    fn position_at(&mut self, t: SystemTime) -> Option<f64>;
+    /// Samples read since the last call (since `begin` at first), oldest first, for the
+    /// session's `interferometer.csv`.
+    fn take_samples(&mut self) -> Vec<LogSample>;
+    /// What the source log says about itself, for the session's manifest.
+    fn source(&self) -> LogSource;
+}
+
+/// One interferometer sample on the PC clock.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LogSample {
+    pub t_unix_s: f64,
+    /// The laser's reading, µm (its own datum and sign).
+    pub position_um: f64,
+    /// Line (CSV) or sample number (RTX) in the source log.
+    pub sample: usize,
+}
+
+/// The source log's facts, recorded in the manifest (`interferometer`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LogSource {
+    /// The log file followed.
+    pub path: String,
+    /// "csv" or "rtx".
+    pub format: String,
+    /// µm per unit of the file's positions (its header's unit, else the assumed one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub um_per_unit: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sample_rate_hz: Option<f64>,
+    /// The log's start date as written (whole seconds in both formats).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub date: Option<String>,
+    /// Log clock minus PC clock, seconds, subtracted from every sample time.
+    pub log_minus_pc_s: f64,
+    /// Where `log_minus_pc_s` comes from.
+    #[serde(default)]
+    pub clock: String,
+    /// Every header `key: value` pair, in file order.
+    #[serde(default)]
+    pub fields: Vec<(String, String)>,
+    /// Garbled lines/samples seen in the source so far.
+    #[serde(default)]
+    pub garbled: usize,
+    /// Set on replay: the session whose recorded log this is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub replayed_from: Option<String>,
+}

@@ -1,0 +1,191 @@
+//! A recorded session as a rig. The stage reports the recorded axis positions, the camera
+//! yields the recorded frames and the interferometer the recorded readings, in the order the
+//! job recorded them, so a replayed job gets the same result (or another, with other
+//! processing settings: `daemon::replay`).
+
+use super::devices::{
+    Camera, Frame, HwError, LogSample, LogSource, MotionState, PositionLog, Stage, StageStatus,
+};
+use super::{Rig, RigInfo, RigMode};
+use crate::daemon::session::{Session, SessionError, StepRow, INTERFEROMETER};
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+/// Build the replay rig for `session` (fails on an unreadable `interferometer.csv`).
+pub fn replay(session: &Session) -> Result<Rig, SessionError> {
+    let rows = Arc::new(Mutex::new(VecDeque::from(session.steps.clone())));
+    let mut info: RigInfo = session.manifest.rig.clone();
+    info.mode = RigMode::Replay;
+    // The recorded readings stand in for the interferometer.
+    info.interferometer = true;
+    let stage = || -> Box<dyn Stage> {
+        Box::new(ReplayStage {
+            rows: session.steps.clone().into(),
+            position_um: 0.0,
+        })
+    };
+    Ok(Rig {
+        info,
+        axis: stage(),
+        piezo: Some(stage()),
+        camera: Box::new(ReplayCamera {
+            dir: session.dir.clone(),
+            rows: rows.clone(),
+            size: session.manifest.rig.frame_size,
+        }),
+        log: Some(Box::new(ReplayLog::new(session)?)),
+    })
+}
+
+/// Reports the recorded axis position of each step in turn.
+struct ReplayStage {
+    rows: VecDeque<StepRow>,
+    position_um: f64,
+}
+
+impl Stage for ReplayStage {
+    fn name(&self) -> &str {
+        "replay-stage"
+    }
+    fn move_rel(&mut self, delta_um: f64) -> Result<(), HwError> {
+        self.move_abs(self.position_um + delta_um)
+    }
+    fn move_abs(&mut self, target_um: f64) -> Result<(), HwError> {
+        let row = self.rows.pop_front().ok_or_else(|| HwError::Other {
+            device: "replay-stage".into(),
+            message: format!("no recorded step left for a move to {target_um} µm"),
+        })?;
+        self.position_um = row.axis_um;
+        Ok(())
+    }
+    fn wait_settled(&mut self, _timeout: Duration) -> Result<f64, HwError> {
+        Ok(self.position_um)
+    }
+    fn position_um(&mut self) -> Result<f64, HwError> {
+        Ok(self.position_um)
+    }
+    fn stop(&mut self) -> Result<(), HwError> {
+        Ok(())
+    }
+    fn home(&mut self) -> Result<(), HwError> {
+        Ok(())
+    }
+    fn status(&mut self) -> Result<StageStatus, HwError> {
+        Ok(StageStatus {
+            state: MotionState::Idle,
+            position_um: self.position_um,
+        })
+    }
+}
+
+/// Yields the recorded frames in order, with their recorded timestamps and sequences.
+struct ReplayCamera {
+    dir: PathBuf,
+    rows: Arc<Mutex<VecDeque<StepRow>>>,
+    size: (u32, u32),
+}
+
+impl ReplayCamera {
+    fn next(&mut self) -> Result<Frame, HwError> {
+        let err = |message: String| HwError::Other {
+            device: "replay-camera".into(),
+            message,
+        };
+        let row = self
+            .rows
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .pop_front()
+            .ok_or_else(|| err("no recorded frame left".into()))?;
+        let path = self
+            .dir
+            .join("frames")
+            .join(crate::daemon::session::frame_name(row.index));
+        let image = image::open(&path)
+            .map_err(|e| err(format!("{}: {e}", path.display())))?
+            .into_rgb8();
+        Ok(Frame {
+            image,
+            sequence: row.sequence,
+            timestamp: UNIX_EPOCH + Duration::from_secs_f64(row.t_unix_s.max(0.0)),
+        })
+    }
+}
+
+impl Camera for ReplayCamera {
+    fn name(&self) -> &str {
+        "replay-camera"
+    }
+    fn size(&self) -> (u32, u32) {
+        self.size
+    }
+    fn grab(&mut self, _timeout: Duration) -> Result<Frame, HwError> {
+        self.next()
+    }
+    fn grab_fresh(&mut self, _nb: SystemTime, _timeout: Duration) -> Result<Frame, HwError> {
+        self.next()
+    }
+}
+
+/// The recorded interferometer: each frame gets the reading the live job recorded for it
+/// (so `registration: interferometer` replays exactly), and the replay session gets the
+/// recorded samples of `interferometer.csv` as far as its frames reach.
+struct ReplayLog {
+    rows: Vec<StepRow>,
+    samples: VecDeque<LogSample>,
+    taken: Vec<LogSample>,
+    source: LogSource,
+}
+
+impl ReplayLog {
+    fn new(session: &Session) -> Result<ReplayLog, SessionError> {
+        let source = match &session.manifest.interferometer {
+            Some(s) => LogSource {
+                replayed_from: Some(session.manifest.name.clone()),
+                ..s.clone()
+            },
+            None => LogSource {
+                path: session.dir.join(INTERFEROMETER).display().to_string(),
+                format: "rigd-session".into(),
+                replayed_from: Some(session.manifest.name.clone()),
+                ..LogSource::default()
+            },
+        };
+        Ok(ReplayLog {
+            rows: session.steps.clone(),
+            samples: session.interferometer_samples()?.into(),
+            taken: Vec::new(),
+            source,
+        })
+    }
+}
+
+impl PositionLog for ReplayLog {
+    fn begin(&mut self, _from: SystemTime) {}
+
+    fn position_at(&mut self, t: SystemTime) -> Option<f64> {
+        let t = crate::daemon::session::unix_s(t);
+        // Hand on the samples up to the first one at or after the frame, as the live job
+        // had read them.
+        while let Some(s) = self.samples.pop_front() {
+            self.taken.push(s);
+            if s.t_unix_s >= t {
+                break;
+            }
+        }
+        self.rows
+            .iter()
+            .min_by(|a, b| (a.t_unix_s - t).abs().total_cmp(&(b.t_unix_s - t).abs()))
+            .and_then(|r| r.interferometer_um)
+    }
+
+    fn take_samples(&mut self) -> Vec<LogSample> {
+        std::mem::take(&mut self.taken)
+    }
+
+    fn source(&self) -> LogSource {
+        self.source.clone()
+    }
+}
