@@ -6,6 +6,7 @@ use rigd::acquisition::fake::{
     frame, grab, move_abs, plain_move, status, status_fails, stop, stop_fails, wait_settled,
     wait_settled_fails, IdealStage, ScriptedCamera, ScriptedLog, ScriptedStage,
 };
+use rigd::acquisition::interferometer::ReadLog;
 use rigd::acquisition::outcome::{EndKind, Phase, StopCause};
 use rigd::acquisition::plan::{Plan, RunPlan};
 use rigd::acquisition::sink::{Collect, SinkError, StepSink, Threaded};
@@ -57,11 +58,7 @@ fn run(
         settings,
         stop: flag,
     };
-    let mut dev = Devices {
-        stage,
-        camera,
-        log: None,
-    };
+    let mut dev = Devices { stage, camera };
     let out = engine.run(&mut dev, sink);
     stage.done();
     camera.done();
@@ -444,7 +441,6 @@ fn a_panic_on_a_sink_thread_fails_the_job_with_its_message() {
     let mut dev = Devices {
         stage: &mut stage,
         camera: &mut camera,
-        log: None,
     };
     let out = engine.run(&mut dev, &mut sink);
     let reason = out.reason().unwrap();
@@ -462,25 +458,14 @@ fn registration_by_interferometer_fails_at_a_frame_the_log_does_not_cover() {
     script.extend(stopped_idle_at(150.0));
     let mut stage = ScriptedStage::new("axis", script);
     let mut camera = ScriptedCamera::frames(2);
-    let mut log = ScriptedLog::new([Some(-100.25), None]);
-    let mut sink = Collect::default();
+    let log = ScriptedLog::new([Some(-100.25), None]);
+    let mut sink = ReadLog::new(
+        Some(Box::new(log)),
+        JobRegistration::Interferometer,
+        Collect::default(),
+    );
     let flag = StopFlag::default();
-    let engine = Engine {
-        plan: &p,
-        settings: EngineSettings {
-            registration: JobRegistration::Interferometer,
-            ..settings(0)
-        },
-        stop: &flag,
-    };
-    let mut dev = Devices {
-        stage: &mut stage,
-        camera: &mut camera,
-        log: Some(&mut log),
-    };
-    let out = engine.run(&mut dev, &mut sink);
-    stage.done();
-    log.done();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
     assert!(
         out.reason()
             .unwrap()
@@ -488,8 +473,38 @@ fn registration_by_interferometer_fails_at_a_frame_the_log_does_not_cover() {
         "{out:?}"
     );
     assert_eq!(out.detail().unwrap().index, Some(1));
-    // The first frame registers by its reading, and carries the samples read for it.
-    let first = &sink.records[0];
-    assert_eq!(first.registration_um, -100.25);
-    assert_eq!(first.samples.len(), 1);
+    // Both frames were handed on (what was captured is kept); the first registers by its
+    // reading and carries the sample it was read from.
+    let recs = &sink.inner.records;
+    assert_eq!(recs.len(), 2);
+    assert_eq!(
+        (recs[0].interferometer_um, recs[0].registration_um),
+        (Some(-100.25), -100.25)
+    );
+    assert_eq!(recs[0].samples.len(), 1);
+    assert_eq!(
+        (recs[1].interferometer_um, recs[1].registration_um),
+        (None, 150.0)
+    );
+}
+
+#[test]
+fn registration_by_image_keeps_the_commanded_position_and_records_the_reading() {
+    let p = plan(&[100.0]);
+    let mut stage = ScriptedStage::new("axis", plain_move(100.0));
+    let mut camera = ScriptedCamera::frames(1);
+    let log = ScriptedLog::new([Some(-99.5)]);
+    let mut sink = ReadLog::new(
+        Some(Box::new(log)),
+        JobRegistration::Image,
+        Collect::default(),
+    );
+    let flag = StopFlag::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    assert!(matches!(out, Outcome::Finished), "{out:?}");
+    let r = &sink.inner.records[0];
+    assert_eq!(
+        (r.interferometer_um, r.registration_um),
+        (Some(-99.5), 100.0)
+    );
 }

@@ -1,19 +1,18 @@
 //! The step engine: runs a plan on the devices, one step at a time (move, wait for the
-//! move while watching for a stop, settle, grab a fresh frame, read the interferometer),
-//! and hands one [`StepRecord`] per step to its sink. Blocking code on its own thread; it
+//! move while watching for a stop, settle, grab a fresh frame), and hands one
+//! [`StepRecord`] per step to its sink. The interferometer is read behind it
+//! (`acquisition::interferometer`). Blocking code on its own thread; it
 //! knows nothing of sessions, events or the wire.
 //!
 //! Stops: a cancel is seen mid-move (the stage is stopped where it is: GRBL feed hold, GCS
 //! HLT); a shutdown lets the move end. Either, arriving during the settle or the grab, ends
 //! the step without a frame; arriving after the last step, the job still ends cancelled.
 
-use crate::acquisition::job::JobRegistration;
 use crate::acquisition::outcome::{JobError, Outcome, Phase, Stop, StopCause, StoppedAt};
 use crate::acquisition::plan::{Plan, RunPlan};
 use crate::acquisition::record::{ms, StepRecord, StepTimings};
 use crate::acquisition::sink::{SinkError, StepSink};
 use crate::hw::{Camera, HwError, MotionState, Stage};
-use crate::rig::PositionLog;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
@@ -49,7 +48,6 @@ impl StopFlag {
 pub struct Devices<'a> {
     pub stage: &'a mut dyn Stage,
     pub camera: &'a mut dyn Camera,
-    pub log: Option<&'a mut (dyn PositionLog + 'static)>,
 }
 
 /// How the engine steps.
@@ -62,8 +60,6 @@ pub struct EngineSettings {
     pub move_timeout: Duration,
     /// Between status polls of a moving stage: how late a cancel stops it, at most.
     pub move_poll: Duration,
-    /// Where the pipeline's positions come from.
-    pub registration: JobRegistration,
 }
 
 impl Default for EngineSettings {
@@ -73,7 +69,6 @@ impl Default for EngineSettings {
             grab_timeout: Duration::from_secs(5),
             move_timeout: Duration::from_secs(30),
             move_poll: Duration::from_millis(2),
-            registration: JobRegistration::Image,
         }
     }
 }
@@ -126,17 +121,8 @@ impl Engine<'_> {
                         return Outcome::Failed(JobError::Hardware { source, stopped });
                     }
                 };
-                let unreadable = self.settings.registration == JobRegistration::Interferometer
-                    && rec.interferometer_um.is_none();
                 if let Err(e) = sink.step(Arc::new(rec)) {
                     return self.failed(dev, sink_error(e));
-                }
-                if unreadable {
-                    let e = JobError::NoInterferometerReading {
-                        index,
-                        stopped: None,
-                    };
-                    return self.failed(dev, e);
                 }
                 index += 1;
             }
@@ -196,17 +182,6 @@ impl Engine<'_> {
                 stopped: None,
             }));
         }
-        let (interferometer_um, samples, log_source) = match dev.log.as_deref_mut() {
-            Some(log) => {
-                let at = log.position_at(frame.timestamp);
-                (at, log.take_samples(), Some(log.source()))
-            }
-            None => (None, Vec::new(), None),
-        };
-        let registration_um = match self.settings.registration {
-            JobRegistration::Interferometer => interferometer_um.unwrap_or(commanded_um),
-            _ => commanded_um,
-        };
         Ok(StepRecord {
             index,
             run: run.run,
@@ -214,10 +189,10 @@ impl Engine<'_> {
             repeat: run.repeat,
             commanded_um,
             axis_um,
-            interferometer_um,
-            registration_um,
-            samples,
-            log_source,
+            interferometer_um: None,
+            registration_um: commanded_um,
+            samples: Vec::new(),
+            log_source: None,
             frame,
             timings: StepTimings {
                 move_ms: ms(t1 - t0),
@@ -339,6 +314,10 @@ pub fn sink_error(e: SinkError) -> JobError {
             message,
             stopped: None,
             earlier: None,
+        },
+        SinkError::NoInterferometerReading { index } => JobError::NoInterferometerReading {
+            index,
+            stopped: None,
         },
         SinkError::Panicked { sink, message } => JobError::Processing {
             message: format!("{sink}: {message}"),

@@ -4,7 +4,8 @@
 //! - `job`: the domain's job (stage, scans, processing choices) and its defaults;
 //! - `plan`: a job checked against the rig and the disk and expanded into runs, each with
 //!   its complete, validated processing options; every reason to refuse a job lives here;
-//! - `engine`: move, settle, grab, read the interferometer, one `StepRecord` per step;
+//! - `engine`: move, settle, grab, one `StepRecord` per step; `interferometer`: the
+//!   position log read behind it, filling in each record's reading;
 //! - `sink`: the engine's consumers (`StepSink`), and `Threaded` to keep them off the
 //!   motion path; `processor`: the pipeline as a sink;
 //! - `outcome`: how a job ended, typed; `study`: a job's runs reduced to the paper's tables;
@@ -12,6 +13,7 @@
 
 pub mod engine;
 pub mod fake;
+pub mod interferometer;
 pub mod job;
 pub mod outcome;
 pub mod plan;

@@ -28,7 +28,8 @@ pub struct StepRecord {
     pub commanded_um: f64,
     /// Where the stage reported itself settled.
     pub axis_um: f64,
-    /// The interferometer's reading at the frame's exposure time.
+    /// The interferometer's reading at the frame's exposure time (filled in behind the
+    /// engine, by `acquisition::interferometer::ReadLog`).
     pub interferometer_um: Option<f64>,
     /// The position the pipeline registers this frame by when the job registers by
     /// positions: the commanded one, or the interferometer's reading.

@@ -20,6 +20,9 @@ pub enum SinkError {
         disk_full: bool,
         message: String,
     },
+    /// The job registers by the interferometer and the log does not cover frame `index`.
+    #[error("frame {index}: no interferometer reading at its time")]
+    NoInterferometerReading { index: u32 },
     /// The sink's thread panicked.
     #[error("{sink} panicked: {message}")]
     Panicked { sink: String, message: String },

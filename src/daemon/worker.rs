@@ -2,6 +2,7 @@
 //! rig: a session to record into, the step engine to drive the rig, the recorder and the
 //! processor as its sinks; then records how the job ended.
 
+use crate::acquisition::interferometer::ReadLog;
 use crate::acquisition::processor::{Image16, Processor, ProcessorEvent};
 use crate::acquisition::study::{summarize, JobResult, RunResult};
 use crate::acquisition::{
@@ -106,6 +107,10 @@ type Captured = (
     Vec<(String, Image16)>,
 );
 
+/// The job's sinks: the interferometer read, then the session, then processing, each
+/// behind the one before; the whole chain on its own thread, behind the engine.
+type JobSink = Threaded<ReadLog<Recorder>>;
+
 /// Drive the rig through the job's plan, recording and processing behind it.
 fn capture(
     shared: &Arc<Shared>,
@@ -120,22 +125,12 @@ fn capture(
             return (Outcome::Failed(e), Some(session), Vec::new(), Vec::new());
         }
     }
-    let processor = job.spec.process.then(|| {
-        let p = Processor::new(
-            job.plan.runs.clone(),
-            rig.info.board.clone(),
-            processor_events(shared, job.id),
-        );
-        Threaded::spawn("processor", p, PROCESSOR_QUEUE)
-    });
-    let recorder = Recorder::new(session, step_recorded(shared, job.id), processor);
-    let mut sink = Threaded::spawn("recorder", recorder, RECORDER_QUEUE);
+    let mut sink = job_sink(shared, job, rig, session);
     let engine = Engine {
         plan: &job.plan,
         settings: EngineSettings {
             settle: Duration::from_millis(job.spec.settle_ms),
             grab_timeout: Duration::from_millis(rig.info.grab_timeout_ms),
-            registration: job.spec.registration.unwrap_or_default(),
             ..EngineSettings::default()
         },
         stop: &job.stop,
@@ -150,16 +145,39 @@ fn capture(
             })
         }
     };
-    let Some(mut recorder) = sink.into_inner() else {
-        // The recorder's thread panicked: the session cannot be closed here; the next
-        // start marks it incomplete.
+    let Some(read_log) = sink.into_inner() else {
+        // The recorder's thread panicked: the session cannot be closed here, and the
+        // interferometer is lost with it; the next start marks the session incomplete.
         return (outcome, None, Vec::new(), Vec::new());
     };
+    rig.log = read_log.log;
+    let mut recorder = read_log.inner;
     let (runs, images) = match recorder.processor.take().and_then(|p| p.into_inner()) {
         Some(p) => (p.results, p.images),
         None => (Vec::new(), Vec::new()),
     };
     (outcome, Some(recorder.session), runs, images)
+}
+
+/// The sink chain; the rig's interferometer is lent to it for the job.
+fn job_sink(
+    shared: &Arc<Shared>,
+    job: &JobRecord,
+    rig: &mut Rig,
+    session: SessionWriter,
+) -> JobSink {
+    let processor = job.spec.process.then(|| {
+        let p = Processor::new(
+            job.plan.runs.clone(),
+            rig.info.board.clone(),
+            processor_events(shared, job.id),
+        );
+        Threaded::spawn("processor", p, PROCESSOR_QUEUE)
+    });
+    let recorder = Recorder::new(session, step_recorded(shared, job.id), processor);
+    let registration = job.spec.registration.unwrap_or_default();
+    let read_log = ReadLog::new(rig.log.take(), registration, recorder);
+    Threaded::spawn("recorder", read_log, RECORDER_QUEUE)
 }
 
 fn devices(rig: &mut Rig, stage: StageKind) -> Result<Devices<'_>, crate::hw::HwError> {
@@ -178,7 +196,6 @@ fn devices(rig: &mut Rig, stage: StageKind) -> Result<Devices<'_>, crate::hw::Hw
     Ok(Devices {
         stage,
         camera: rig.camera.as_mut(),
-        log: rig.log.as_deref_mut(),
     })
 }
 
