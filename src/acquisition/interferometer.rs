@@ -1,8 +1,12 @@
 //! The interferometer as a step sink adapter: reads the position log at each frame's
 //! exposure time, fills in the record's reading and the samples it was interpolated from,
-//! and hands it on. It runs behind the engine (on the recorder's thread), because a live
-//! log is written in bursts: waiting for the burst that covers a frame must not hold up the
-//! next move.
+//! and hands it on.
+//!
+//! It runs on the engine's thread, right after the grab. Reading it later, from a sink
+//! thread, was tried: the log's clock offset is estimated from how fresh each burst of the
+//! file is when it is read, and a reader that is busy elsewhere sees bursts late, so the
+//! estimate loosens by tens of milliseconds and readings land in the previous move
+//! (tests/daemon_xl80.rs, an RTX log flushed ten times a second).
 
 use crate::acquisition::job::JobRegistration;
 use crate::acquisition::record::StepRecord;

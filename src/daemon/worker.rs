@@ -107,9 +107,10 @@ type Captured = (
     Vec<(String, Image16)>,
 );
 
-/// The job's sinks: the interferometer read, then the session, then processing, each
-/// behind the one before; the whole chain on its own thread, behind the engine.
-type JobSink = Threaded<ReadLog<Recorder>>;
+/// The job's sinks: the interferometer read (on the engine's thread: see
+/// `acquisition::interferometer`), then the session and processing, each on its own
+/// thread behind the one before.
+type JobSink = ReadLog<Threaded<Recorder>>;
 
 /// Drive the rig through the job's plan, recording and processing behind it.
 fn capture(
@@ -145,13 +146,12 @@ fn capture(
             })
         }
     };
-    let Some(read_log) = sink.into_inner() else {
-        // The recorder's thread panicked: the session cannot be closed here, and the
-        // interferometer is lost with it; the next start marks the session incomplete.
+    rig.log = sink.log.take();
+    let Some(mut recorder) = sink.inner.into_inner() else {
+        // The recorder's thread panicked: the session cannot be closed here; the next
+        // start marks it incomplete.
         return (outcome, None, Vec::new(), Vec::new());
     };
-    rig.log = read_log.log;
-    let mut recorder = read_log.inner;
     let (runs, images) = match recorder.processor.take().and_then(|p| p.into_inner()) {
         Some(p) => (p.results, p.images),
         None => (Vec::new(), Vec::new()),
@@ -176,8 +176,8 @@ fn job_sink(
     });
     let recorder = Recorder::new(session, step_recorded(shared, job.id), processor);
     let registration = job.spec.registration.unwrap_or_default();
-    let read_log = ReadLog::new(rig.log.take(), registration, recorder);
-    Threaded::spawn("recorder", read_log, RECORDER_QUEUE)
+    let recorder = Threaded::spawn("recorder", recorder, RECORDER_QUEUE);
+    ReadLog::new(rig.log.take(), registration, recorder)
 }
 
 fn devices(rig: &mut Rig, stage: StageKind) -> Result<Devices<'_>, crate::hw::HwError> {
