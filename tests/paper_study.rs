@@ -163,11 +163,25 @@ fn paper_study_subset() {
     // gains 9.4-16x and 15-38x, RMS std 5.8-7.6 and 3.0-4.6 µm, |bias| <= 31 µm: the bounds
     // below hold for any of them and are about 2x the seeded figures.
     let (g2, g3) = gains(st);
-    assert!(g2 >= 7.0, "case 2 improves the std {g2:.2}x, want >= 7x (seeded: 14.5x)");
-    assert!(g3 >= 15.0, "case 3 improves the std {g3:.2}x, want >= 15x (seeded: 34.4x)");
+    assert!(
+        g2 >= 7.0,
+        "case 2 improves the std {g2:.2}x, want >= 7x (seeded: 14.5x)"
+    );
+    assert!(
+        g3 >= 15.0,
+        "case 3 improves the std {g3:.2}x, want >= 15x (seeded: 34.4x)"
+    );
     let rms: Vec<f64> = st.cases.iter().map(|c| c.rms_std_um).collect();
-    assert!(rms[1] < 15.0, "case 2 RMS std {:.1} µm, want < 15 (seeded: 7.2)", rms[1]);
-    assert!(rms[2] < 7.0, "case 3 RMS std {:.1} µm, want < 7 (seeded: 3.0)", rms[2]);
+    assert!(
+        rms[1] < 15.0,
+        "case 2 RMS std {:.1} µm, want < 15 (seeded: 7.2)",
+        rms[1]
+    );
+    assert!(
+        rms[2] < 7.0,
+        "case 3 RMS std {:.1} µm, want < 7 (seeded: 3.0)",
+        rms[2]
+    );
     // The averaged cases measure the offsets they should, within twice the ~30 µm
     // systematic of thresholded centroids.
     for c in &st.cases[1..] {
