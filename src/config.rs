@@ -340,8 +340,7 @@ pub fn default_socket() -> PathBuf {
     if let Some(d) = std::env::var_os("XDG_RUNTIME_DIR") {
         return PathBuf::from(d).join("rigd.sock");
     }
-    // SAFETY: getuid cannot fail.
-    let uid = unsafe { libc::getuid() };
+    let uid = nix::unistd::getuid();
     PathBuf::from(format!("/tmp/rigd-{uid}.sock"))
 }
 

@@ -2,8 +2,8 @@
 //! its data root on a small tmpfs; once the job has captured a few frames the test fills
 //! the tmpfs through `/proc/<pid>/root` (as another program on the machine would), so the
 //! daemon's next frame write gets ENOSPC from the kernel. Needs root or unprivileged user
-//! namespaces; without them the test says SKIPPED on stderr (with `CI` set and run as root
-//! it fails instead, so CI cannot skip it silently).
+//! namespaces; without them the test prints `SKIPPED: <test>: <why>` on stderr, past the
+//! output capture (with `CI` set and run as root it fails instead, so CI cannot skip it).
 
 #![cfg(feature = "sim")] // the simulated rig (default feature)
 
@@ -55,16 +55,19 @@ fn probe(dir: &Path) -> Result<(), String> {
     }
 }
 
-/// False (after saying SKIPPED) when the isolation tools are missing; panics instead on CI
-/// as root, where they must work.
-fn can_isolate(dir: &Path) -> bool {
+/// False (after saying `SKIPPED: <test>: …`) when the isolation tools are missing; panics
+/// instead on CI as root, where they must work.
+fn can_isolate(test: &str, dir: &Path) -> bool {
     match probe(dir) {
         Ok(()) => true,
         Err(why) if std::env::var_os("CI").is_some() && is_root() => {
-            panic!("CI runs as root, so the disk-full test must run: {why}")
+            panic!("{test}: CI runs as root, so the disk-full test must run: {why}")
         }
         Err(why) => {
-            eprintln!("SKIPPED: a tmpfs in a private mount namespace is not available: {why}");
+            support::skip::skipped(
+                test,
+                &format!("a tmpfs in a private mount namespace is not available: {why}"),
+            );
             false
         }
     }
@@ -249,7 +252,10 @@ fn frames_on_disk(s: &Session) -> Vec<String> {
 #[test]
 fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
     let dir = tempfile::tempdir().unwrap();
-    if !can_isolate(dir.path()) {
+    if !can_isolate(
+        "a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving",
+        dir.path(),
+    ) {
         return;
     }
     // The default sim camera: 1280x720 frames of ~2 MB as PNG.
@@ -337,7 +343,10 @@ fn a_disk_filling_up_mid_job_fails_it_cleanly_and_the_daemon_keeps_serving() {
 #[test]
 fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
     let dir = tempfile::tempdir().unwrap();
-    if !can_isolate(dir.path()) {
+    if !can_isolate(
+        "a_disk_too_full_for_the_manifest_is_recovered_by_a_restart",
+        dir.path(),
+    ) {
         return;
     }
     let mut ns = Namespace::start(dir.path(), 64);

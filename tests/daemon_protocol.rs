@@ -135,6 +135,7 @@ fn bad_requests_get_error_replies_and_the_connection_keeps_serving() {
         ),
         (br#"{"id":4,"v":9,"kind":"list"}"#, "version", "version 9"),
         (&long, "line_too_long", "limit"),
+        (b"{\"kind\":\"list\xff\"}", "malformed", "UTF-8"),
         (
             br#"{"id":5,"kind":"submit","job":{"steps":3,"step_um":0}}"#,
             "rejected",

@@ -44,7 +44,8 @@ fn nearest(c: [f64; 2], cands: &[Candidate]) -> Option<&Candidate> {
 }
 
 /// Every target of `board` found once, within `tol_px` of its true centre, and with the
-/// right offset direction.
+/// right offset direction. Measured: centres within 0.18 px of the truth on the clean frames
+/// (tolerance 0.3), 0.25 px after JPEG (tolerance 0.5).
 fn assert_finds_all(board: &Board, cam: &CameraModel, view: &View, img: &RgbImage, tol_px: f64) {
     let det = detect(img, &DetectConfig::default());
     assert_eq!(
@@ -61,8 +62,9 @@ fn assert_finds_all(board: &Board, cam: &CameraModel, view: &View, img: &RgbImag
         let ic = view.board_to_image(cam, t.inner_centre_um());
         let di = (found.inner_centre_px[0] - ic[0]).hypot(found.inner_centre_px[1] - ic[1]);
         assert!(di < tol_px, "target {} inner found {di:.2} px off", t.name);
+        // Measured: rim radii within 0.16 px in every frame of these tests.
         let rim = t.outer.outer_radius_um() / cam.scale_um_per_px;
-        assert!((found.outer_radii_px[1] - rim).abs() < 1.0, "{found:?}");
+        assert!((found.outer_radii_px[1] - rim).abs() < 0.4, "{found:?}");
         assert!(found
             .roi
             .fits_in(img.width() as usize, img.height() as usize));
@@ -114,14 +116,16 @@ fn rejects_clutter_and_skips_the_target_cut_by_the_edge() {
     for t in whole {
         let c = view.board_to_image(&cam, t.centre_um);
         let f = nearest(c, &det.targets).unwrap();
-        assert!((f.outer_centre_px[0] - c[0]).hypot(f.outer_centre_px[1] - c[1]) < 0.5);
+        // Measured: within 0.16 px.
+        assert!((f.outer_centre_px[0] - c[0]).hypot(f.outer_centre_px[1] - c[1]) < 0.4);
     }
     // The cut target is reported with the reason; no clutter is.
     let cut = view.board_to_image(&cam, board.target("cut").unwrap().centre_um);
     assert_eq!(det.skipped.len(), 1, "{:?}", det.skipped);
     let s = &det.skipped[0];
     assert!(s.reason.contains("frame edge"), "{}", s.reason);
-    assert!((s.centre_px[1] - cut[1]).abs() < 3.0, "{s:?} vs {cut:?}");
+    // Measured: 0.09 px (the cut is on the left edge: y is still symmetric).
+    assert!((s.centre_px[1] - cut[1]).abs() < 0.3, "{s:?} vs {cut:?}");
 }
 
 #[test]
@@ -135,16 +139,18 @@ fn finds_targets_made_of_two_rings() {
     for c in &det.targets {
         let [hole, rim] = c.inner_radii_px;
         assert!(
-            (hole - 4000.0 / 774.0).abs() < 1.0 && (rim - 7500.0 / 774.0).abs() < 1.0,
+            // Measured: within 0.15 px (0.18 px with other noise seeds).
+            (hole - 4000.0 / 774.0).abs() < 0.4 && (rim - 7500.0 / 774.0).abs() < 0.4,
             "{c:?}"
         );
     }
-    // The fit handles an inner ring too.
+    // The fit handles an inner ring too. Measured: 2.0, 0.6, 1.9 µm off (up to 4.3 µm with
+    // other noise seeds).
     let plane = Plane::from_channel(&img, 1);
     for (t, c) in board.targets.iter().zip(&det.targets) {
         let e = estimate(&plane, c, Estimator::Fit, 1.0).unwrap();
         let err = (e.offset_px()[0] * 774.0 - t.offset_um[0]).abs();
-        assert!(err < 25.0, "target {}: {err:.1} µm off", t.name);
+        assert!(err < 6.0, "target {}: {err:.1} µm off", t.name);
     }
 }
 
@@ -247,8 +253,10 @@ fn fit_is_unbiased_and_near_the_cramer_rao_bound() {
             "target {}: fit bias {:.2?} µm, std {:.2?} µm, reported {:.2?} µm, CRB {:.2?} µm",
             board.targets[idx].name, st.bias_um, st.std_um, st.reported_um, bound
         );
+        // Measured: bias A +0.51, -0.56 µm, Fv +1.17, +0.08 µm (the standard error of a
+        // 40-frame mean is ~0.5 µm); std 0.8-1.1x the bound.
         for k in 0..2 {
-            assert!(st.bias_um[k].abs() < 5.0, "bias {:?}", st.bias_um);
+            assert!(st.bias_um[k].abs() < 2.5, "bias {:?}", st.bias_um);
             assert!(
                 st.std_um[k] < 1.5 * bound[k],
                 "std {:?} vs CRB {:?}",
@@ -277,9 +285,10 @@ fn paper_estimator_is_pixel_quantised() {
         "paper estimator on target A: bias {:.1?} µm, std {:.1?} µm",
         st.bias_um, st.std_um
     );
+    // Measured: std 114, 117 µm against the fit's 2.0, 4.3 µm (10 frames): 56x and 27x.
     for k in 0..2 {
         assert!(
-            st.std_um[k] > 5.0 * fit.std_um[k],
+            st.std_um[k] > 12.0 * fit.std_um[k],
             "paper {:?} vs fit {:?}",
             st.std_um,
             fit.std_um
@@ -432,10 +441,13 @@ fn scaled_guess_on_finer_grid(k: f64) {
     let guess = full.translated([-(fx0 as f64), -(fy0 as f64)]);
     let e = estimate(&plane, &guess, Estimator::Fit, k).unwrap();
     let rim_um = e.outer_radius_px / k * cam.scale_um_per_px;
-    assert!((rim_um - 17000.0).abs() < 300.0, "rim {rim_um} µm");
+    // Measured: -0.7 µm (k = 3), +0.2 µm (k = 6); up to 1.1 µm with other noise seeds.
+    assert!((rim_um - 17000.0).abs() < 3.0, "rim {rim_um} µm");
     for (a, (&got, &want)) in e.offset_px().iter().zip(&off).enumerate() {
         let err_um = (got / k - want) * cam.scale_um_per_px;
         eprintln!("k = {k}, axis {a}: offset error {err_um:+.2} µm");
-        assert!(err_um.abs() < 8.0, "k = {k}, axis {a}: {err_um:.2} µm");
+        // Measured: -1.89, -1.55 µm (k = 3), +0.41, +2.59 µm (k = 6); up to 2.7 µm with
+        // other noise seeds.
+        assert!(err_um.abs() < 5.0, "k = {k}, axis {a}: {err_um:.2} µm");
     }
 }

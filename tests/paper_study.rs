@@ -5,8 +5,9 @@
 //! (k = 10). The camera moves +x, so the scene moves -x. Every frame has its own noise,
 //! a 2 µm RMS vibration of the line of sight and 0.5 % illumination flicker. With the
 //! `paper` estimator (thresholded centroids) and the paper's reconstruction, averaging must
-//! cut the RMS std of the offsets of targets A-F by at least 2.5x (case 2) and 3.5x (case 3);
-//! the paper measured 2.9x and 4.0x.
+//! cut the RMS std of the offsets of targets A-F by at least 7x (case 2) and 15x (case 3),
+//! about half of what the simulated rig gives (the paper measured 2.9x and 4.0x on its real
+//! rig, whose averaged std is dominated by effects the simulation leaves out).
 //!
 //! `paper_study_subset` runs 5 experiments in the default suite; the full study (20
 //! experiments, both estimators, tables and figures written under target/) is
@@ -157,16 +158,37 @@ fn paper_study_subset() {
             );
         }
     }
+    // Seed 2015, measured: gains 14.5x and 34.4x; averaged RMS std 7.2 and 3.0 µm; largest
+    // |bias| 30 and 28 µm (the centroids' systematic, docs/paper-tables.md). Seeds 1-5 give
+    // gains 9.4-16x and 15-38x, RMS std 5.8-7.6 and 3.0-4.6 µm, |bias| <= 31 µm: the bounds
+    // below hold for any of them and are about 2x the seeded figures.
     let (g2, g3) = gains(st);
-    assert!(g2 >= 2.5, "case 2 improves the std {g2:.2}x, want >= 2.5x");
-    assert!(g3 >= 3.5, "case 3 improves the std {g3:.2}x, want >= 3.5x");
-    // The averaged cases measure the offsets they should (paper-estimator bias is small
-    // once averaged): within 150 µm of nominal for every target.
+    assert!(
+        g2 >= 7.0,
+        "case 2 improves the std {g2:.2}x, want >= 7x (seeded: 14.5x)"
+    );
+    assert!(
+        g3 >= 15.0,
+        "case 3 improves the std {g3:.2}x, want >= 15x (seeded: 34.4x)"
+    );
+    let rms: Vec<f64> = st.cases.iter().map(|c| c.rms_std_um).collect();
+    assert!(
+        rms[1] < 15.0,
+        "case 2 RMS std {:.1} µm, want < 15 (seeded: 7.2)",
+        rms[1]
+    );
+    assert!(
+        rms[2] < 7.0,
+        "case 3 RMS std {:.1} µm, want < 7 (seeded: 3.0)",
+        rms[2]
+    );
+    // The averaged cases measure the offsets they should, within twice the ~30 µm
+    // systematic of thresholded centroids.
     for c in &st.cases[1..] {
         for t in &c.targets {
             assert!(
-                t.bias_um.abs() < 150.0,
-                "{} {}: bias {:.0} µm",
+                t.bias_um.abs() < 60.0,
+                "{} {}: bias {:.1} µm, want < 60 (seeded: <= 30)",
                 c.name,
                 t.name,
                 t.bias_um
@@ -217,9 +239,10 @@ fn paper_study_full() {
     println!("{crb}");
     std::fs::write(out.join("crb.txt"), crb).unwrap();
     println!("written to {}", out.display());
+    // docs/paper-tables.md: 16.7x and 32x with seed 2015; about half of each.
     let (g2, g3) = gains(&studies[0]);
     assert!(
-        g2 >= 2.5 && g3 >= 3.5,
-        "paper estimator gains {g2:.2}x, {g3:.2}x"
+        g2 >= 8.0 && g3 >= 15.0,
+        "paper estimator gains {g2:.2}x, {g3:.2}x, want >= 8x and >= 15x"
     );
 }

@@ -41,9 +41,10 @@ fn every_mode_measures_the_nominal_offsets() {
             assert_eq!(r.objects.len(), 2);
             for o in &r.objects {
                 let nominal = o.nominal_um.expect("matched to the board");
+                // Measured: |error| <= 2.2 µm in every mode (seeds 40, 100-400: <= 2.25).
                 for a in 0..2 {
                     assert!(
-                        (o.offset_um[a] - nominal[a]).abs() < 40.0,
+                        (o.offset_um[a] - nominal[a]).abs() < 5.0,
                         "{combine:?}/{registration:?} {:?}: {:?} vs {nominal:?}",
                         o.name,
                         o.offset_um
@@ -53,9 +54,9 @@ fn every_mode_measures_the_nominal_offsets() {
                 assert_eq!(o.effective_pixel_um, 774.0 / k);
                 assert!(o.sigma_um.is_some(), "the fit gives an uncertainty");
             }
-            // Image and positions agree to a few µm on every step.
+            // Image and positions agree to a few µm on every step (measured: <= 3.4 µm).
             for s in &r.steps {
-                assert!(s.residual_um[0].hypot(s.residual_um[1]) < 15.0, "{s:?}");
+                assert!(s.residual_um[0].hypot(s.residual_um[1]) < 7.0, "{s:?}");
             }
             let n_images = done.images.len();
             match combine {
@@ -85,9 +86,10 @@ fn a_stale_frame_shows_in_the_step_residuals() {
         ..ProcessOptions::default()
     };
     let r = process_frames(&frames, &pos, &opts, None).unwrap().result;
-    assert!(r.steps[1].residual_um[0].abs() < 10.0, "{:?}", r.steps[1]);
+    // Measured: 0.12 µm off on both steps (up to 2.5 µm with other noise seeds).
+    assert!(r.steps[1].residual_um[0].abs() < 5.0, "{:?}", r.steps[1]);
     assert!(
-        (r.steps[2].residual_um[0] - STEP_UM).abs() < 10.0,
+        (r.steps[2].residual_um[0] - STEP_UM).abs() < 5.0,
         "a missed 50 µm step reads as +50 µm: {:?}",
         r.steps[2]
     );

@@ -1,10 +1,14 @@
 //! The V4L2 camera backend against a real kernel driver (vivid in the VM harness of issue 6,
-//! or any camera). Set RIGD_V4L2_DEVICE to the capture node (e.g. /dev/video0); without it,
-//! or when the node does not exist, every test prints that it skips and passes.
+//! or any camera). Set RIGD_V4L2_DEVICE to the capture node (e.g. /dev/video0); without it
+//! every test prints `SKIPPED: <test>: <why>` (shown even when output is captured) and
+//! passes; a node named there that does not exist fails the tests.
 //!
 //! Optional: RIGD_V4L2_FORMAT (YUYV, RGB3 or MJPG; default YUYV), RIGD_V4L2_SIZE (WxH;
 //! default 1280x720).
 #![cfg(feature = "v4l2")]
+
+#[path = "support/skip.rs"]
+mod skip;
 
 use rigd::hw::pixfmt::PixelFormat;
 use rigd::hw::v4l2::{describe, list_devices, V4l2Camera, V4l2Options};
@@ -12,23 +16,30 @@ use rigd::hw::{Camera, HwError};
 use std::sync::Mutex;
 use std::time::{Duration, SystemTime};
 
+const SKIP_REASON: &str =
+    "RIGD_V4L2_DEVICE is not set (no V4L2 device here; tests/vivid/run.sh runs these in a VM)";
+
 /// One stream at a time: the tests share the device node.
 static DEVICE: Mutex<()> = Mutex::new(());
 
+/// The device under test, or None after saying `SKIPPED: <test>: <why>` when
+/// RIGD_V4L2_DEVICE is unset. A device named there that does not exist is an error, not a
+/// skip: whoever set it meant the tests to run.
 fn device(test: &str) -> Option<String> {
     match std::env::var("RIGD_V4L2_DEVICE") {
-        Ok(d) if std::path::Path::new(&d).exists() => Some(d),
-        Ok(d) => {
-            println!("{test}: SKIP: RIGD_V4L2_DEVICE={d} does not exist");
-            None
+        Ok(d) if !d.is_empty() => {
+            assert!(
+                std::path::Path::new(&d).exists(),
+                "{test}: RIGD_V4L2_DEVICE={d} does not exist"
+            );
+            Some(d)
         }
-        Err(_) => {
-            println!("{test}: SKIP: RIGD_V4L2_DEVICE is not set");
+        _ => {
+            skip::skipped(test, SKIP_REASON);
             None
         }
     }
 }
-
 fn options(dev: &str) -> V4l2Options {
     let format = std::env::var("RIGD_V4L2_FORMAT")
         .ok()

@@ -1,10 +1,14 @@
 //! rigd's V4L2 backend against a real kernel driver: vivid (the kernel's virtual video test
 //! driver), booted in a VM by tests/vivid/run.sh with one single-planar capture node whose
 //! only input is a webcam (discrete sizes, 1280x720 among them). The device comes from
-//! RIGD_V4L2_DEVICE; without it every test returns early, so `cargo test --features v4l2`
-//! stays green on machines without one. The tests share one device: run them with
+//! RIGD_V4L2_DEVICE; without it every test prints `SKIPPED: <test>: <why>` (shown even when
+//! output is captured) and passes, so `cargo test --features v4l2` stays green on machines
+//! without one and says so. The tests share one device: run them with
 //! `--test-threads=1` (the harness does).
 #![cfg(feature = "v4l2")]
+
+#[path = "support/skip.rs"]
+mod skip;
 
 use rigd::hw::pixfmt::PixelFormat;
 use rigd::hw::v4l2::{describe, V4l2Camera, V4l2Options};
@@ -21,17 +25,26 @@ const W: u32 = 1280;
 const H: u32 = 720;
 const TIMEOUT: Duration = Duration::from_secs(3);
 
-/// The device under test, or None (the test skips) when RIGD_V4L2_DEVICE is unset.
-fn device_path() -> Option<String> {
+/// The device under test, or None after saying `SKIPPED: <test>: <why>` when
+/// RIGD_V4L2_DEVICE is unset. A device named there that does not exist is an error.
+fn device_path(test: &str) -> Option<String> {
     match std::env::var("RIGD_V4L2_DEVICE") {
-        Ok(p) if !p.is_empty() => Some(p),
+        Ok(p) if !p.is_empty() => {
+            assert!(
+                Path::new(&p).exists(),
+                "{test}: RIGD_V4L2_DEVICE={p} does not exist"
+            );
+            Some(p)
+        }
         _ => {
-            eprintln!("RIGD_V4L2_DEVICE unset: skipping");
+            skip::skipped(
+                test,
+                "RIGD_V4L2_DEVICE is not set (vivid runs in a VM: tests/vivid/run.sh)",
+            );
             None
         }
     }
 }
-
 fn open(path: &str, w: u32, h: u32, format: PixelFormat) -> V4l2Camera {
     let mut o = V4l2Options::new(path, w, h, format);
     o.frame_timeout = TIMEOUT;
@@ -55,7 +68,9 @@ fn set_fps(path: &str, fps: u32) -> u32 {
 /// failure of the backend's tests can't be blamed on the harness.
 #[test]
 fn raw_driver_streams_1280x720_yuyv() {
-    let Some(path) = device_path() else { return };
+    let Some(path) = device_path("raw_driver_streams_1280x720_yuyv") else {
+        return;
+    };
     let dev = Device::with_path(&path).expect("open device");
     let mut fmt = dev.format().expect("get format");
     fmt.width = W;
@@ -85,7 +100,9 @@ fn raw_driver_streams_1280x720_yuyv() {
 /// What vivid offers, and what the backend negotiates for what it asks.
 #[test]
 fn negotiation_takes_what_the_driver_returns() {
-    let Some(path) = device_path() else { return };
+    let Some(path) = device_path("negotiation_takes_what_the_driver_returns") else {
+        return;
+    };
     let info = describe(Path::new(&path)).expect("describe");
     println!("vivid: driver {} card {:?}", info.driver, info.name);
     for f in &info.formats {
@@ -172,7 +189,9 @@ fn assert_colour_bars(img: &rigd::hw::RgbImage, what: &str) {
 /// to the test pattern.
 #[test]
 fn stream_has_increasing_sequence_and_timestamps() {
-    let Some(path) = device_path() else { return };
+    let Some(path) = device_path("stream_has_increasing_sequence_and_timestamps") else {
+        return;
+    };
     let mut cam = open(&path, W, H, PixelFormat::Yuyv);
     let fps = set_fps(&path, 60);
     // The stream starts with the first grab: every timestamp lies between then and the
@@ -226,7 +245,9 @@ fn stream_has_increasing_sequence_and_timestamps() {
 /// RGB3 (packed RGB24) straight from the driver decodes to the same bars as YUYV.
 #[test]
 fn rgb3_capture_matches_the_pattern() {
-    let Some(path) = device_path() else { return };
+    let Some(path) = device_path("rgb3_capture_matches_the_pattern") else {
+        return;
+    };
     let mut cam = open(&path, W, H, PixelFormat::Rgb3);
     assert_eq!(cam.format(), PixelFormat::Rgb3, "vivid offers RGB3");
     assert_eq!(cam.stride(), (W * 3) as usize);
@@ -239,7 +260,9 @@ fn rgb3_capture_matches_the_pattern() {
 /// the frame returned was exposed after the settle instant.
 #[test]
 fn grab_fresh_drops_frames_queued_during_the_settle() {
-    let Some(path) = device_path() else { return };
+    let Some(path) = device_path("grab_fresh_drops_frames_queued_during_the_settle") else {
+        return;
+    };
     let mut cam = open(&path, W, H, PixelFormat::Yuyv);
     let before = cam.grab(TIMEOUT).expect("grab");
     // The "move": the driver keeps filling the ring for ~12 frame periods.
@@ -273,7 +296,9 @@ fn grab_fresh_drops_frames_queued_during_the_settle() {
 /// (slow in an emulated VM) takes little of the 1 s frame period.
 #[test]
 fn dequeue_times_out_and_recovers() {
-    let Some(path) = device_path() else { return };
+    let Some(path) = device_path("dequeue_times_out_and_recovers") else {
+        return;
+    };
     let mut cam = open(&path, 320, 180, PixelFormat::Yuyv);
     let fps = set_fps(&path, 1);
     assert_eq!(fps, 1, "vivid's webcam input offers 1 fps");
@@ -310,7 +335,9 @@ fn dequeue_times_out_and_recovers() {
 /// restarts the stream with fresh frames.
 #[test]
 fn stop_releases_the_device_and_restart_streams() {
-    let Some(path) = device_path() else { return };
+    let Some(path) = device_path("stop_releases_the_device_and_restart_streams") else {
+        return;
+    };
     let mut cam = open(&path, W, H, PixelFormat::Yuyv);
     let a = cam.grab(TIMEOUT).expect("grab");
     // While streaming, the buffers belong to this handle: a second camera can't set a format.

@@ -7,58 +7,61 @@ use crate::daemon::protocol::{
     SubscribeReply, MAX_LINE_BYTES,
 };
 use crate::daemon::Shared;
+use futures_util::StreamExt;
 use std::sync::Arc;
-use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+use tokio::io::{AsyncRead, AsyncWriteExt};
+use tokio::net::unix::OwnedReadHalf;
 use tokio::net::UnixStream;
 use tokio::sync::{broadcast, mpsc};
+use tokio_util::codec::{FramedRead, LinesCodec, LinesCodecError};
 
 /// Lines queued for a slow client before its events are dropped (it is told so).
 const OUTBOX: usize = 1024;
 
+/// Request lines, at most [`MAX_LINE_BYTES`] each (tokio-util's bounded `LinesCodec`).
+type Lines = FramedRead<OwnedReadHalf, LinesCodec>;
+
+/// What the reader got: a line (newline and `\r` stripped), one it refused with the reason
+/// (the connection goes on with the next line), or the end of the connection.
+#[derive(Debug)]
 enum LineRead {
-    Line,
-    /// A line over the limit, of this many bytes; it was skipped.
-    TooLong(usize),
+    Line(String),
+    Refused(ProtoError),
     Eof,
 }
 
-/// Read one line into `buf` (newline stripped), never holding more than the limit.
-async fn read_line<R: tokio::io::AsyncBufRead + Unpin>(
-    r: &mut R,
-    buf: &mut Vec<u8>,
-) -> std::io::Result<LineRead> {
-    buf.clear();
-    let mut seen = 0usize;
+/// The next request line. An over-long line is refused as soon as it passes the limit and
+/// the codec then discards the rest of it; a line that is not UTF-8 is refused whole. After
+/// either error `FramedRead` yields one `None` before it reads on (tokio issue 3976):
+/// `after_error` skips that one, so it is not taken for the end of the connection.
+async fn read_line<R: AsyncRead + Unpin>(
+    lines: &mut FramedRead<R, LinesCodec>,
+    after_error: &mut bool,
+) -> LineRead {
     loop {
-        let avail = r.fill_buf().await?;
-        if avail.is_empty() {
-            return Ok(if seen == 0 {
-                LineRead::Eof
-            } else if seen > MAX_LINE_BYTES {
-                LineRead::TooLong(seen)
-            } else {
-                LineRead::Line
-            });
-        }
-        let (chunk, done) = match avail.iter().position(|&b| b == b'\n') {
-            Some(i) => (&avail[..i], i + 1),
-            None => (avail, avail.len()),
+        let next = lines.next().await;
+        let was_error = std::mem::replace(after_error, false);
+        let err = match next {
+            Some(Ok(line)) => return LineRead::Line(line),
+            None if was_error => continue,
+            None => return LineRead::Eof,
+            Some(Err(e)) => e,
         };
-        seen += chunk.len();
-        if seen <= MAX_LINE_BYTES {
-            buf.extend_from_slice(chunk);
-        } else {
-            buf.clear();
-        }
-        let newline = done > chunk.len();
-        r.consume(done);
-        if newline {
-            return Ok(if seen > MAX_LINE_BYTES {
-                LineRead::TooLong(seen)
-            } else {
-                LineRead::Line
-            });
-        }
+        *after_error = true;
+        return match err {
+            LinesCodecError::MaxLineLengthExceeded => LineRead::Refused(ProtoError::new(
+                ErrorCode::LineTooLong,
+                format!("line over the {MAX_LINE_BYTES}-byte limit"),
+            )),
+            LinesCodecError::Io(e) if e.kind() == std::io::ErrorKind::InvalidData => {
+                LineRead::Refused(ProtoError::new(
+                    ErrorCode::Malformed,
+                    format!("not JSON: the line is not UTF-8 ({e})"),
+                ))
+            }
+            // The socket itself failed: nothing more to read.
+            LinesCodecError::Io(_) => LineRead::Eof,
+        };
     }
 }
 
@@ -72,29 +75,18 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>) {
             }
         }
     });
-    let mut reader = BufReader::new(rd);
-    let mut buf = Vec::new();
+    let mut lines: Lines = FramedRead::new(rd, LinesCodec::new_with_max_length(MAX_LINE_BYTES));
+    let mut after_error = false;
     let mut forwarders: Vec<tokio::task::JoinHandle<()>> = Vec::new();
     loop {
-        let read = match read_line(&mut reader, &mut buf).await {
-            Ok(r) => r,
-            Err(_) => break,
-        };
-        let reply = match read {
+        let reply = match read_line(&mut lines, &mut after_error).await {
             LineRead::Eof => break,
-            LineRead::TooLong(n) => Reply::err(
-                None,
-                ProtoError::new(
-                    ErrorCode::LineTooLong,
-                    format!("line of {n} bytes is over the {MAX_LINE_BYTES}-byte limit"),
-                ),
-            ),
-            LineRead::Line => {
-                let line = buf.strip_suffix(b"\r").unwrap_or(&buf);
-                if line.iter().all(|b| b.is_ascii_whitespace()) {
+            LineRead::Refused(e) => Reply::err(None, e),
+            LineRead::Line(line) => {
+                if line.trim().is_empty() {
                     continue;
                 }
-                match decode_request(line) {
+                match decode_request(line.as_bytes()) {
                     Err((id, e)) => Reply::err(id, e),
                     Ok(env) => match env.request {
                         Request::Subscribe { job_id } => {
@@ -183,24 +175,47 @@ async fn forward(
 mod tests {
     use super::*;
 
+    async fn read_all(input: &[u8]) -> Vec<LineRead> {
+        // A small read buffer: the long line arrives over many reads, as from a socket.
+        let r = tokio::io::BufReader::with_capacity(1000, input);
+        let mut lines = FramedRead::new(r, LinesCodec::new_with_max_length(MAX_LINE_BYTES));
+        let mut after_error = false;
+        let mut got = Vec::new();
+        loop {
+            match read_line(&mut lines, &mut after_error).await {
+                LineRead::Eof => return got,
+                r => got.push(r),
+            }
+        }
+    }
+
     #[tokio::test]
-    async fn long_lines_are_skipped_and_the_next_line_still_reads() {
+    async fn long_and_non_utf8_lines_are_refused_and_the_next_line_still_reads() {
         let mut input = vec![b'x'; MAX_LINE_BYTES + 10];
-        input.extend_from_slice(b"\n{\"kind\":\"list\"}\n");
-        let mut r = BufReader::with_capacity(1000, &input[..]);
-        let mut buf = Vec::new();
-        assert!(matches!(
-            read_line(&mut r, &mut buf).await.unwrap(),
-            LineRead::TooLong(n) if n == MAX_LINE_BYTES + 10
-        ));
-        assert!(matches!(
-            read_line(&mut r, &mut buf).await.unwrap(),
-            LineRead::Line
-        ));
-        assert_eq!(buf, br#"{"kind":"list"}"#);
-        assert!(matches!(
-            read_line(&mut r, &mut buf).await.unwrap(),
-            LineRead::Eof
-        ));
+        input.extend_from_slice(b"\n{\"kind\":\"list\"}\r\n\xff\xfe\n");
+        input.extend_from_slice(&[b'y'; MAX_LINE_BYTES]);
+        input.extend_from_slice(b"\n");
+        let got = read_all(&input).await;
+        assert_eq!(got.len(), 4, "{got:?}");
+        assert!(
+            matches!(&got[0], LineRead::Refused(e) if e.code == ErrorCode::LineTooLong),
+            "{:?}",
+            got[0]
+        );
+        assert!(matches!(&got[1], LineRead::Line(l) if l == r#"{"kind":"list"}"#));
+        assert!(
+            matches!(&got[2], LineRead::Refused(e) if e.code == ErrorCode::Malformed && e.message.contains("UTF-8")),
+            "{:?}",
+            got[2]
+        );
+        // Exactly the limit is still a line.
+        assert!(matches!(&got[3], LineRead::Line(l) if l.len() == MAX_LINE_BYTES));
+    }
+
+    #[tokio::test]
+    async fn an_over_long_last_line_without_a_newline_is_refused() {
+        let got = read_all(&vec![b'x'; MAX_LINE_BYTES + 1]).await;
+        assert_eq!(got.len(), 1, "{got:?}");
+        assert!(matches!(&got[0], LineRead::Refused(e) if e.code == ErrorCode::LineTooLong));
     }
 }

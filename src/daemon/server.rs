@@ -50,14 +50,9 @@ pub fn bind(path: &Path, group: Option<&str>) -> Result<UnixListener, ServerErro
 }
 
 fn group_id(name: &str) -> Option<u32> {
-    let c = std::ffi::CString::new(name).ok()?;
-    // SAFETY: getgrnam reads a NUL-terminated name; the result is copied out at once.
-    let gr = unsafe { libc::getgrnam(c.as_ptr()) };
-    if gr.is_null() {
-        None
-    } else {
-        Some(unsafe { (*gr).gr_gid })
-    }
+    // getgrnam_r: thread-safe; a lookup error counts as no such group.
+    let group = nix::unistd::Group::from_name(name).ok()??;
+    Some(group.gid.as_raw())
 }
 
 /// Run the daemon until `stop` resolves (or SIGTERM/SIGINT when `signals`). Returns the

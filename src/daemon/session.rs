@@ -486,17 +486,11 @@ pub fn recover(data_root: &Path) -> Result<(u64, Vec<String>), SessionError> {
 
 /// `YYYYMMDDTHHMMSSZ` for seconds since the epoch (UTC).
 pub fn utc_stamp(secs: u64) -> String {
+    let stamp = time::macros::format_description!("[year][month][day]T[hour][minute][second]Z");
     let t = time::OffsetDateTime::from_unix_timestamp(secs.min(i64::MAX as u64) as i64)
         .unwrap_or(time::OffsetDateTime::UNIX_EPOCH);
-    format!(
-        "{:04}{:02}{:02}T{:02}{:02}{:02}Z",
-        t.year(),
-        u8::from(t.month()),
-        t.day(),
-        t.hour(),
-        t.minute(),
-        t.second()
-    )
+    // Cannot fail: every component is in an OffsetDateTime and a String takes any length.
+    t.format(stamp).unwrap_or_default()
 }
 
 #[cfg(test)]

@@ -23,6 +23,9 @@ pub use follow::Follower;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use time::format_description::BorrowedFormatItem;
+use time::macros::format_description;
+use time::{Date, OffsetDateTime, PrimitiveDateTime, Time};
 
 /// The log file's format (`[xl80] format`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -242,64 +245,45 @@ pub fn parse_number(s: &str) -> Option<f64> {
     v.is_finite().then_some(v)
 }
 
+/// Dates as these files write them: year first (`2026-11-21`) or day first (`21/11/2026`,
+/// `21.11.2026`), with `-`, `/` or `.`.
+const DATE: &[BorrowedFormatItem<'static>] = format_description!(
+    version = 2,
+    "[first \
+        [[year][first [-] [/] [.]][month padding:none][first [-] [/] [.]][day padding:none]] \
+        [[day padding:none][first [-] [/] [.]][month padding:none][first [-] [/] [.]][year]] \
+    ]"
+);
+
+/// `hh:mm[:ss[.fff]]`, a decimal comma allowed.
+const TIME_OF_DAY: &[BorrowedFormatItem<'static>] = format_description!(
+    version = 2,
+    "[hour padding:none]:[minute padding:none]\
+     [optional [:[second padding:none][optional [[first [.] [,]][subsecond]]]]]"
+);
+
 /// A date and time as these files write it: `2026-11-21 10:15:30.25`, `2026-11-21T10:15:30Z`,
 /// `21/11/2026 10:15:30`, `21.11.2026 10:15`. Read as UTC. Date alone gives midnight.
 pub fn parse_datetime(s: &str) -> Option<SystemTime> {
-    let s = s.trim().trim_matches('"').trim().trim_end_matches('Z');
-    let (date, time) = match s.find(['T', ' ']) {
-        Some(i) => (&s[..i], s[i + 1..].trim()),
-        None => (s, ""),
+    let s = s.trim().trim_matches('"').trim();
+    let s = s.strip_suffix('Z').unwrap_or(s);
+    let (date, time) = match s.split_once(['T', ' ']) {
+        Some((date, time)) => (date, Time::parse(time.trim(), TIME_OF_DAY).ok()?),
+        None => (s, Time::MIDNIGHT),
     };
-    let parts: Vec<&str> = date.split(['-', '/', '.']).collect();
-    if parts.len() != 3 {
-        return None;
-    }
-    let nums: Vec<i64> = parts
-        .iter()
-        .map(|p| p.parse().ok())
-        .collect::<Option<_>>()?;
-    let (y, m, d) = if parts[0].len() == 4 {
-        (nums[0], nums[1], nums[2])
-    } else {
-        (nums[2], nums[1], nums[0])
-    };
-    if !(1..=12).contains(&m) || !(1..=31).contains(&d) {
-        return None;
-    }
-    let secs_of_day = if time.is_empty() {
-        0.0
-    } else {
-        parse_time_of_day(time)?
-    };
-    let days = days_from_civil(y, m, d);
-    let t = days as f64 * 86_400.0 + secs_of_day;
-    (t >= 0.0).then(|| UNIX_EPOCH + Duration::from_secs_f64(t))
+    let date = Date::parse(date, DATE).ok()?;
+    let t = PrimitiveDateTime::new(date, time).assume_utc();
+    let since_epoch = t - OffsetDateTime::UNIX_EPOCH;
+    since_epoch
+        .try_into()
+        .ok()
+        .map(|d: Duration| UNIX_EPOCH + d)
 }
 
 /// `hh:mm[:ss[.fff]]` to seconds of the day.
 pub fn parse_time_of_day(s: &str) -> Option<f64> {
-    let parts: Vec<&str> = s.trim().split(':').collect();
-    if !(2..=3).contains(&parts.len()) {
-        return None;
-    }
-    let h: u32 = parts[0].parse().ok()?;
-    let m: u32 = parts[1].parse().ok()?;
-    let sec = match parts.get(2) {
-        Some(p) => p.replace(',', ".").parse::<f64>().ok()?,
-        None => 0.0,
-    };
-    (h < 24 && m < 60 && (0.0..61.0).contains(&sec)).then(|| f64::from(h * 3600 + m * 60) + sec)
-}
-
-/// Days since 1970-01-01 of a proleptic Gregorian date (H. Hinnant's algorithm).
-fn days_from_civil(y: i64, m: i64, d: i64) -> i64 {
-    let y = if m <= 2 { y - 1 } else { y };
-    let era = if y >= 0 { y } else { y - 399 } / 400;
-    let yoe = y - era * 400;
-    let mp = (m + 9) % 12;
-    let doy = (153 * mp + 2) / 5 + d - 1;
-    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
-    era * 146_097 + doe - 719_468
+    let t = Time::parse(s.trim(), TIME_OF_DAY).ok()?;
+    Some((t - Time::MIDNIGHT).as_seconds_f64())
 }
 
 /// Fill the known metadata fields from a `key: value` pair (case-insensitive key match).
@@ -363,8 +347,15 @@ mod tests {
         assert_eq!(t("21/11/2026 10:15:30.25"), 1_795_256_130.25);
         assert_eq!(t("2026-11-21T10:15:30.25Z"), 1_795_256_130.25);
         assert_eq!(t("21.11.2026 10:15"), 1_795_256_100.0);
+        assert_eq!(t("2026-1-2 9:05:07,5"), 1_767_344_707.5);
         assert!(parse_datetime("2026-13-01").is_none());
+        assert!(parse_datetime("2026-02-30").is_none());
+        assert!(parse_datetime("2026-11-21 24:00").is_none());
         assert!(parse_datetime("yesterday").is_none());
+        assert!(parse_datetime("1969-12-31").is_none(), "before the epoch");
+        assert_eq!(parse_time_of_day("10:15:30.25"), Some(36_930.25));
+        assert_eq!(parse_time_of_day("10:15"), Some(36_900.0));
+        assert_eq!(parse_time_of_day("10:61"), None);
     }
 
     #[test]

@@ -5,6 +5,7 @@
 
 pub mod daemon;
 pub mod emulated;
+pub mod skip;
 
 use image::RgbImage;
 use rigd::sim::render::{SceneRenderer, View};
