@@ -450,8 +450,11 @@ impl Config {
         if !(p.scale_um_per_px.is_finite() && p.scale_um_per_px > 0.0) {
             return Err(self.invalid("pipeline.scale_um_per_px", "must be a positive number"));
         }
-        if p.k == Some(0) {
-            return Err(self.invalid("pipeline.k", "must be at least 1"));
+        // The pipeline owns the k range (the one the protocol and the CLI use).
+        if let Some(k) = p.k.filter(|k| !crate::pipeline::K_RANGE.contains(k)) {
+            let r = crate::pipeline::K_RANGE;
+            let msg = format!("must be {}..={}, got {k}", r.start(), r.end());
+            return Err(self.invalid("pipeline.k", msg));
         }
         Ok(())
     }

@@ -2,7 +2,7 @@
 //! JSON) and plots like its Figures 4 and 5 (PNG, drawn with the `image` crate: lines and
 //! markers on a grid, no text; the docs say what the axes are).
 
-use crate::pipeline::stats::StudyStats;
+use crate::pipeline::stats::{StudyStats, TargetStats};
 use crate::pipeline::ProcessResult;
 use image::{Rgb, RgbImage};
 use std::fmt::Write;
@@ -55,12 +55,24 @@ pub fn result_text(r: &ProcessResult) -> String {
 /// Tables 1-3 of the paper for a study, as fixed-width text.
 pub fn study_tables(st: &StudyStats) -> String {
     let mut s = String::new();
-    let cases = &st.cases;
-    let names: Vec<&str> = cases
+    let names: Vec<&str> = st
+        .cases
         .first()
         .map(|c| c.targets.iter().map(|t| t.name.as_str()).collect())
         .unwrap_or_default();
-    let cell = |c: usize, name: &str| cases[c].targets.iter().find(|t| t.name == name);
+    table1(&mut s, st, &names);
+    table2(&mut s, st, &names);
+    table3(&mut s, st, &names);
+    s
+}
+
+/// A target's statistics in case `c`.
+fn cell<'a>(st: &'a StudyStats, c: usize, name: &str) -> Option<&'a TargetStats> {
+    st.cases[c].targets.iter().find(|t| t.name == name)
+}
+
+fn table1(s: &mut String, st: &StudyStats, names: &[&str]) {
+    let cases = &st.cases;
     let _ = writeln!(
         s,
         "Table 1: nominal and measured offsets (measured in pixels of each case's grid)"
@@ -70,15 +82,21 @@ pub fn study_tables(st: &StudyStats) -> String {
         let _ = write!(s, " {:>12}", format!("{} (k={})", short(&c.name), c.k));
     }
     s.push('\n');
-    for n in &names {
-        let t0 = cell(0, n).expect("from case 0");
+    for n in names {
+        let t0 = cell(st, 0, n).expect("from case 0");
         let _ = write!(s, "{:<7} {:>9.0} {:>9.2}", n, t0.nominal_um, t0.nominal_px);
         for c in 0..cases.len() {
-            let v = cell(c, n).map(|t| t.measured_grid_px).unwrap_or(f64::NAN);
+            let v = cell(st, c, n)
+                .map(|t| t.measured_grid_px)
+                .unwrap_or(f64::NAN);
             let _ = write!(s, " {v:>12.2}");
         }
         s.push('\n');
     }
+}
+
+fn table2(s: &mut String, st: &StudyStats, names: &[&str]) {
+    let cases = &st.cases;
     let _ = writeln!(
         s,
         "\nTable 2: pixel ratio = nominal camera px / measured grid px"
@@ -88,19 +106,19 @@ pub fn study_tables(st: &StudyStats) -> String {
         let _ = write!(s, " {:>12}", short(&c.name));
     }
     s.push('\n');
-    for n in &names {
-        let _ = write!(
-            s,
-            "{:<7} {:>9.2}",
-            n,
-            cell(0, n).expect("case 0").nominal_px
-        );
+    for n in names {
+        let nominal_px = cell(st, 0, n).expect("case 0").nominal_px;
+        let _ = write!(s, "{n:<7} {nominal_px:>9.2}");
         for c in 0..cases.len() {
-            let v = cell(c, n).map(|t| t.pixel_ratio).unwrap_or(f64::NAN);
+            let v = cell(st, c, n).map(|t| t.pixel_ratio).unwrap_or(f64::NAN);
             let _ = write!(s, " {v:>12.2}");
         }
         s.push('\n');
     }
+}
+
+fn table3(s: &mut String, st: &StudyStats, names: &[&str]) {
+    let cases = &st.cases;
     let _ = writeln!(
         s,
         "\nTable 3: standard deviation over runs (µm), and mean - nominal (µm)"
@@ -115,10 +133,10 @@ pub fn study_tables(st: &StudyStats) -> String {
         );
     }
     s.push('\n');
-    for n in &names {
+    for n in names {
         let _ = write!(s, "{n:<7}");
         for c in 0..cases.len() {
-            let (sd, b) = cell(c, n)
+            let (sd, b) = cell(st, c, n)
                 .map(|t| (t.std_um, t.bias_um))
                 .unwrap_or((f64::NAN, f64::NAN));
             let _ = write!(s, " {sd:>12.1} {b:>9.1}");
@@ -133,16 +151,11 @@ pub fn study_tables(st: &StudyStats) -> String {
     if cases.len() > 1 && cases[0].rms_std_um > 0.0 {
         let _ = write!(s, "{:<7}", "gain");
         for c in cases {
-            let _ = write!(
-                s,
-                " {:>11.2}x {:>9}",
-                cases[0].rms_std_um / c.rms_std_um,
-                ""
-            );
+            let gain = cases[0].rms_std_um / c.rms_std_um;
+            let _ = write!(s, " {gain:>11.2}x {:>9}", "");
         }
         s.push('\n');
     }
-    s
 }
 
 fn short(name: &str) -> String {
@@ -301,7 +314,7 @@ pub fn figure5(st: &StudyStats) -> RgbImage {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pipeline::stats::{CaseStats, TargetStats};
+    use crate::pipeline::stats::CaseStats;
 
     fn case(name: &str, k: u32, std_um: f64) -> CaseStats {
         CaseStats {
