@@ -43,9 +43,19 @@ fn peak_of<T>(f: impl FnOnce() -> T) -> u64 {
     peak
 }
 
-// One test function: nothing else allocates in this binary while it measures.
+// One test function: nothing else allocates in this binary while it measures. One worker
+// thread: with more, how many targets are reconstructed at once depends on how the
+// scheduler shares the cores with whatever else runs, and the peak with it.
 #[test]
 fn the_estimate_bounds_the_measured_peak_closely() {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    pool.install(measure);
+}
+
+fn measure() {
     let scene = SceneRenderer::new(small_board(), small_camera());
     let n = 8u32;
     let frames: Vec<(image::RgbImage, f64)> = (0..n)
@@ -65,11 +75,11 @@ fn the_estimate_bounds_the_measured_peak_closely() {
     drop(warm.finish());
     // (k, combine, estimator, whole_frame, how far above the measured peak the estimate may be)
     let cases = [
-        // Measured on 2 threads: 26.0 MB (estimate 1.02x), 8.5 MB (1.09x), 12.3 MB (1.27x),
+        // Measured on one thread: 26.0 MB (estimate 1.02x), 8.5 MB (1.09x), 9.6 MB (1.20x),
         // 0.30 MB (1.21x).
         (8, Combine::Interp, Estimator::Fit, true, 1.1),
         (16, Combine::Interp, Estimator::Fit, false, 1.2),
-        (16, Combine::Splat, Estimator::Paper, false, 1.4),
+        (16, Combine::Splat, Estimator::Paper, false, 1.3),
         (1, Combine::Mean, Estimator::Fit, false, 1.35),
     ];
     for (k, combine, estimator, whole_frame, above) in cases {
@@ -91,7 +101,7 @@ fn the_estimate_bounds_the_measured_peak_closely() {
             p.finish().unwrap()
         });
         let ratio = estimate as f64 / measured as f64;
-        println!("k={k} {combine:?} {estimator:?} whole={whole_frame}: measured {measured} B, estimate {estimate} B ({ratio:.2}x)");
+        eprintln!("k={k} {combine:?} {estimator:?} whole={whole_frame}: measured {measured} B, estimate {estimate} B ({ratio:.2}x)");
         assert!(
             (1.0..above).contains(&ratio),
             "k={k} {combine:?} whole={whole_frame}: estimate {estimate} B vs measured {measured} B"
