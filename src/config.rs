@@ -95,7 +95,8 @@ pub struct StageConfig {
     /// Soft travel limits, checked before anything moves.
     pub soft_min_um: f64,
     pub soft_max_um: f64,
-    /// Largest single move accepted (relative or absolute distance from the current position).
+    /// Largest single move accepted, absolute or relative: its distance from where the stage
+    /// was last commanded to be (its target).
     pub max_step_um: f64,
     /// Deadline for one reply line.
     #[serde(default = "default_reply_timeout_ms")]
@@ -106,7 +107,7 @@ pub struct StageConfig {
     /// GRBL: deadline for the banner after the port is opened (opening resets the board).
     #[serde(default = "default_open_timeout_ms")]
     pub open_timeout_ms: u64,
-    /// GRBL: deadline for the homing cycle.
+    /// Deadline for the homing cycle (GRBL `$H`, GCS `FRF`).
     #[serde(default = "default_home_timeout_ms")]
     pub home_timeout_ms: u64,
     /// Extra wait after the controller reports the move done, before a frame counts as fresh.
@@ -133,6 +134,9 @@ pub struct StageConfig {
     /// Where `home` moves (GCS; the sim stage), µm.
     #[serde(default)]
     pub home_um: f64,
+    /// GCS: `home` runs the reference move `FRF` instead of moving to `home_um`.
+    #[serde(default)]
+    pub home_reference: bool,
     /// `[axis]` only: where a scan starts when a job gives no `start_um` (default: the
     /// soft minimum, or 0 if that is negative). Must lie within the soft limits.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -532,6 +536,13 @@ impl Config {
                 return Err(self.invalid(&key(k), "must be positive"));
             }
         }
+        let max_settle = crate::acquisition::plan::MAX_SETTLE_MS;
+        if s.settle_ms > max_settle {
+            return Err(self.invalid(
+                &key("settle_ms"),
+                format!("{} ms is over the {max_settle} ms bound", s.settle_ms),
+            ));
+        }
         Ok(())
     }
 
@@ -618,6 +629,9 @@ impl StageConfig {
             reply_timeout_ms: self.reply_timeout_ms,
             servo_on_connect: self.servo_on_connect,
             home_um: self.home_um,
+            home_reference: self.home_reference,
+            move_timeout_ms: self.move_timeout_ms,
+            home_timeout_ms: self.home_timeout_ms,
             limits: self.limits(),
         }
     }

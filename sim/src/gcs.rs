@@ -25,6 +25,8 @@ pub struct GcsSimOptions {
     pub settle: Duration,
     /// Servo state at power-on.
     pub servo_on_at_boot: bool,
+    /// Where the reference move `FRF` ends, µm (the sensor's reference point).
+    pub reference_um: f64,
     pub idn: String,
 }
 
@@ -35,6 +37,7 @@ impl Default for GcsSimOptions {
             um_per_unit: 1.0,
             settle: Duration::from_millis(10),
             servo_on_at_boot: false,
+            reference_um: 0.0,
             idn: "(c)2026 Physik Instrumente (PI) GmbH & Co. KG, E-709, 0, 01.00.00 (simulated)"
                 .into(),
         }
@@ -85,6 +88,8 @@ struct Gcs {
     on_target_at: Instant,
     /// An injected motion error due at this instant.
     fault_at: Option<Instant>,
+    /// A reference move (`FRF`) was started; `FRF?` says 1 once it is on target.
+    referencing: bool,
 }
 
 impl Gcs {
@@ -102,6 +107,7 @@ impl Gcs {
             target_um,
             on_target_at: now,
             fault_at: None,
+            referencing: false,
         }
     }
 
@@ -126,10 +132,11 @@ impl Gcs {
         self.set_error(code::STOPPED);
     }
 
-    fn move_to(&mut self, target_um: f64, now: Instant) {
+    /// Start a move; false if the controller refused it (the error is set).
+    fn move_to(&mut self, target_um: f64, now: Instant) -> bool {
         if !self.servo {
             self.set_error(code::MOVE_SERVO_OFF);
-            return;
+            return false;
         }
         match self.axis.command_move(target_um) {
             Ok(dur) => {
@@ -138,8 +145,12 @@ impl Gcs {
                 if self.faults.take_alarm_mid_move() {
                     self.fault_at = Some(now + dur / 2);
                 }
+                true
             }
-            Err(_) => self.set_error(code::POS_OUT_OF_LIMITS),
+            Err(_) => {
+                self.set_error(code::POS_OUT_OF_LIMITS);
+                false
+            }
         }
     }
 
@@ -224,6 +235,15 @@ impl Gcs {
             "TMX?" => self.query_axis(&args).map(|_| {
                 let v = self.units(self.axis.params().hard_max_um);
                 Some(format!("{id}={v:.6}"))
+            }),
+            // Reference move: to the reference point; FRF? is 1 once it has settled there.
+            "FRF" => self.query_axis(&args).map(|_| {
+                self.referencing = self.move_to(self.opts.reference_um, now);
+                None
+            }),
+            "FRF?" => self.query_axis(&args).map(|_| {
+                let done = self.referencing && self.on_target(now);
+                Some(format!("{id}={}", u8::from(done)))
             }),
             "STP" => {
                 self.halt(now);

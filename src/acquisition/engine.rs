@@ -247,10 +247,10 @@ impl Engine<'_> {
                 MotionState::Alarm => return Err(alarm(stage, st.position_um, target_um)),
             }
             if Instant::now() >= deadline {
-                return Err(StepEnd::Hw(HwError::Timeout {
+                return Err(StepEnd::Hw(HwError::NotSettled {
                     device: stage.name().into(),
                     timeout_ms: self.settings.move_timeout.as_millis() as u64,
-                    waiting_for: "the move to finish (still moving)".into(),
+                    state: format!("still {:?} at {:.1} µm", st.state, st.position_um),
                 }));
             }
             std::thread::sleep(self.settings.move_poll);

@@ -256,6 +256,7 @@ pub fn device_of(e: &HwError) -> &str {
         | HwError::Controller { device, .. }
         | HwError::Protocol { device, .. }
         | HwError::Limit { device, .. }
+        | HwError::NotSettled { device, .. }
         | HwError::Other { device, .. } => device,
     }
 }

@@ -28,11 +28,7 @@ fn rejected(msg: impl Into<String>) -> PlanError {
 /// A length for a message: plain up to a kilometre, scientific beyond (no 309-digit
 /// numbers in a refusal).
 pub fn um(v: f64) -> String {
-    if v.is_finite() && v.abs() < 1e9 {
-        format!("{v}")
-    } else {
-        format!("{v:e}")
-    }
+    crate::rig::devices::short_um(v)
 }
 
 /// One scan of one case in one repeat.

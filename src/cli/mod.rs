@@ -9,10 +9,12 @@ pub mod hw;
 pub mod list;
 pub mod process;
 pub mod replay;
+pub mod rig;
 pub mod status;
 pub mod submit;
 pub mod watch;
 
+use crate::daemon::rig_state::RigAction;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
@@ -49,6 +51,12 @@ pub enum Command {
     Process(process::ProcessArgs),
     /// Talk to the configured hardware directly (bring-up; only when no daemon holds it).
     Hw(hw::HwArgs),
+    /// Clear a latched alarm through the daemon (GRBL `$X`; GCS `ERR?` and servo on).
+    Unlock(rig::RigArgs),
+    /// Home a stage through the daemon (GRBL `$H`; GCS `FRF` or a move to home_um).
+    Home(rig::RigArgs),
+    /// Close and reopen a stage's port through the daemon (after the port was lost).
+    Reconnect(rig::RigArgs),
 }
 
 /// Entry point of the `rigctl` binary.
@@ -66,5 +74,8 @@ pub fn main() -> anyhow::Result<()> {
         Command::Replay(a) => replay::run(a),
         Command::Process(a) => process::run(a),
         Command::Hw(a) => hw::run(a),
+        Command::Unlock(a) => rig::run(RigAction::Unlock, a),
+        Command::Home(a) => rig::run(RigAction::Home, a),
+        Command::Reconnect(a) => rig::run(RigAction::Reconnect, a),
     }
 }

@@ -57,15 +57,19 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
                     .map(|r| r.status()),
                 queued: jobs.queued(),
                 shutting_down: shared.shutting_down.load(Ordering::SeqCst),
+                rig_state: shared.rig().state(jobs.running()),
             }))
         }
         Request::Status { job_id: Some(id) } => status(shared, id).map(ReplyBody::JobStatus),
         Request::List => Ok(ReplyBody::List(list(shared))),
         Request::Cancel { job_id } => cancel(shared, job_id).map(ReplyBody::Cancel),
         Request::Result { job_id } => result(shared, job_id).map(ReplyBody::Result),
-        Request::Subscribe { .. } => Err(ProtoError::new(
+        Request::Subscribe { .. }
+        | Request::Unlock { .. }
+        | Request::Home { .. }
+        | Request::Reconnect { .. } => Err(ProtoError::new(
             ErrorCode::Internal,
-            "subscribe is handled by the connection",
+            "subscribe and rig requests are handled by the connection",
         )),
     }
 }
@@ -85,12 +89,16 @@ fn hello(shared: &Shared) -> HelloReply {
             job_defaults: i.job_defaults,
         },
         data_root: shared.settings.data_root.clone(),
+        rig_state: shared.rig_state(),
     }
 }
 
 /// Check a job against the rig and the disk, and queue it.
 fn submit(shared: &Shared, job: JobSpec) -> Result<SubmitReply, ProtoError> {
     refuse_if_stopping(shared)?;
+    if let Some(f) = shared.rig().fault.clone() {
+        return Err(ProtoError::new(ErrorCode::Rejected, f.refusal()));
+    }
     // What the client leaves out, the rig's configuration decides; the job is recorded and
     // echoed as resolved.
     let job = job.with_defaults(&shared.rig_info.job_defaults);

@@ -1,7 +1,7 @@
 //! One client connection: read request lines (bounded), answer each, and forward events
 //! after `subscribe`. A client that goes away only ends its connection, never a job.
 
-use crate::daemon::commands;
+use crate::daemon::{commands, rig_commands};
 use crate::daemon::protocol::{
     decode_request, encode, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
     SubscribeReply, MAX_LINE_BYTES,
@@ -109,6 +109,13 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>) {
                                         }),
                                     )
                                 }
+                            }
+                        }
+                        req if req.rig_action().is_some() => {
+                            let (action, stage) = req.rig_action().expect("a rig request");
+                            match rig_commands::request(&shared, action, stage).await {
+                                Ok(body) => Reply::with(env.id, &body),
+                                Err(e) => Reply::err(env.id, e),
                             }
                         }
                         req => match commands::handle(&shared, req) {

@@ -6,7 +6,9 @@
 //! - `worker`: takes jobs off the queue onto a blocking thread and runs each through the
 //!   step engine (`acquisition`) with the recorder and processor as its sinks;
 //! - `recorder`: the session as a step sink; `session`: the crash-safe session folder;
-//! - `replay`: a session's job run again (on `rig::replay`); `events`: the event bus.
+//! - `replay`: a session's job run again (on `rig::replay`); `events`: the event bus;
+//! - `rig_state`: the rig's `ready`/`busy`/`fault` state; `rig_commands`: `unlock`, `home`,
+//!   `reconnect`, run by the worker beside the job queue.
 //!
 //! The rig a job runs on is `crate::rig`; the daemon's settings are `config::DaemonSettings`.
 
@@ -17,6 +19,8 @@ pub mod jobs;
 pub mod protocol;
 pub mod recorder;
 pub mod replay;
+pub mod rig_commands;
+pub mod rig_state;
 pub mod server;
 pub mod session;
 pub mod worker;
@@ -25,6 +29,7 @@ use crate::config::DaemonSettings;
 use crate::rig::RigInfo;
 use events::EventBus;
 use jobs::Jobs;
+use rig_state::{RigCondition, RigState};
 use std::sync::{Mutex, MutexGuard};
 use tokio::sync::Notify;
 
@@ -37,11 +42,20 @@ pub struct Shared {
     /// Wakes the worker when a job is queued or the daemon stops.
     pub wake: Notify,
     pub shutting_down: std::sync::atomic::AtomicBool,
+    /// The rig's fault and the rig request running.
+    rig: Mutex<RigCondition>,
+    /// Rig requests to the worker; the worker takes the receiver when it starts.
+    pub rig_requests: rig_commands::Sender,
+    rig_requests_rx: Mutex<Option<rig_commands::Receiver>>,
 }
 
 impl Shared {
     pub fn new(settings: DaemonSettings, rig_info: RigInfo, last_job_id: u64) -> Shared {
+        let (tx, rx) = tokio::sync::mpsc::channel(rig_commands::QUEUE);
         Shared {
+            rig: Mutex::new(RigCondition::default()),
+            rig_requests: tx,
+            rig_requests_rx: Mutex::new(Some(rx)),
             settings,
             rig_info,
             jobs: Mutex::new(Jobs::starting_after(last_job_id)),
@@ -54,5 +68,24 @@ impl Shared {
     pub fn jobs(&self) -> MutexGuard<'_, Jobs> {
         // The table stays consistent across a panic (plain data updated in place).
         self.jobs.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The rig's condition (never held together with the job table).
+    pub fn rig(&self) -> MutexGuard<'_, RigCondition> {
+        self.rig.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The rig state clients see.
+    pub fn rig_state(&self) -> RigState {
+        let running = self.jobs().running();
+        self.rig().state(running)
+    }
+
+    /// The rig requests' receiver, for the worker (once).
+    pub fn take_rig_requests(&self) -> Option<rig_commands::Receiver> {
+        self.rig_requests_rx
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .take()
     }
 }

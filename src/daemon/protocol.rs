@@ -7,7 +7,9 @@
 
 use crate::acquisition::outcome::EndDetail;
 use crate::acquisition::record::{StepRecord, StepTimings};
-use crate::acquisition::{JobSpec, Processing};
+use crate::acquisition::{JobSpec, Processing, StageKind};
+use crate::daemon::rig_state::{RigAction, RigState};
+use crate::hw::MotionState;
 use crate::daemon::jobs::JobStatus;
 use crate::daemon::session::SessionState;
 use crate::rig::RigMode;
@@ -53,6 +55,34 @@ pub enum Request {
         #[serde(default)]
         processing: Processing,
     },
+    /// Clear a latched alarm or error on a stage (GRBL `$X`; GCS `ERR?`, servo on).
+    /// `stage`: the stage in fault, else the axis.
+    Unlock {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        stage: Option<StageKind>,
+    },
+    /// Run a stage's homing (GRBL `$H`; GCS `FRF` or a move to `home_um`).
+    Home {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        stage: Option<StageKind>,
+    },
+    /// Close and reopen a stage's port, handshake included.
+    Reconnect {
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        stage: Option<StageKind>,
+    },
+}
+
+impl Request {
+    /// The rig request this is, if it is one (`unlock`, `home`, `reconnect`).
+    pub fn rig_action(&self) -> Option<(RigAction, Option<StageKind>)> {
+        match *self {
+            Request::Unlock { stage } => Some((RigAction::Unlock, stage)),
+            Request::Home { stage } => Some((RigAction::Home, stage)),
+            Request::Reconnect { stage } => Some((RigAction::Reconnect, stage)),
+            _ => None,
+        }
+    }
 }
 
 /// Error codes of error replies.
@@ -71,6 +101,10 @@ pub enum ErrorCode {
     NotFound,
     /// The daemon is shutting down.
     Unavailable,
+    /// The rig is running a job or another rig request.
+    Busy,
+    /// A rig request the controller refused or failed.
+    Hardware,
     Internal,
 }
 
@@ -322,6 +356,9 @@ pub struct HelloReply {
     pub rigd: String,
     pub rig: RigSummary,
     pub data_root: PathBuf,
+    /// `ready`, `busy` or `fault` (with its reason and what clears it).
+    #[serde(default)]
+    pub rig_state: RigState,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -340,6 +377,18 @@ pub struct DaemonStatus {
     pub running: Option<JobStatus>,
     pub queued: Vec<u64>,
     pub shutting_down: bool,
+    #[serde(default)]
+    pub rig_state: RigState,
+}
+
+/// The reply to `unlock`, `home`, `reconnect`: what the controller reports after it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RigActionReply {
+    pub request: RigAction,
+    pub stage: StageKind,
+    pub state: MotionState,
+    pub position_um: f64,
+    pub rig_state: RigState,
 }
 
 /// A session on disk, as `list` shows it.
@@ -403,6 +452,7 @@ pub enum ReplyBody {
     Cancel(CancelReply),
     Result(ResultReply),
     Subscribe(SubscribeReply),
+    RigAction(RigActionReply),
 }
 
 impl Reply {

@@ -10,6 +10,8 @@ use crate::acquisition::{
 };
 use crate::daemon::jobs::{JobRecord, JobSource, JobState};
 use crate::daemon::protocol::EventBody;
+use crate::daemon::rig_commands::{self, RigRequest};
+use crate::daemon::rig_state::{probe, probe_all};
 use crate::daemon::recorder::{disk_error, Recorder};
 use crate::daemon::session::{Session, SessionState, SessionWriter};
 use crate::daemon::Shared;
@@ -23,18 +25,47 @@ const RECORDER_QUEUE: usize = 2;
 /// Frames processing may fall behind the disk by.
 const PROCESSOR_QUEUE: usize = 4;
 
-/// Run jobs until the daemon shuts down; returns the rig (stopped).
+/// Run jobs and rig requests until the daemon shuts down; returns the rig (stopped).
+/// Rig requests go first: one waiting when a job is due runs before it.
 pub async fn run(shared: Arc<Shared>, mut rig: Rig) -> Rig {
+    let mut requests = shared.take_rig_requests();
+    rig = probe_at_start(&shared, rig).await;
     loop {
         let notified = shared.wake.notified();
         if shared.shutting_down.load(Ordering::SeqCst) {
+            if let Some(rx) = requests.as_mut() {
+                rx.close();
+                rig_commands::refuse_waiting(rx);
+            }
             return rig;
+        }
+        if let Some(req) = requests.as_mut().and_then(|rx| rx.try_recv().ok()) {
+            rig = rig_commands::serve(&shared, rig, req).await;
+            continue;
         }
         let next = shared.jobs().start_next();
         let Some(job) = next else {
-            notified.await;
+            tokio::select! {
+                Some(req) = next_request(&mut requests) => {
+                    rig = rig_commands::serve(&shared, rig, req).await;
+                }
+                _ = notified => {}
+            }
             continue;
         };
+        if matches!(job.source, JobSource::Live) {
+            let fault = {
+                let mut cond = shared.rig();
+                cond.jobs_started += 1;
+                cond.fault.clone()
+            };
+            // Queued before the rig went into fault: it cannot run, and makes no session.
+            if let Some(f) = fault {
+                let message = format!("not started: {}", f.refusal());
+                end(&shared, job.id, None, failed_setup(message));
+                continue;
+            }
+        }
         let sh = shared.clone();
         let handle = tokio::task::spawn_blocking(move || {
             execute(&sh, &job, &mut rig);
@@ -46,6 +77,30 @@ pub async fn run(shared: Arc<Shared>, mut rig: Rig) -> Rig {
             Err(e) => panic!("job thread panicked: {e}"),
         }
     }
+}
+
+/// The next rig request, or never when there is no channel.
+async fn next_request(rx: &mut Option<rig_commands::Receiver>) -> Option<RigRequest> {
+    match rx {
+        Some(rx) => rx.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// What the controllers say before the first job: a GRBL locked at boot is a fault now.
+async fn probe_at_start(shared: &Arc<Shared>, rig: Rig) -> Rig {
+    let (rig, fault) = tokio::task::spawn_blocking(move || {
+        let mut rig = rig;
+        let fault = probe_all(&mut rig);
+        (rig, fault)
+    })
+    .await
+    .expect("the probe does not panic");
+    if let Some(f) = &fault {
+        tracing::warn!(device = %f.device, reason = %f.reason, "the rig starts in fault");
+    }
+    shared.rig().fault = fault;
+    rig
 }
 
 /// Run one job start to finish, on the calling (blocking) thread.
@@ -93,6 +148,14 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
         .then(|| summarize(&runs, &names, rig.info.scale_um_per_px));
     let result = JobResult { runs, study };
     let outcome = close(session, outcome, &result, &images);
+    // A job that failed on a live stage: the controller says whether the rig is in fault,
+    // before any client hears of the end (and could submit again).
+    if matches!(job.source, JobSource::Live) && matches!(outcome, Outcome::Failed(JobError::Hardware { .. })) {
+        if let Some(f) = probe(rig, job.spec.stage) {
+            tracing::warn!(device = %f.device, reason = %f.reason, "the rig is in fault");
+            shared.rig().fault = Some(f);
+        }
+    }
     end(shared, id, Some(name), outcome);
 }
 

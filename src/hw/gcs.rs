@@ -11,7 +11,13 @@
 //! - Every read has a deadline; a vanished port drops the connection and the next call
 //!   reopens it (or `reconnect()`).
 //!
-//! A piezo has no reference switch: `home()` moves to the configured `home_um`.
+//! - Limits are checked against the controller's own target (`MOV?`), never the sensor
+//!   reading (`POS?`): `MVR` is relative to the last target, and a move that timed out may
+//!   still be under way. Every move is sent as `MOV` to the target that was checked.
+//!
+//! `home()` moves to the configured `home_um` (within `move_timeout_ms`), or with
+//! `home_reference` runs the reference move `FRF` (within `home_timeout_ms`, confirmed by
+//! `FRF?`). `unlock()` reads and clears the error (`ERR?`) and switches the servo back on.
 
 use super::limits::TravelLimits;
 use super::serial::{Deadline, OverSerial, SerialLink};
@@ -40,6 +46,15 @@ pub struct GcsOptions {
     /// Where `home()` moves, µm.
     #[serde(default)]
     pub home_um: f64,
+    /// `home()` runs the reference move `FRF` instead of moving to `home_um`.
+    #[serde(default)]
+    pub home_reference: bool,
+    /// Deadline for `home()`'s move to `home_um` to settle on target.
+    #[serde(default = "defaults::move_timeout_ms")]
+    pub move_timeout_ms: u64,
+    /// Deadline for the reference move `FRF`.
+    #[serde(default = "defaults::home_timeout_ms")]
+    pub home_timeout_ms: u64,
     pub limits: TravelLimits,
 }
 
@@ -59,6 +74,12 @@ mod defaults {
     pub fn yes() -> bool {
         true
     }
+    pub fn move_timeout_ms() -> u64 {
+        30_000
+    }
+    pub fn home_timeout_ms() -> u64 {
+        60_000
+    }
 }
 
 impl GcsOptions {
@@ -71,6 +92,9 @@ impl GcsOptions {
             reply_timeout_ms: defaults::reply_timeout_ms(),
             servo_on_connect: true,
             home_um: 0.0,
+            home_reference: false,
+            move_timeout_ms: defaults::move_timeout_ms(),
+            home_timeout_ms: defaults::home_timeout_ms(),
             limits,
         }
     }
@@ -128,7 +152,6 @@ pub struct GcsStage {
     name: String,
     opts: GcsOptions,
     link: SerialLink,
-    target_um: Option<f64>,
     idn: Option<String>,
     garbage_lines: u64,
 }
@@ -145,7 +168,6 @@ impl GcsStage {
             link: SerialLink::new(&name, &opts.port, opts.baud, DRAIN_QUIET),
             name,
             opts,
-            target_um: None,
             idn: None,
             garbage_lines: 0,
         })
@@ -190,7 +212,6 @@ impl GcsStage {
 
     /// After (re)opening: identify, clear an old error, switch the servo on.
     fn setup(&mut self) -> Result<(), HwError> {
-        self.target_um = None;
         // Whatever an earlier session left in the buffers is not ours.
         self.link.mark_stale();
         let idn = self.query_line("*IDN?", |l| (!l.is_empty()).then(|| l.to_string()))?;
@@ -283,18 +304,47 @@ impl GcsStage {
         Ok(units * self.opts.um_per_unit)
     }
 
-    fn move_cmd(&mut self, target_um: f64, cmd: String) -> Result<(), HwError> {
+    /// The controller's own target (`MOV?`): where the last move was commanded to end.
+    fn query_target(&mut self) -> Result<f64, HwError> {
+        let cmd = format!("MOV? {}", self.opts.axis);
+        let axis = self.opts.axis.clone();
+        let units = self.query_line(&cmd, |l| {
+            let v: f64 = axis_field(l, &axis)?.parse().ok()?;
+            v.is_finite().then_some(v)
+        })?;
+        Ok(units * self.opts.um_per_unit)
+    }
+
+    /// `MOV` to a target already checked.
+    fn move_to(&mut self, target_um: f64) -> Result<(), HwError> {
+        let cmd = format!("MOV {} {:.6}", self.opts.axis, target_um / self.opts.um_per_unit);
         self.send(&cmd)?;
-        self.check_error(&cmd, false)?;
-        self.target_um = Some(target_um);
+        self.check_error(&cmd, false)
+    }
+
+    /// Wait for on-target within `timeout`, then confirm with `FRF?` when referencing.
+    fn wait_home(&mut self, timeout: Duration, referencing: bool) -> Result<(), HwError> {
+        self.wait_settled(timeout)?;
+        if !referencing {
+            return Ok(());
+        }
+        let cmd = format!("FRF? {}", self.opts.axis);
+        let axis = self.opts.axis.clone();
+        let done = self.guard(|s| s.query_line(&cmd, |l| axis_field(l, &axis).map(|v| v == "1")))?;
+        if !done {
+            return Err(HwError::Other {
+                device: self.name.clone(),
+                message: "the reference move ended but FRF? says the axis is not referenced"
+                    .into(),
+            });
+        }
         Ok(())
     }
 
-    fn start_um(&mut self) -> Result<f64, HwError> {
-        match self.target_um {
-            Some(t) => Ok(t),
-            None => self.query_position(),
-        }
+    fn query_servo(&mut self) -> Result<bool, HwError> {
+        let svo = format!("SVO? {}", self.opts.axis);
+        let axis = self.opts.axis.clone();
+        self.query_line(&svo, |l| axis_field(l, &axis).map(|v| v == "1"))
     }
 }
 
@@ -307,9 +357,7 @@ impl OverSerial for GcsStage {
         self.setup()
     }
 
-    fn port_lost(&mut self) {
-        self.target_um = None;
-    }
+    fn port_lost(&mut self) {}
 }
 
 impl Stage for GcsStage {
@@ -320,10 +368,9 @@ impl Stage for GcsStage {
     fn move_rel(&mut self, delta_um: f64) -> Result<(), HwError> {
         self.guard(|s| {
             s.ensure_connected()?;
-            let from = s.start_um()?;
+            let from = s.query_target()?;
             let target = s.opts.limits.check_rel(&s.name, from, delta_um)?;
-            let cmd = format!("MVR {} {:.6}", s.opts.axis, delta_um / s.opts.um_per_unit);
-            s.move_cmd(target, cmd)
+            s.move_to(target)
         })
     }
 
@@ -331,8 +378,9 @@ impl Stage for GcsStage {
         self.guard(|s| {
             s.opts.limits.check_abs(&s.name, target_um)?;
             s.ensure_connected()?;
-            let cmd = format!("MOV {} {:.6}", s.opts.axis, target_um / s.opts.um_per_unit);
-            s.move_cmd(target_um, cmd)
+            let from = s.query_target()?;
+            s.opts.limits.check_move(&s.name, from, target_um)?;
+            s.move_to(target_um)
         })
     }
 
@@ -353,10 +401,11 @@ impl Stage for GcsStage {
                 }
                 if dl.expired() {
                     s.check_error("waiting for on-target", false)?;
-                    return Err(HwError::Timeout {
+                    let at = s.query_position()?;
+                    return Err(HwError::NotSettled {
                         device: s.name.clone(),
                         timeout_ms: dl.budget.as_millis() as u64,
-                        waiting_for: "on target (ONT? = 1)".into(),
+                        state: format!("ONT? still 0, POS? {at:.4} µm"),
                     });
                 }
                 std::thread::sleep(POLL);
@@ -376,17 +425,59 @@ impl Stage for GcsStage {
             s.ensure_connected()?;
             let cmd = format!("HLT {}", s.opts.axis);
             s.send(&cmd)?;
-            s.check_error(&cmd, true)?;
-            s.target_um = Some(s.query_position()?);
-            Ok(())
+            s.check_error(&cmd, true)
         })
     }
 
+    /// The configured home: a move to `home_um` (soft limits checked; a configured
+    /// position, so not held to `max_step_um`), or the reference move `FRF`.
     fn home(&mut self) -> Result<(), HwError> {
-        let home = self.opts.home_um;
-        self.move_abs(home)?;
-        let settle = Duration::from_millis(self.opts.reply_timeout_ms.max(1_000));
-        self.wait_settled(settle).map(|_| ())
+        let referencing = self.opts.home_reference;
+        self.guard(|s| {
+            s.ensure_connected()?;
+            if referencing {
+                let cmd = format!("FRF {}", s.opts.axis);
+                s.send(&cmd)?;
+                s.check_error(&cmd, false)
+            } else {
+                s.opts.limits.check_abs(&s.name, s.opts.home_um)?;
+                s.move_to(s.opts.home_um)
+            }
+        })?;
+        let ms = match referencing {
+            true => self.opts.home_timeout_ms,
+            false => self.opts.move_timeout_ms,
+        };
+        self.wait_home(Duration::from_millis(ms), referencing)
+    }
+
+    /// Read and clear the error (`ERR?`), switch the servo on again if it opened, and
+    /// confirm: `SVO?` 1 and no new error.
+    fn unlock(&mut self) -> Result<(), HwError> {
+        self.guard(|s| {
+            s.ensure_connected()?;
+            let code = s.query_error()?;
+            if code != 0 {
+                tracing::info!(device = %s.name, code, text = gcs_error_text(code),
+                    "unlock: read and cleared the controller error");
+            }
+            if s.opts.servo_on_connect && !s.query_servo()? {
+                let cmd = format!("SVO {} 1", s.opts.axis);
+                s.send(&cmd)?;
+                s.check_error(&cmd, false)?;
+                if !s.query_servo()? {
+                    return Err(HwError::Other {
+                        device: s.name.clone(),
+                        message: "SVO 1 sent but SVO? still says the servo is off".into(),
+                    });
+                }
+            }
+            s.check_error("unlock", false)
+        })
+    }
+
+    fn reconnect(&mut self) -> Result<(), HwError> {
+        self.reopen()
     }
 
     fn status(&mut self) -> Result<StageStatus, HwError> {
@@ -394,9 +485,7 @@ impl Stage for GcsStage {
             s.ensure_connected()?;
             // #5: motion status, a hex bit mask, bit 0 = first axis moving.
             let mask = s.ask(&[0x05], "#5", |l| u32::from_str_radix(l, 16).ok())?;
-            let svo = format!("SVO? {}", s.opts.axis);
-            let axis = s.opts.axis.clone();
-            let servo = s.query_line(&svo, |l| axis_field(l, &axis).map(|v| v == "1"))?;
+            let servo = s.query_servo()?;
             let position_um = s.query_position()?;
             let state = if mask & 1 != 0 {
                 MotionState::Moving

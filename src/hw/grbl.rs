@@ -11,6 +11,12 @@
 //! - Abort is feed hold `!`, wait for the hold to complete, soft reset 0x18, unlock.
 //! - A timeout leaves a reply possibly in flight: the next command first drains the line.
 //! - A vanished port drops the connection; the next call reopens it (or `reconnect()`).
+//! - Limits are checked against the last target: GRBL's G91 moves are relative to the end of
+//!   what is planned. When the driver does not know it (after connecting, an alarm, a
+//!   reset), the position of an `Idle` report is the target; a stage that is not idle then
+//!   is refused a move, since where it will end is unknown.
+//! - `unlock()` is `$X` (after a soft reset if GRBL requires one), confirmed by a report that
+//!   is no longer `Alarm`; `home()` is `$H` within `home_timeout_ms`.
 
 use super::grbl_codes::{GrblAlarm, GrblErrorCode};
 use super::limits::TravelLimits;
@@ -506,15 +512,58 @@ impl GrblStage {
         self.wait_banner(dl)
     }
 
-    /// Where moves start from: the last target, or the controller's position.
+    /// Where moves start from: the last target, or the position of an idle controller.
     fn start_um(&mut self) -> Result<f64, HwError> {
-        match self.target_um {
-            Some(t) => Ok(t),
-            None => {
-                let dl = self.reply_deadline();
-                Ok(self.query(dl)?.position_um)
-            }
+        if let Some(t) = self.target_um {
+            return Ok(t);
         }
+        let dl = self.reply_deadline();
+        let r = self.query(dl)?;
+        match r.state {
+            GrblState::Idle | GrblState::Alarm | GrblState::Check | GrblState::Sleep => {
+                Ok(r.position_um)
+            }
+            other => Err(HwError::Other {
+                device: self.name.clone(),
+                message: format!(
+                    "the controller is {other:?} at {:.1} µm and its target is unknown: \
+                     wait for the move to end (or stop it) before moving again",
+                    r.position_um
+                ),
+            }),
+        }
+    }
+
+    /// A wait that ran out while GRBL kept answering: say what it reports. Its target is
+    /// forgotten, so no move is planned on top of one that has not ended.
+    fn still_moving(&mut self, dl: Deadline) -> HwError {
+        self.target_um = None;
+        let state = match self.query(self.reply_deadline()) {
+            Ok(r) => format!("still {:?} at {:.1} µm", r.state, r.position_um),
+            Err(e) => return e,
+        };
+        HwError::NotSettled {
+            device: self.name.clone(),
+            timeout_ms: dl.budget.as_millis() as u64,
+            state,
+        }
+    }
+
+    /// `$X` (after a soft reset if GRBL asks for one), confirmed by a report out of alarm.
+    fn unlock_now(&mut self) -> Result<(), HwError> {
+        if self.lock.is_some_and(|l| l.needs_reset) {
+            self.soft_reset()?;
+        }
+        let dl = self.reply_deadline();
+        self.command("$X", dl)?;
+        let r = self.query(dl)?;
+        if r.state == GrblState::Alarm {
+            return Err(self.alarm_error(self.lock.and_then(|l| l.alarm)));
+        }
+        self.lock = None;
+        self.target_um = Some(r.position_um);
+        tracing::info!(device = %self.name, at_um = r.position_um, "unlocked ($X)");
+        Ok(())
     }
 
     fn feed_mm_min(&self) -> f64 {
@@ -585,6 +634,8 @@ impl Stage for GrblStage {
         self.guard(|s| {
             s.opts.limits.check_abs(&s.name, target_um)?;
             s.ensure_connected()?;
+            let from = s.start_um()?;
+            s.opts.limits.check_move(&s.name, from, target_um)?;
             let g = format!("G90 G1 X{:.5} F{:.1}", target_um / 1000.0, s.feed_mm_min());
             s.move_to(target_um, g)
         })
@@ -598,17 +649,20 @@ impl Stage for GrblStage {
                 return Err(s.alarm_error(l.alarm));
             }
             // `ok` to G4 P0 comes once the planner has run dry; `?` confirms Idle.
-            s.command("G4 P0", dl)?;
+            match s.command("G4 P0", dl) {
+                Err(HwError::Timeout { .. }) => return Err(s.still_moving(dl)),
+                r => r?,
+            }
             loop {
                 let r = s.query(dl)?;
                 match r.state {
                     GrblState::Idle => return Ok(r.position_um),
                     GrblState::Alarm => return Err(s.alarm_error(s.lock.and_then(|l| l.alarm))),
                     _ if dl.expired() => {
-                        return Err(HwError::Timeout {
+                        return Err(HwError::NotSettled {
                             device: s.name.clone(),
                             timeout_ms: dl.budget.as_millis() as u64,
-                            waiting_for: format!("Idle (still {:?})", r.state),
+                            state: format!("still {:?} at {:.1} µm", r.state, r.position_um),
                         })
                     }
                     _ => std::thread::sleep(POLL),
@@ -659,6 +713,17 @@ impl Stage for GrblStage {
             s.ensure_connected()?;
             s.home_cycle()
         })
+    }
+
+    fn unlock(&mut self) -> Result<(), HwError> {
+        self.guard(|s| {
+            s.ensure_connected()?;
+            s.unlock_now()
+        })
+    }
+
+    fn reconnect(&mut self) -> Result<(), HwError> {
+        self.reopen()
     }
 
     fn status(&mut self) -> Result<StageStatus, HwError> {

@@ -243,7 +243,10 @@ impl SerialLink {
                 self.lines = None;
                 true
             }
-            HwError::Timeout { .. } | HwError::Alarm { .. } | HwError::Protocol { .. } => {
+            HwError::Timeout { .. }
+            | HwError::NotSettled { .. }
+            | HwError::Alarm { .. }
+            | HwError::Protocol { .. } => {
                 self.stale = true;
                 false
             }

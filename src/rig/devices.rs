@@ -40,7 +40,14 @@ pub enum HwError {
         reply: String,
         waiting_for: String,
     },
-    #[error("{device}: move to {target_um} µm refused: {reason}")]
+    /// The controller answered every poll, but the motion did not end in time.
+    #[error("{device}: not settled within {timeout_ms} ms (the controller answered every poll: {state})")]
+    NotSettled {
+        device: String,
+        timeout_ms: u64,
+        state: String,
+    },
+    #[error("{device}: move to {} µm refused: {reason}", short_um(*target_um))]
     Limit {
         device: String,
         target_um: f64,
@@ -48,6 +55,16 @@ pub enum HwError {
     },
     #[error("{device}: {message}")]
     Other { device: String, message: String },
+}
+
+/// A length for a message: plain up to a kilometre, scientific beyond (a refusal of `1e308`
+/// says `1e308`, not 309 digits).
+pub fn short_um(v: f64) -> String {
+    if v.is_finite() && v.abs() < 1e9 {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
 }
 
 /// Motion state as the controller reports it.
@@ -81,9 +98,25 @@ pub trait Stage: Send {
     fn position_um(&mut self) -> Result<f64, HwError>;
     /// Stop now (feed hold / halt), leaving the axis stopped and usable.
     fn stop(&mut self) -> Result<(), HwError>;
-    /// Run the homing cycle.
+    /// Run the homing cycle (or the driver's configured home move) and wait for it.
     fn home(&mut self) -> Result<(), HwError>;
     fn status(&mut self) -> Result<StageStatus, HwError>;
+    /// Clear a latched alarm or error the controller's own way (GRBL `$X`; GCS `ERR?`, servo
+    /// on again). `Ok` only once the controller confirms it is usable.
+    fn unlock(&mut self) -> Result<(), HwError> {
+        Err(unsupported(self.name(), "unlock"))
+    }
+    /// Close the port and open it again, handshake included (after the port was lost).
+    fn reconnect(&mut self) -> Result<(), HwError> {
+        Err(unsupported(self.name(), "reconnect"))
+    }
+}
+
+fn unsupported(device: &str, what: &str) -> HwError {
+    HwError::Other {
+        device: device.to_string(),
+        message: format!("this driver cannot {what}"),
+    }
 }
 
 /// One captured frame.

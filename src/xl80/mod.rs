@@ -120,8 +120,12 @@ pub struct Xl80Log {
     pub meta: Metadata,
     /// When reading 0 was taken, if the log says (dates are read as UTC).
     pub start: Option<SystemTime>,
-    /// Samples per second (RTX: the actual sample rate).
+    /// Samples per second (RTX: the actual sample rate; a CSV without a `Sample rate` line:
+    /// from its timestamps, see `rate_from_times`).
     pub sample_rate_hz: Option<f64>,
+    /// `sample_rate_hz` was estimated from the timestamps (the median interval).
+    #[serde(default)]
+    pub rate_from_times: bool,
     /// µm per unit of the file's positions, once the table header (CSV) or `Data:` (RTX) is
     /// read: from the column's or the header's unit, else the assumed/configured one.
     #[serde(default)]
@@ -137,6 +141,7 @@ impl Xl80Log {
             meta: Metadata::default(),
             start: None,
             sample_rate_hz: None,
+            rate_from_times: false,
             um_per_unit: None,
             readings: Vec::new(),
             garbled: Garbled::default(),
@@ -154,16 +159,47 @@ impl Xl80Log {
         }
     }
 
-    /// One line for logs and `rigctl`: what was read and what was not.
-    pub fn summary(&self) -> String {
-        let first = self.readings.first().map(|r| r.position_um);
-        let last = self.readings.last().map(|r| r.position_um);
-        let mut s = format!("{} readings", self.readings.len());
-        if let (Some(a), Some(b)) = (first, last) {
-            s += &format!(" ({a:.3} .. {b:.3} µm)");
+    /// The lowest and highest reading, µm (what the axis covered).
+    pub fn span_um(&self) -> Option<(f64, f64)> {
+        let mut it = self.readings.iter().map(|r| r.position_um);
+        let first = it.next()?;
+        Some(it.fold((first, first), |(lo, hi), v| (lo.min(v), hi.max(v))))
+    }
+
+    /// The sample rate from the times of the readings: one over the median interval.
+    pub fn rate_of_times(&self) -> Option<f64> {
+        let times: Vec<f64> = self.readings.iter().filter_map(|r| r.t_s).collect();
+        let mut dt: Vec<f64> = times
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .filter(|d| *d > 0.0)
+            .collect();
+        if dt.is_empty() {
+            return None;
         }
-        if let Some(hz) = self.sample_rate_hz {
-            s += &format!(" at {hz} Hz");
+        dt.sort_by(f64::total_cmp);
+        Some(1.0 / dt[dt.len() / 2])
+    }
+
+    /// One line for logs and `rigctl`: what was read and what was not. The span is the
+    /// lowest to the highest reading (an out-and-back run spans its travel), then the first
+    /// and the last.
+    pub fn summary(&self) -> String {
+        let mut s = format!("{} readings", self.readings.len());
+        if let (Some((lo, hi)), Some(a), Some(b)) = (
+            self.span_um(),
+            self.readings.first(),
+            self.readings.last(),
+        ) {
+            s += &format!(
+                ", span {lo:.3} .. {hi:.3} µm (first {:.3}, last {:.3} µm)",
+                a.position_um, b.position_um
+            );
+        }
+        match self.sample_rate_hz {
+            Some(hz) if self.rate_from_times => s += &format!(" at {hz:.4} Hz (from the timestamps)"),
+            Some(hz) => s += &format!(" at {hz} Hz"),
+            None => s += ", no sample rate (no `Sample rate` line and no timestamps)",
         }
         if self.garbled.count > 0 {
             s += &format!(", {} garbled", self.garbled.count);

@@ -4,8 +4,14 @@
 //! HEADER::\r\n
 //! Owner: ...\r\n  Version no: ...\r\n  Sample rate: 1000\r\n  Actual sample rate: 1000.0\r\n
 //! Sample no: 5000\r\n  Trigger point: 0\r\n  Date: 21/11/2026 10:00:00\r\n  Axis: X\r\n ...
-//! Data:[\r\n]<little-endian f64 samples><EOF::[\r\n]>
+//! Data:\r\n<little-endian f64 samples>EOF::\r\n
 //! ```
+//! The `Data:` line ends like every header line (its CR LF, or a bare LF, is the line's
+//! end); the samples start right after it, whatever their bytes (a first sample whose low
+//! bytes are 0D 0A is a sample). The samples end where the header's `Sample no` says
+//! (exactly, when it is given), or, in a capture still growing (`Sample no: 0`), at an
+//! `EOF::` followed by nothing but a line end: a trailer is the last thing in the file, so
+//! `EOF::` bytes with data after them are a sample.
 //! Samples are taken at the actual sample rate; sample i is at i / rate seconds after the
 //! header's date. Their unit is the header's `Units` (or `Unit`) key when present, else
 //! millimetres (the unit CARTO shows linear data in). The parser is incremental: in a growing
@@ -20,8 +26,6 @@ enum State {
     /// Before the `HEADER::` line.
     Start,
     Header,
-    /// Just after `Data:`: an optional CRLF may follow.
-    DataStart,
     Data,
     Done,
 }
@@ -45,6 +49,14 @@ impl Default for RtxParser {
 }
 
 const EOF_MARK: &[u8] = b"EOF::";
+
+/// The rest of the input is the trailer: `EOF::` and at most a line end (CR, LF) after it.
+fn is_trailer(rest: &[u8]) -> bool {
+    rest.starts_with(EOF_MARK)
+        && rest[EOF_MARK.len()..]
+            .iter()
+            .all(|b| matches!(b, b'\r' | b'\n'))
+}
 
 impl RtxParser {
     pub fn new() -> Self {
@@ -83,7 +95,7 @@ impl RtxParser {
 
     /// Whether the header has been read (samples can follow).
     pub fn in_data(&self) -> bool {
-        matches!(self.state, State::Data | State::DataStart | State::Done)
+        matches!(self.state, State::Data | State::Done)
     }
 
     /// Parse what is complete; returns how many samples were added.
@@ -111,17 +123,11 @@ impl RtxParser {
                         break;
                     }
                 }
-                State::DataStart => {
-                    if rest.len() < 2 {
-                        break;
-                    }
-                    if rest.starts_with(b"\r\n") {
-                        pos += 2;
-                    }
-                    self.state = State::Data;
-                }
                 State::Data => {
-                    if rest.len() >= EOF_MARK.len() && rest.starts_with(EOF_MARK) {
+                    let want = self.declared_samples.filter(|&n| n > 0);
+                    // With a count, the trailer comes only after that many samples.
+                    let trailer_due = want.is_none_or(|n| self.samples >= n);
+                    if trailer_due && is_trailer(rest) {
                         self.state = State::Done;
                         pos = self.pending.len();
                         break;
@@ -172,7 +178,7 @@ impl RtxParser {
             State::Header => {
                 if trimmed.eq_ignore_ascii_case("Data:") {
                     self.log.um_per_unit = Some(self.um_per_unit);
-                    self.state = State::DataStart;
+                    self.state = State::Data;
                     return;
                 }
                 if let Some(rest) = trimmed.strip_prefix("Data:") {
@@ -239,7 +245,9 @@ impl RtxParser {
         match self.state {
             State::Start => return Err("no `HEADER::` line: not a CARTO .rtx capture".into()),
             State::Header => return Err("no `Data:` line after the header".into()),
-            State::DataStart | State::Data => {
+            // The trailer before `Sample no` samples: the count check below says so.
+            State::Data if is_trailer(&self.pending) => {}
+            State::Data => {
                 let n = self.pending.len();
                 if n > 0 {
                     self.log.garbled.record(

@@ -184,7 +184,10 @@ impl SimSettings {
 /// The axis: the GRBL emulator on a pty, rigd's GRBL driver connected to it, the axis faults
 /// armed.
 fn emulated_axis(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError> {
-    let grbl = GrblSim::spawn(Arc::clone(&rig.axis), GrblSimOptions::default(), None)
+    // Behind a stable link: the port that comes back after a serial loss has a new pty.
+    let dir = LinkDir::new().map_err(|e| sim_error("sim-grbl", e))?;
+    let link = dir.0.join("grbl");
+    let grbl = GrblSim::spawn(Arc::clone(&rig.axis), GrblSimOptions::default(), Some(&link))
         .map_err(|e| sim_error("sim-grbl", e))?;
     let mut go = GrblOptions::new(
         grbl.path().to_string_lossy(),
@@ -195,7 +198,7 @@ fn emulated_axis(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError
     Ok(EmulatedStage {
         faults: grbl.faults().clone(),
         stage: Box::new(axis),
-        _emulator: Box::new(grbl),
+        _emulator: Box::new((grbl, dir)),
         moves: 0,
         alarm_at: s.fault_at(|f| match f {
             Fault::Alarm(n) => Some(*n),
@@ -268,8 +271,29 @@ fn sim_info(s: &SimSettings, rc: &SimRigConfig, board: crate::board::Board) -> R
     }
 }
 
+/// A private folder for the emulators' port links, removed with the rig.
+struct LinkDir(PathBuf);
+
+impl LinkDir {
+    fn new() -> std::io::Result<LinkDir> {
+        static N: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let n = N.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        let dir = std::env::temp_dir().join(format!("rigd-sim-ports-{}-{n}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir(&dir)?;
+        Ok(LinkDir(dir))
+    }
+}
+
+impl Drop for LinkDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 /// A driver connected to an emulated controller, which it keeps alive; arms the
-/// emulator's fault injection on the configured move.
+/// emulator's fault injection on the configured move. A port lost by `serial-loss@N`
+/// comes back when `reconnect` is asked for, as if plugged in again.
 struct EmulatedStage {
     // Dropped before the emulator: the driver closes its port first.
     stage: Box<dyn Stage>,
@@ -321,5 +345,16 @@ impl Stage for EmulatedStage {
     }
     fn status(&mut self) -> Result<StageStatus, HwError> {
         self.stage.status()
+    }
+    fn unlock(&mut self) -> Result<(), HwError> {
+        self.stage.unlock()
+    }
+    fn reconnect(&mut self) -> Result<(), HwError> {
+        if self.loss_at.is_some_and(|n| n <= self.moves) {
+            self.faults.restore();
+            // The emulator thread opens the new pty on its next turn.
+            std::thread::sleep(Duration::from_millis(30));
+        }
+        self.stage.reconnect()
     }
 }

@@ -75,7 +75,8 @@ impl Stage for SimStage {
     }
 
     fn move_abs(&mut self, target_um: f64) -> Result<(), HwError> {
-        self.limits.check_abs(&self.name, target_um)?;
+        self.limits
+            .check_move(&self.name, self.target_um, target_um)?;
         self.start(target_um)
     }
 
@@ -116,6 +117,13 @@ impl Stage for SimStage {
         std::thread::sleep(d);
         self.axis.set_position(self.home_um);
         self.target_um = self.home_um;
+        Ok(())
+    }
+
+    /// Like GRBL's `$X`: the alarm is cleared, the position kept.
+    fn unlock(&mut self) -> Result<(), HwError> {
+        self.alarm = false;
+        self.target_um = self.axis.reported_um(Instant::now());
         Ok(())
     }
 
@@ -168,7 +176,9 @@ mod tests {
 
     #[test]
     fn stop_halts_mid_move() {
-        let mut s = stage();
+        let axis = Arc::new(Axis::new(AxisParams::default()));
+        let lim = TravelLimits::new(0.0, 10_000.0, 5_000.0).unwrap();
+        let mut s = SimStage::new("axis", axis, lim);
         s.move_abs(5_000.0).unwrap();
         std::thread::sleep(Duration::from_millis(30));
         s.stop().unwrap();

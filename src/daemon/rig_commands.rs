@@ -1,0 +1,186 @@
+//! Rig requests outside a job (`unlock`, `home`, `reconnect`): checked on the connection,
+//! run by the worker on the rig's own blocking thread (the worker owns the rig), answered
+//! through a oneshot. The channel beside the job queue is the one issue 13's
+//! `position`/`move`/`stop` requests can use too.
+//!
+//! A request is refused while a job runs, or while another request runs; one that was
+//! sent before a job started and reaches the worker after is refused too. The fault is
+//! cleared only when the controller confirms (its status after the request is not
+//! `Alarm` and it answered); otherwise the fault is what the controller now says.
+
+use crate::acquisition::StageKind;
+use crate::daemon::protocol::{ErrorCode, ProtoError, ReplyBody, RigActionReply};
+use crate::daemon::rig_state::{probe, RigAction, RigFault};
+use crate::daemon::Shared;
+use crate::hw::{HwError, MotionState, StageStatus};
+use crate::rig::Rig;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use tokio::sync::{mpsc, oneshot};
+
+/// Rig requests waiting for the worker (one runs at a time; more are refused as busy).
+pub const QUEUE: usize = 4;
+
+/// One rig request on its way to the worker.
+#[derive(Debug)]
+pub struct RigRequest {
+    pub action: RigAction,
+    pub stage: StageKind,
+    /// `RigCondition::jobs_started` when it was checked.
+    pub jobs_started: u64,
+    pub reply: oneshot::Sender<Result<RigActionReply, ProtoError>>,
+}
+
+pub type Sender = mpsc::Sender<RigRequest>;
+pub type Receiver = mpsc::Receiver<RigRequest>;
+
+fn busy(msg: String) -> ProtoError {
+    ProtoError::new(ErrorCode::Busy, msg)
+}
+
+/// The connection's side: check, hand to the worker, wait for its answer.
+pub async fn request(
+    shared: &Arc<Shared>,
+    action: RigAction,
+    stage: Option<StageKind>,
+) -> Result<ReplyBody, ProtoError> {
+    if shared.shutting_down.load(Ordering::SeqCst) {
+        return Err(ProtoError::new(
+            ErrorCode::Unavailable,
+            "the daemon is shutting down",
+        ));
+    }
+    let running = shared.jobs().running();
+    if let Some(id) = running {
+        return Err(busy(format!(
+            "job {id} is running: `{}` waits until it ends (or cancel it: rigctl cancel {id})",
+            action.name()
+        )));
+    }
+    let (tx, rx) = oneshot::channel();
+    let req = {
+        let cond = shared.rig();
+        if let Some(other) = cond.request {
+            return Err(busy(format!("`{}` is already running", other.name())));
+        }
+        let stage = stage.unwrap_or_else(|| default_stage(cond.fault.as_ref()));
+        RigRequest {
+            action,
+            stage,
+            jobs_started: cond.jobs_started,
+            reply: tx,
+        }
+    };
+    if shared.rig_requests.try_send(req).is_err() {
+        return Err(busy("rig requests are already waiting".into()));
+    }
+    match rx.await {
+        Ok(r) => r.map(ReplyBody::RigAction),
+        Err(_) => Err(ProtoError::new(
+            ErrorCode::Unavailable,
+            "the daemon stopped before the request ran",
+        )),
+    }
+}
+
+/// The stage in fault, else the axis.
+fn default_stage(fault: Option<&RigFault>) -> StageKind {
+    match fault.map(|f| f.device.as_str()) {
+        Some("piezo") => StageKind::Piezo,
+        _ => StageKind::Axis,
+    }
+}
+
+/// The worker's side: run the request on the rig (on a blocking thread) and answer it.
+pub async fn serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
+    {
+        let mut cond = shared.rig();
+        if cond.jobs_started != req.jobs_started {
+            let _ = req.reply.send(Err(busy(format!(
+                "a job started before `{}` could run: send it again once the job ends",
+                req.action.name()
+            ))));
+            return rig;
+        }
+        cond.request = Some(req.action);
+    }
+    let (action, stage) = (req.action, req.stage);
+    tracing::info!(request = action.name(), %stage, "rig request");
+    let handle = tokio::task::spawn_blocking(move || {
+        let mut rig = rig;
+        let result = act(&mut rig, action, stage);
+        // The controller's word on the stage, whatever the request did.
+        let fault = match &result {
+            Ok(_) => None,
+            Err(_) => probe(&mut rig, stage),
+        };
+        (rig, result, fault)
+    });
+    let (rig, result, fault) = match handle.await {
+        Ok(r) => r,
+        Err(e) => panic!("rig request thread panicked: {e}"),
+    };
+    let state = {
+        let mut cond = shared.rig();
+        cond.request = None;
+        let name = stage.to_string();
+        if cond.fault.as_ref().is_none_or(|f| f.device == name) {
+            cond.fault = fault;
+        }
+        cond.state(None)
+    };
+    let reply = match result {
+        Ok(st) => {
+            tracing::info!(request = action.name(), %stage, at_um = st.position_um, "rig request done");
+            Ok(RigActionReply {
+                request: action,
+                stage,
+                state: st.state,
+                position_um: st.position_um,
+                rig_state: state,
+            })
+        }
+        Err(e) => {
+            tracing::warn!(request = action.name(), %stage, "rig request failed: {e}");
+            Err(ProtoError::new(
+                ErrorCode::Hardware,
+                format!("{} failed: {e}", action.name()),
+            ))
+        }
+    };
+    let _ = req.reply.send(reply);
+    rig
+}
+
+/// The request on the stage, then its status: the controller's confirmation.
+fn act(rig: &mut Rig, action: RigAction, stage: StageKind) -> Result<StageStatus, HwError> {
+    let s = rig.stage(stage)?;
+    match action {
+        RigAction::Unlock => s.unlock()?,
+        RigAction::Home => s.home()?,
+        RigAction::Reconnect => s.reconnect()?,
+    }
+    let st = s.status()?;
+    if st.state == MotionState::Alarm {
+        return Err(HwError::Alarm {
+            device: s.name().to_string(),
+            code: 0,
+            message: format!(
+                "still in alarm after `{}` (at {:.1} µm)",
+                action.name(),
+                st.position_um
+            ),
+        });
+    }
+    Ok(st)
+}
+
+/// Refuse what is waiting (the daemon stops).
+pub fn refuse_waiting(rx: &mut Receiver) {
+    while let Ok(req) = rx.try_recv() {
+        let _ = req.reply.send(Err(ProtoError::new(
+            ErrorCode::Unavailable,
+            "the daemon is shutting down",
+        )));
+    }
+}
