@@ -508,3 +508,62 @@ fn registration_by_image_keeps_the_commanded_position_and_records_the_reading() 
         (Some(-99.5), 100.0)
     );
 }
+
+/// Issue 14: a SIGTERM (the daemon's shutdown) during the last step's settle ends that step
+/// without its frame, and the job ends cancelled with the frames before it.
+#[test]
+fn a_shutdown_during_the_last_settle_records_only_the_frames_before() {
+    let p = plan(&[100.0, 150.0]);
+    let flag = Arc::new(StopFlag::default());
+    let f = flag.clone();
+    let mut script = plain_move(100.0);
+    script.extend([
+        move_abs(150.0),
+        status(MotionState::Idle, 150.0),
+        wait_settled(150.0).then(move || f.shutdown()),
+    ]);
+    script.extend(stopped_idle_at(150.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    // One grab only: a second would panic.
+    let mut camera = ScriptedCamera::frames(1);
+    let mut sink = Collect::default();
+    let out = run(&p, settings(5_000), &flag, &mut stage, &mut camera, &mut sink);
+    let Outcome::Cancelled(s) = &out else {
+        panic!("{out:?}")
+    };
+    assert_eq!(
+        (s.cause, s.during),
+        (StopCause::Shutdown, Some((Phase::Settle, 150.0)))
+    );
+    assert_eq!(sink.records.len(), 1);
+    assert_eq!(sink.records[0].commanded_um, 100.0);
+}
+
+/// Issue 14: a client told `cancelling` during the last step's grab gets `cancelled`, not
+/// `finished`, and that grab's frame is not recorded (before the engine, 14 of 40 such
+/// cancels ended `finished`).
+#[test]
+fn a_cancel_during_the_last_grab_ends_cancelled_without_that_frame() {
+    let p = plan(&[100.0, 150.0, 200.0]);
+    let flag = Arc::new(StopFlag::default());
+    let f = flag.clone();
+    let mut script: Vec<_> = [100.0, 150.0, 200.0].into_iter().flat_map(plain_move).collect();
+    script.extend(stopped_idle_at(200.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::new([
+        grab(Ok(frame(1))),
+        grab(Ok(frame(2))),
+        grab(Ok(frame(3))).then(move || f.cancel()),
+    ]);
+    let mut sink = Collect::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    let Outcome::Cancelled(s) = &out else {
+        panic!("{out:?}")
+    };
+    assert_eq!(
+        (s.cause, s.during),
+        (StopCause::Client, Some((Phase::Grab, 200.0)))
+    );
+    let kept: Vec<f64> = sink.records.iter().map(|r| r.commanded_um).collect();
+    assert_eq!(kept, vec![100.0, 150.0]);
+}

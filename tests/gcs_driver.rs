@@ -184,7 +184,7 @@ fn fault_motion_error_mid_move_is_reported() {
     let r = rig();
     let mut s = GcsStage::connect("piezo", r.opts.clone()).unwrap();
     r.sim.faults().update(|f| f.alarm_mid_move = true);
-    s.move_abs(80.0).unwrap();
+    s.move_abs(55.0).unwrap();
     let e = s.wait_settled(SETTLE).unwrap_err();
     assert!(matches!(e, HwError::Controller { code: -1024, .. }), "{e}");
     assert_eq!(s.status().unwrap().state, MotionState::Alarm);
@@ -192,6 +192,26 @@ fn fault_motion_error_mid_move_is_reported() {
     s.reconnect().unwrap();
     s.move_abs(10.0).unwrap();
     assert!((s.wait_settled(SETTLE).unwrap() - 10.0).abs() < 0.05);
+}
+
+#[test]
+fn unlock_reads_the_motion_error_and_closes_the_loop_again() {
+    let r = rig();
+    let mut s = GcsStage::connect("piezo", r.opts.clone()).unwrap();
+    r.sim.faults().update(|f| f.alarm_mid_move = true);
+    s.move_abs(55.0).unwrap();
+    // The servo opens halfway: the piezo stops short of 55 µm.
+    std::thread::sleep(Duration::from_millis(60));
+    assert_eq!(s.status().unwrap().state, MotionState::Alarm);
+    let stopped = r.true_um();
+    assert!(stopped > 1.0 && stopped < 54.0, "{stopped}");
+    // Moves are refused by the controller (servo off: GCS error 5) until unlocked.
+    let e = s.move_abs(30.0).unwrap_err();
+    assert!(matches!(e, HwError::Controller { .. }), "{e}");
+    s.unlock().unwrap();
+    assert_eq!(s.status().unwrap().state, MotionState::Idle);
+    s.move_abs(30.0).unwrap();
+    assert!((s.wait_settled(SETTLE).unwrap() - 30.0).abs() < 0.05);
 }
 
 #[test]

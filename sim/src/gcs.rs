@@ -195,11 +195,15 @@ impl Gcs {
             "ERR?" => Ok(Some(std::mem::take(&mut self.error).to_string())),
             "SVO" => self.axis_value(&args).and_then(|v| {
                 if v == 0.0 || v == 1.0 {
-                    self.servo = v == 1.0;
-                    if !self.servo {
-                        self.axis.stop();
+                    // Only a change of state moves the target (to where the axis is): `SVO 1`
+                    // with the loop already closed leaves a move in progress alone.
+                    if self.servo != (v == 1.0) {
+                        self.servo = v == 1.0;
+                        if !self.servo {
+                            self.axis.stop();
+                        }
+                        self.target_um = self.axis.reported_um(now);
                     }
-                    self.target_um = self.axis.reported_um(now);
                     Ok(None)
                 } else {
                     Err(code::PARAM_SYNTAX)

@@ -102,11 +102,6 @@ impl CsvParser {
                 self.line_no
             ));
         }
-        if self.log.sample_rate_hz.is_none() {
-            // No `Sample rate` line: the timestamps say it, if there are any.
-            self.log.sample_rate_hz = self.log.rate_of_times();
-            self.log.rate_from_times = self.log.sample_rate_hz.is_some();
-        }
         Ok(self.log)
     }
 

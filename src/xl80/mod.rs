@@ -120,12 +120,9 @@ pub struct Xl80Log {
     pub meta: Metadata,
     /// When reading 0 was taken, if the log says (dates are read as UTC).
     pub start: Option<SystemTime>,
-    /// Samples per second (RTX: the actual sample rate; a CSV without a `Sample rate` line:
-    /// from its timestamps, see `rate_from_times`).
+    /// Samples per second as the log declares it (RTX: the actual sample rate; CSV: its
+    /// `Sample rate` line). Without one, [`Xl80Log::rate_of_times`] estimates it.
     pub sample_rate_hz: Option<f64>,
-    /// `sample_rate_hz` was estimated from the timestamps (the median interval).
-    #[serde(default)]
-    pub rate_from_times: bool,
     /// µm per unit of the file's positions, once the table header (CSV) or `Data:` (RTX) is
     /// read: from the column's or the header's unit, else the assumed/configured one.
     #[serde(default)]
@@ -141,7 +138,6 @@ impl Xl80Log {
             meta: Metadata::default(),
             start: None,
             sample_rate_hz: None,
-            rate_from_times: false,
             um_per_unit: None,
             readings: Vec::new(),
             garbled: Garbled::default(),
@@ -196,10 +192,10 @@ impl Xl80Log {
                 a.position_um, b.position_um
             );
         }
-        match self.sample_rate_hz {
-            Some(hz) if self.rate_from_times => s += &format!(" at {hz:.4} Hz (from the timestamps)"),
-            Some(hz) => s += &format!(" at {hz} Hz"),
-            None => s += ", no sample rate (no `Sample rate` line and no timestamps)",
+        match (self.sample_rate_hz, self.rate_of_times()) {
+            (Some(hz), _) => s += &format!(" at {hz} Hz"),
+            (None, Some(hz)) => s += &format!(" at {hz:.4} Hz (from the timestamps)"),
+            (None, None) => s += ", no sample rate (no `Sample rate` line, no timestamps)",
         }
         if self.garbled.count > 0 {
             s += &format!(", {} garbled", self.garbled.count);

@@ -49,6 +49,7 @@ impl Default for RtxParser {
 }
 
 const EOF_MARK: &[u8] = b"EOF::";
+const TRAILER: &[u8] = b"EOF::\r\n";
 
 /// The rest of the input is the trailer: `EOF::` and at most a line end (CR, LF) after it.
 fn is_trailer(rest: &[u8]) -> bool {
@@ -124,10 +125,14 @@ impl RtxParser {
                     }
                 }
                 State::Data => {
-                    let want = self.declared_samples.filter(|&n| n > 0);
-                    // With a count, the trailer comes only after that many samples.
-                    let trailer_due = want.is_none_or(|n| self.samples >= n);
-                    if trailer_due && is_trailer(rest) {
+                    // With a count, the trailer comes after that many samples; without (a
+                    // growing capture) only a whole `EOF::\r\n` with nothing after it is one:
+                    // `EOF::` alone may be a sample's first bytes, its rest not written yet.
+                    let end = match self.declared_samples.filter(|&n| n > 0) {
+                        Some(n) => self.samples >= n && is_trailer(rest),
+                        None => rest.starts_with(TRAILER) && is_trailer(rest),
+                    };
+                    if end {
                         self.state = State::Done;
                         pos = self.pending.len();
                         break;
@@ -264,7 +269,8 @@ impl RtxParser {
             }
             State::Done => {}
         }
-        if let Some(want) = self.declared_samples {
+        // `Sample no: 0` is a capture written while it grew: its count is unknown.
+        if let Some(want) = self.declared_samples.filter(|&n| n > 0) {
             if want != self.samples {
                 self.log.garbled.record(
                     self.samples,
