@@ -222,3 +222,36 @@ fn sigterm_during_a_settle_records_no_frame_for_that_step() {
     assert_eq!(s.manifest.state, SessionState::Cancelled);
     assert_eq!(s.steps.len(), 1, "job {id}: only the frame before the stop");
 }
+
+fn rigctl(socket: &std::path::Path, args: &[&str]) -> (bool, String, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args(args)
+        .arg("--socket")
+        .arg(socket)
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// `rigctl unlock | home | reconnect [--stage]`: what a user types to clear each fault.
+#[test]
+fn rigctl_clears_faults_by_name() {
+    let d = start(vec![Fault::SerialLoss(1)]);
+    let mut c = d.subscribed();
+    fail_one(&mut c);
+    let sock = d.bg.socket.clone();
+    let (ok, _, err) = rigctl(&sock, &["submit", "--steps", "2", "--step-um", "10"]);
+    assert!(!ok && err.contains("rigctl reconnect --stage axis"), "{err}");
+    let (ok, out, err) = rigctl(&sock, &["reconnect"]);
+    assert!(ok, "{out}{err}");
+    assert!(out.starts_with("axis reconnect: Idle at ") && out.trim_end().ends_with("rig ready"), "{out}");
+    let (ok, out, err) = rigctl(&sock, &["home", "--stage", "piezo"]);
+    assert!(ok, "{out}{err}");
+    assert!(out.starts_with("piezo home: Idle at "), "{out}");
+    let (ok, out, err) = rigctl(&sock, &["unlock", "--stage", "axis"]);
+    assert!(ok && out.contains("rig ready"), "{out}{err}");
+}
