@@ -243,3 +243,109 @@ fn refusals_print_huge_numbers_short() {
     let e = s.move_rel(-1e300).unwrap_err().to_string();
     assert!(e.contains("-1e300") && e.len() < 120, "{e}");
 }
+
+mod jobs {
+    //! The same limits for jobs, on a hardware-mode rig (`rigd --config`: rigd's GRBL
+    //! driver to the emulator), through the daemon's socket.
+
+    use super::support::daemon::{capture_job, config, events_until_end, submit, subscribe, Daemon};
+    use rigd::acquisition::JobSpec;
+    use rigd::daemon::protocol::{EventBody, Request};
+    use rigd::rig::from_config;
+    use rigd::sim::grbl::{GrblSim, GrblSimOptions};
+    use rigd::sim::motion::{Axis, AxisParams};
+    use std::sync::Arc;
+    use std::time::Instant;
+
+    fn rig_text(port: &std::path::Path, extra: &str) -> String {
+        format!(
+            "[axis]\ndriver = \"grbl\"\nport = \"{}\"\nsoft_min_um = 0.0\nsoft_max_um = 250000.0\n\
+             max_step_um = 5000.0\nfeed_um_s = 50000.0\n{extra}\
+             [camera]\ndriver = \"sim\"\n[camera.sim]\nwidth = 48\nheight = 32\nsupersample = 2\n\
+             frame_period_ms = 2.0\nexposure_ms = 1.0\n",
+            port.display()
+        )
+    }
+
+    fn grbl() -> (Arc<Axis>, GrblSim) {
+        let axis = Arc::new(Axis::new(AxisParams {
+            max_speed_um_s: 50_000.0,
+            accel_um_s2: 2_000_000.0,
+            position_error_rms_um: 0.0,
+            ..AxisParams::default()
+        }));
+        let sim = GrblSim::spawn(axis.clone(), GrblSimOptions::default(), None).unwrap();
+        (axis, sim)
+    }
+
+    /// The issue: with max_step_um = 5000 a job of 100 000 µm steps moved 1000 → 101000 →
+    /// 201000. Now refused at submit, naming the move and the limit; nothing moves.
+    #[test]
+    fn a_job_with_steps_over_max_step_is_refused_at_submit() {
+        let (axis, sim) = grbl();
+        let dir = tempfile::tempdir().unwrap();
+        let rig = from_config(&config(dir.path(), &rig_text(&sim.path(), ""))).unwrap();
+        let d = Daemon::start_in(rig, dir);
+        let mut c = d.client();
+        let job = JobSpec {
+            start_um: Some(1_000.0),
+            ..capture_job(100_000.0, 3, 0)
+        };
+        let e = c.request(&Request::Submit { job }).unwrap_err().to_string();
+        assert!(
+            e.contains("the move from 1000 µm to 101000 µm is longer than the axis's max_step_um (5000 µm)"),
+            "{e}"
+        );
+        let huge = JobSpec {
+            start_um: Some(1_000.0),
+            ..capture_job(1e308, 2, 0)
+        };
+        let e = c.request(&Request::Submit { job: huge }).unwrap_err().to_string();
+        assert!(e.len() < 300 && e.contains("e308"), "{e}");
+        let long_settle = JobSpec {
+            settle_ms: 60_001,
+            ..capture_job(100.0, 2, 0)
+        };
+        let e = c.request(&Request::Submit { job: long_settle }).unwrap_err().to_string();
+        assert!(e.contains("`settle_ms` must be at most 60000 ms"), "{e}");
+        assert_eq!(axis.position_at(Instant::now()), 0.0);
+    }
+
+    /// The move from where the axis rests to the scan's start is a move too: the driver
+    /// refuses it (the plan cannot know where the axis is), the job fails naming it, and
+    /// the axis never moved.
+    #[test]
+    fn the_approach_to_a_far_scan_start_is_refused_by_the_driver() {
+        let (axis, sim) = grbl();
+        let dir = tempfile::tempdir().unwrap();
+        let text = rig_text(&sim.path(), "default_start_um = 20000.0\n");
+        let rig = from_config(&config(dir.path(), &text)).unwrap();
+        let d = Daemon::start_in(rig, dir);
+        let mut c = d.client();
+        subscribe(&mut c);
+        let id = submit(&mut c, capture_job(100.0, 2, 0));
+        let ev = events_until_end(&mut c, id);
+        let Some(EventBody::Failed { reason, .. }) = ev.last() else {
+            panic!("{ev:?}")
+        };
+        assert!(
+            reason.starts_with("axis: move to 20000 µm refused: a move of 20000 µm from the last target 0 µm exceeds the maximum step of 5000 µm"),
+            "{reason}"
+        );
+        assert_eq!(axis.position_at(Instant::now()), 0.0);
+        // A refused move is no fault: the rig is ready.
+        let hello = c.request(&Request::Hello).unwrap();
+        assert_eq!(hello["rig_state"]["state"], "ready", "{hello}");
+    }
+
+    #[test]
+    fn a_config_settle_over_the_bound_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = "[axis]\ndriver = \"sim\"\nsoft_min_um = 0.0\nsoft_max_um = 1000.0\n\
+                    max_step_um = 100.0\nsettle_ms = 60001\n";
+        let e = rigd::config::Config::from_toml_str(text, &dir.path().join("rig.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("axis.settle_ms") && e.contains("60000"), "{e}");
+    }
+}

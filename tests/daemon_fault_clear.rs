@@ -39,6 +39,18 @@ fn scan(steps: u32) -> JobSpec {
     }
 }
 
+/// The rig state once the daemon has asked the controllers (`busy` until then).
+fn settled(c: &mut Client) -> serde_json::Value {
+    let t = std::time::Instant::now();
+    loop {
+        let s = c.request(&Request::Hello).unwrap()["rig_state"].clone();
+        if s != serde_json::json!({"state": "busy"}) || t.elapsed() > Duration::from_secs(10) {
+            return s;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
 fn rig_state(c: &mut Client) -> (serde_json::Value, serde_json::Value) {
     let hello = c.request(&Request::Hello).unwrap();
     let status = c.request(&Request::Status { job_id: None }).unwrap();
@@ -63,6 +75,7 @@ fn fail_one(c: &mut Client) -> String {
 fn a_latched_alarm_is_a_fault_until_unlock_clears_it() {
     let d = start(vec![Fault::Alarm(2)]);
     let mut c = d.subscribed();
+    assert_eq!(settled(&mut c)["state"], "ready");
     let (hello, status) = rig_state(&mut c);
     assert_eq!((hello["state"].as_str(), status["state"].as_str()), (Some("ready"), Some("ready")));
     let reason = fail_one(&mut c);
@@ -254,4 +267,38 @@ fn rigctl_clears_faults_by_name() {
     assert!(out.starts_with("piezo home: Idle at "), "{out}");
     let (ok, out, err) = rigctl(&sock, &["unlock", "--stage", "axis"]);
     assert!(ok && out.contains("rig ready"), "{out}{err}");
+}
+
+/// A GRBL that boots locked (homing enabled) is a fault before the first job: the daemon
+/// asks each stage at start. `unlock` (`$X`) clears it.
+#[test]
+fn a_controller_locked_at_boot_is_a_fault_at_start() {
+    use rigd::sim::grbl::{GrblSim, GrblSimOptions};
+    use rigd::sim::motion::{Axis, AxisParams};
+    let axis = std::sync::Arc::new(Axis::new(AxisParams {
+        position_error_rms_um: 0.0,
+        ..AxisParams::default()
+    }));
+    let opts = GrblSimOptions {
+        alarm_on_boot: true,
+        ..GrblSimOptions::default()
+    };
+    let sim = GrblSim::spawn(axis, opts, None).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let text = format!(
+        "[axis]\ndriver = \"grbl\"\nport = \"{}\"\nsoft_min_um = 0.0\nsoft_max_um = 10000.0\n\
+         max_step_um = 10000.0\n[camera]\ndriver = \"sim\"\n[camera.sim]\nwidth = 48\n\
+         height = 32\nsupersample = 2\nframe_period_ms = 2.0\nexposure_ms = 1.0\n",
+        sim.path().display()
+    );
+    let rig = rigd::rig::from_config(&support::daemon::config(dir.path(), &text)).unwrap();
+    let d = Daemon::start_in(rig, dir);
+    let mut c = d.subscribed();
+    let state = settled(&mut c);
+    assert_eq!(state["state"], "fault", "{state}");
+    assert_eq!(state["clear_with"][0], "unlock");
+    assert!(c.request(&Request::Submit { job: capture_job(10.0, 2, 0) }).is_err());
+    let r = c.request(&Request::Unlock { stage: Some(rigd::acquisition::StageKind::Axis) }).unwrap();
+    assert_eq!(r["rig_state"]["state"], "ready", "{r}");
+    assert_finished(&run_job(&mut c, capture_job(10.0, 2, 0)).1);
 }

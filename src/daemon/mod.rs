@@ -53,7 +53,10 @@ impl Shared {
     pub fn new(settings: DaemonSettings, rig_info: RigInfo, last_job_id: u64) -> Shared {
         let (tx, rx) = tokio::sync::mpsc::channel(rig_commands::QUEUE);
         Shared {
-            rig: Mutex::new(RigCondition::default()),
+            rig: Mutex::new(RigCondition {
+                starting: true,
+                ..RigCondition::default()
+            }),
             rig_requests: tx,
             rig_requests_rx: Mutex::new(Some(rx)),
             settings,

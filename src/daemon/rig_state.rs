@@ -69,6 +69,8 @@ impl RigFault {
 pub enum RigState {
     #[default]
     Ready,
+    /// A job or a rig request is using the rig (neither: the daemon is asking the
+    /// controllers at start).
     Busy {
         /// The running job, if a job is what keeps it busy.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -89,6 +91,8 @@ pub struct RigCondition {
     /// Live jobs the worker has started (a rig request sent before a job started is
     /// refused when it arrives after).
     pub jobs_started: u64,
+    /// The worker has not yet asked the controllers (the daemon just started).
+    pub starting: bool,
 }
 
 impl RigCondition {
@@ -98,7 +102,7 @@ impl RigCondition {
             return RigState::Fault(f.clone());
         }
         match (running_job, self.request) {
-            (None, None) => RigState::Ready,
+            (None, None) if !self.starting => RigState::Ready,
             (job_id, request) => RigState::Busy { job_id, request },
         }
     }

@@ -99,7 +99,10 @@ async fn probe_at_start(shared: &Arc<Shared>, rig: Rig) -> Rig {
     if let Some(f) = &fault {
         tracing::warn!(device = %f.device, reason = %f.reason, "the rig starts in fault");
     }
-    shared.rig().fault = fault;
+    let mut cond = shared.rig();
+    cond.fault = fault;
+    cond.starting = false;
+    drop(cond);
     rig
 }
 
