@@ -152,7 +152,8 @@ fn an_absolute_move_longer_than_max_step_is_refused_grbl() {
     let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
     let e = s.move_abs(100_000.0).unwrap_err();
     assert!(
-        e.to_string().contains("exceeds the maximum step of 5000 µm"),
+        e.to_string()
+            .contains("exceeds the maximum step of 5000 µm"),
         "{e}"
     );
     assert!(!r.axis.is_moving(Instant::now()));
@@ -172,8 +173,20 @@ fn a_grbl_move_that_outlasts_the_wait_is_not_settled_not_silent() {
     s.move_abs(2_000.0).unwrap(); // 0.4 s at 5 mm/s
     let e = s.wait_settled(Duration::from_millis(100)).unwrap_err();
     let text = e.to_string();
-    assert!(matches!(e, HwError::NotSettled { timeout_ms: 100, .. }), "{e}");
-    assert!(text.contains("still Run") && !text.contains("no reply"), "{text}");
+    assert!(
+        matches!(
+            e,
+            HwError::NotSettled {
+                timeout_ms: 100,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(
+        text.contains("still Run") && !text.contains("no reply"),
+        "{text}"
+    );
     // While it still runs, its target is unknown to the driver: a new move is refused.
     let e = s.move_rel(10.0).unwrap_err();
     assert!(e.to_string().contains("target is unknown"), "{e}");
@@ -207,8 +220,21 @@ fn gcs_home_waits_as_long_as_the_config_says() {
     let mut s = GcsStage::connect("piezo", opts.clone()).unwrap();
     let t = Instant::now();
     let e = s.home().unwrap_err();
-    assert!(matches!(e, HwError::NotSettled { timeout_ms: 200, .. }), "{e}");
-    assert!(t.elapsed() < Duration::from_millis(900), "{:?}", t.elapsed());
+    assert!(
+        matches!(
+            e,
+            HwError::NotSettled {
+                timeout_ms: 200,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(
+        t.elapsed() < Duration::from_millis(900),
+        "{:?}",
+        t.elapsed()
+    );
     drop(s); // the port is opened exclusively
     opts.move_timeout_ms = 5_000;
     let mut s = GcsStage::connect("piezo", opts).unwrap();
@@ -248,7 +274,9 @@ mod jobs {
     //! The same limits for jobs, on a hardware-mode rig (`rigd --config`: rigd's GRBL
     //! driver to the emulator), through the daemon's socket.
 
-    use super::support::daemon::{capture_job, config, events_until_end, submit, subscribe, Daemon};
+    use super::support::daemon::{
+        capture_job, config, events_until_end, submit, subscribe, Daemon,
+    };
     use rigd::acquisition::JobSpec;
     use rigd::daemon::protocol::{EventBody, Request};
     use rigd::rig::from_config;
@@ -300,13 +328,19 @@ mod jobs {
             start_um: Some(1_000.0),
             ..capture_job(1e308, 2, 0)
         };
-        let e = c.request(&Request::Submit { job: huge }).unwrap_err().to_string();
+        let e = c
+            .request(&Request::Submit { job: huge })
+            .unwrap_err()
+            .to_string();
         assert!(e.len() < 300 && e.contains("e308"), "{e}");
         let long_settle = JobSpec {
             settle_ms: 60_001,
             ..capture_job(100.0, 2, 0)
         };
-        let e = c.request(&Request::Submit { job: long_settle }).unwrap_err().to_string();
+        let e = c
+            .request(&Request::Submit { job: long_settle })
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("`settle_ms` must be at most 60000 ms"), "{e}");
         assert_eq!(axis.position_at(Instant::now()), 0.0);
     }

@@ -77,7 +77,10 @@ fn a_latched_alarm_is_a_fault_until_unlock_clears_it() {
     let mut c = d.subscribed();
     assert_eq!(settled(&mut c)["state"], "ready");
     let (hello, status) = rig_state(&mut c);
-    assert_eq!((hello["state"].as_str(), status["state"].as_str()), (Some("ready"), Some("ready")));
+    assert_eq!(
+        (hello["state"].as_str(), status["state"].as_str()),
+        (Some("ready"), Some("ready"))
+    );
     let reason = fail_one(&mut c);
     assert!(reason.contains("alarm"), "{reason}");
     // Every client sees the fault, with the device and what clears it.
@@ -89,8 +92,14 @@ fn a_latched_alarm_is_a_fault_until_unlock_clears_it() {
     assert_eq!(hello["clear_with"], serde_json::json!(["unlock", "home"]));
     // A job is refused at submit, naming the fault and the request; no session is made.
     let before = sessions(&mut c);
-    let e = c.request(&Request::Submit { job: scan(2) }).unwrap_err().to_string();
-    assert!(e.contains("Rejected") && e.contains("the rig is in fault"), "{e}");
+    let e = c
+        .request(&Request::Submit { job: scan(2) })
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("Rejected") && e.contains("the rig is in fault"),
+        "{e}"
+    );
     assert!(e.contains("`unlock` (rigctl unlock --stage axis)"), "{e}");
     assert_eq!(sessions(&mut c), before);
     // Unlock: GRBL `$X`, confirmed by a report out of alarm.
@@ -110,7 +119,10 @@ fn home_clears_an_alarm_too() {
     let mut c = d.subscribed();
     fail_one(&mut c);
     let r = c.request(&Request::Home { stage: None }).unwrap();
-    assert_eq!((r["state"].as_str(), r["rig_state"]["state"].as_str()), (Some("idle"), Some("ready")));
+    assert_eq!(
+        (r["state"].as_str(), r["rig_state"]["state"].as_str()),
+        (Some("idle"), Some("ready"))
+    );
     // GRBL's homing cycle sets the origin.
     assert!(r["position_um"].as_f64().unwrap().abs() < 1.0, "{r}");
     assert_finished(&run_job(&mut c, scan(2)).1);
@@ -125,10 +137,16 @@ fn a_lost_port_is_a_fault_until_reconnect_brings_it_back() {
     let (hello, _) = rig_state(&mut c);
     assert_eq!(hello["state"], "fault", "{hello}");
     assert_eq!(hello["clear_with"], serde_json::json!(["reconnect"]));
-    let e = c.request(&Request::Submit { job: scan(2) }).unwrap_err().to_string();
+    let e = c
+        .request(&Request::Submit { job: scan(2) })
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("rigctl reconnect --stage axis"), "{e}");
     // The wrong request fails on the controller and the fault stays.
-    let e = c.request(&Request::Unlock { stage: None }).unwrap_err().to_string();
+    let e = c
+        .request(&Request::Unlock { stage: None })
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("Hardware") && e.contains("unlock failed"), "{e}");
     assert_eq!(rig_state(&mut c).0["state"], "fault");
     // The sim's port comes back on reconnect (as if plugged in again).
@@ -145,13 +163,22 @@ fn a_job_queued_before_the_fault_ends_without_a_session() {
     let mut c = d.subscribed();
     let first = submit(&mut c, scan(6));
     let second = submit(&mut c, scan(2));
-    assert!(matches!(events_until_end(&mut c, first).last(), Some(EventBody::Failed { .. })));
+    assert!(matches!(
+        events_until_end(&mut c, first).last(),
+        Some(EventBody::Failed { .. })
+    ));
     let ev = events_until_end(&mut c, second);
     assert_eq!(ev.len(), 1, "no started, no step: {ev:?}");
-    let Some(EventBody::Failed { reason, session, .. }) = ev.last() else {
+    let Some(EventBody::Failed {
+        reason, session, ..
+    }) = ev.last()
+    else {
         panic!("{ev:?}")
     };
-    assert!(reason.starts_with("not started: the rig is in fault"), "{reason}");
+    assert!(
+        reason.starts_with("not started: the rig is in fault"),
+        "{reason}"
+    );
     assert_eq!(*session, None);
     assert_eq!(sessions(&mut c), 1);
 }
@@ -173,12 +200,18 @@ fn rig_requests_are_refused_while_a_job_runs() {
         Request::Reconnect { stage: None },
     ] {
         let e = c.request(&req).unwrap_err().to_string();
-        assert!(e.contains("Busy") && e.contains(&format!("job {id} is running")), "{e}");
+        assert!(
+            e.contains("Busy") && e.contains(&format!("job {id} is running")),
+            "{e}"
+        );
     }
     let (hello, _) = rig_state(&mut c);
     assert_eq!(hello, serde_json::json!({"state": "busy", "job_id": id}));
     c.request(&Request::Cancel { job_id: id }).unwrap();
-    assert!(matches!(events_until_end(&mut c, id).last(), Some(EventBody::Cancelled { .. })));
+    assert!(matches!(
+        events_until_end(&mut c, id).last(),
+        Some(EventBody::Cancelled { .. })
+    ));
     assert_eq!(rig_state(&mut c).0["state"], "ready");
 }
 
@@ -200,11 +233,17 @@ fn a_cancel_during_the_last_settle_ends_cancelled_without_its_frame() {
     let r = c.request(&Request::Cancel { job_id: id }).unwrap();
     assert_eq!(r["state"], "cancelling");
     let ev = events_until_end(&mut c, id);
-    assert!(matches!(ev.last(), Some(EventBody::Cancelled { .. })), "{ev:?}");
+    assert!(
+        matches!(ev.last(), Some(EventBody::Cancelled { .. })),
+        "{ev:?}"
+    );
     assert!(reported_steps(&ev).is_empty(), "{ev:?}");
     let list = c.request(&Request::List).unwrap();
     let s = &list["sessions"][0];
-    assert_eq!((s["state"].as_str(), s["frames_captured"].as_u64()), (Some("cancelled"), Some(1)));
+    assert_eq!(
+        (s["state"].as_str(), s["frames_captured"].as_u64()),
+        (Some("cancelled"), Some(1))
+    );
 }
 
 /// SIGTERM to `rigd --sim` during a settle: the step ends without its frame, the session is
@@ -258,10 +297,16 @@ fn rigctl_clears_faults_by_name() {
     fail_one(&mut c);
     let sock = d.bg.socket.clone();
     let (ok, _, err) = rigctl(&sock, &["submit", "--steps", "2", "--step-um", "10"]);
-    assert!(!ok && err.contains("rigctl reconnect --stage axis"), "{err}");
+    assert!(
+        !ok && err.contains("rigctl reconnect --stage axis"),
+        "{err}"
+    );
     let (ok, out, err) = rigctl(&sock, &["reconnect"]);
     assert!(ok, "{out}{err}");
-    assert!(out.starts_with("axis reconnect: Idle at ") && out.trim_end().ends_with("rig ready"), "{out}");
+    assert!(
+        out.starts_with("axis reconnect: Idle at ") && out.trim_end().ends_with("rig ready"),
+        "{out}"
+    );
     let (ok, out, err) = rigctl(&sock, &["home", "--stage", "piezo"]);
     assert!(ok, "{out}{err}");
     assert!(out.starts_with("piezo home: Idle at "), "{out}");
@@ -297,8 +342,16 @@ fn a_controller_locked_at_boot_is_a_fault_at_start() {
     let state = settled(&mut c);
     assert_eq!(state["state"], "fault", "{state}");
     assert_eq!(state["clear_with"][0], "unlock");
-    assert!(c.request(&Request::Submit { job: capture_job(10.0, 2, 0) }).is_err());
-    let r = c.request(&Request::Unlock { stage: Some(rigd::acquisition::StageKind::Axis) }).unwrap();
+    assert!(c
+        .request(&Request::Submit {
+            job: capture_job(10.0, 2, 0)
+        })
+        .is_err());
+    let r = c
+        .request(&Request::Unlock {
+            stage: Some(rigd::acquisition::StageKind::Axis),
+        })
+        .unwrap();
     assert_eq!(r["rig_state"]["state"], "ready", "{r}");
     assert_finished(&run_job(&mut c, capture_job(10.0, 2, 0)).1);
 }

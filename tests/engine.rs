@@ -527,7 +527,14 @@ fn a_shutdown_during_the_last_settle_records_only_the_frames_before() {
     // One grab only: a second would panic.
     let mut camera = ScriptedCamera::frames(1);
     let mut sink = Collect::default();
-    let out = run(&p, settings(5_000), &flag, &mut stage, &mut camera, &mut sink);
+    let out = run(
+        &p,
+        settings(5_000),
+        &flag,
+        &mut stage,
+        &mut camera,
+        &mut sink,
+    );
     let Outcome::Cancelled(s) = &out else {
         panic!("{out:?}")
     };
@@ -547,7 +554,10 @@ fn a_cancel_during_the_last_grab_ends_cancelled_without_that_frame() {
     let p = plan(&[100.0, 150.0, 200.0]);
     let flag = Arc::new(StopFlag::default());
     let f = flag.clone();
-    let mut script: Vec<_> = [100.0, 150.0, 200.0].into_iter().flat_map(plain_move).collect();
+    let mut script: Vec<_> = [100.0, 150.0, 200.0]
+        .into_iter()
+        .flat_map(plain_move)
+        .collect();
     script.extend(stopped_idle_at(200.0));
     let mut stage = ScriptedStage::new("axis", script);
     let mut camera = ScriptedCamera::new([

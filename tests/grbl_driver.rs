@@ -427,3 +427,31 @@ fn study_time_per_50um_step() {
         s.position_um().unwrap()
     );
 }
+
+/// `unlock()` is `$X` (after the soft reset GRBL requires after ALARM:1), confirmed by a
+/// report out of alarm: on a boot lock and after a hard-limit alarm mid-move.
+#[test]
+fn unlock_clears_a_boot_lock_and_an_alarm_mid_move() {
+    let r = rig_with(GrblSimOptions {
+        alarm_on_boot: true,
+        ..GrblSimOptions::default()
+    });
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    assert_eq!(s.status().unwrap().state, MotionState::Alarm);
+    s.unlock().unwrap();
+    assert_eq!(s.status().unwrap().state, MotionState::Idle);
+    r.sim.faults().update(|f| f.alarm_mid_move = true);
+    s.move_rel(4_000.0).unwrap();
+    let e = s.wait_settled(SETTLE).unwrap_err();
+    assert!(matches!(e, HwError::Alarm { code: 1, .. }), "{e}");
+    assert!(matches!(s.move_rel(10.0), Err(HwError::Alarm { .. })));
+    s.unlock().unwrap();
+    assert_eq!(s.status().unwrap().state, MotionState::Idle);
+    let at = s.position_um().unwrap();
+    assert!(at > 0.0 && at < 4_000.0, "stopped short: {at}");
+    let p = step(&mut s, 50.0, SETTLE).unwrap();
+    assert!(
+        (p - at - 50.0).abs() < TRUE_POSITION_TOL_UM,
+        "{p} after {at}"
+    );
+}

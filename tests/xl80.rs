@@ -468,7 +468,11 @@ fn rtx_first_samples_are_never_misread() {
             samples.extend(rest);
             let bytes = rtx_bytes(&samples, declared);
             let log = parse_rtx(&bytes);
-            let read: Vec<u64> = log.readings.iter().map(|r| r.position_um.to_bits()).collect();
+            let read: Vec<u64> = log
+                .readings
+                .iter()
+                .map(|r| r.position_um.to_bits())
+                .collect();
             let want: Vec<u64> = samples.iter().map(|s| s.to_bits()).collect();
             prop_assert_eq!(read, want);
             prop_assert_eq!(log.garbled.count, 0, "{:?}", log.garbled);
@@ -527,5 +531,9 @@ fn a_csv_without_a_rate_line_gets_it_from_the_timestamps() {
     let path = dir.path().join("plain.csv");
     std::fs::write(&path, "Position (mm),Status\n1.0,OK\n1.5,OK\n").unwrap();
     let log = xl80::read(&path, Xl80Format::Csv).unwrap();
-    assert!(log.summary().contains("no sample rate"), "{}", log.summary());
+    assert!(
+        log.summary().contains("no sample rate"),
+        "{}",
+        log.summary()
+    );
 }

@@ -39,7 +39,9 @@ pub fn run(action: RigAction, a: RigArgs) -> anyhow::Result<()> {
 pub fn describe(s: &RigState) -> String {
     match s {
         RigState::Ready => "ready".into(),
-        RigState::Busy { job_id: Some(id), .. } => format!("busy (job {id})"),
+        RigState::Busy {
+            job_id: Some(id), ..
+        } => format!("busy (job {id})"),
         RigState::Busy { request, .. } => {
             format!("busy ({})", request.map_or("a request", |r| r.name()))
         }

@@ -1,12 +1,12 @@
 //! One client connection: read request lines (bounded), answer each, and forward events
 //! after `subscribe`. A client that goes away only ends its connection, never a job.
 
-use crate::daemon::{commands, rig_commands};
 use crate::daemon::protocol::{
     decode_request, encode, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
     SubscribeReply, MAX_LINE_BYTES,
 };
 use crate::daemon::Shared;
+use crate::daemon::{commands, rig_commands};
 use futures_util::StreamExt;
 use std::sync::Arc;
 use tokio::io::{AsyncRead, AsyncWriteExt};

@@ -8,10 +8,10 @@
 use crate::acquisition::outcome::EndDetail;
 use crate::acquisition::record::{StepRecord, StepTimings};
 use crate::acquisition::{JobSpec, Processing, StageKind};
-use crate::daemon::rig_state::{RigAction, RigState};
-use crate::hw::MotionState;
 use crate::daemon::jobs::JobStatus;
+use crate::daemon::rig_state::{RigAction, RigState};
 use crate::daemon::session::SessionState;
+use crate::hw::MotionState;
 use crate::rig::RigMode;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;

@@ -52,7 +52,14 @@ impl RigFault {
         let ways: Vec<String> = self
             .clear_with
             .iter()
-            .map(|a| format!("`{}` (rigctl {} --stage {})", a.name(), a.name(), self.device))
+            .map(|a| {
+                format!(
+                    "`{}` (rigctl {} --stage {})",
+                    a.name(),
+                    a.name(),
+                    self.device
+                )
+            })
             .collect();
         format!(
             "the rig is in fault: {}; clear it with {}",
@@ -140,11 +147,8 @@ pub fn fault_of(e: &HwError) -> RigFault {
 /// The first fault among the rig's stages (the axis first).
 pub fn probe_all(rig: &mut Rig) -> Option<RigFault> {
     let has_piezo = rig.piezo.is_some();
-    probe(rig, StageKind::Axis).or_else(|| {
-        has_piezo
-            .then(|| probe(rig, StageKind::Piezo))
-            .flatten()
-    })
+    probe(rig, StageKind::Axis)
+        .or_else(|| has_piezo.then(|| probe(rig, StageKind::Piezo)).flatten())
 }
 
 #[cfg(test)]
@@ -154,7 +158,10 @@ mod tests {
     #[test]
     fn the_state_reads_as_documented() {
         let mut c = RigCondition::default();
-        assert_eq!(serde_json::to_value(c.state(None)).unwrap()["state"], "ready");
+        assert_eq!(
+            serde_json::to_value(c.state(None)).unwrap()["state"],
+            "ready"
+        );
         let busy = serde_json::to_value(c.state(Some(3))).unwrap();
         assert_eq!(busy, serde_json::json!({"state": "busy", "job_id": 3}));
         c.fault = Some(fault_of(&HwError::PortGone {

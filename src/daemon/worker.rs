@@ -10,9 +10,9 @@ use crate::acquisition::{
 };
 use crate::daemon::jobs::{JobRecord, JobSource, JobState};
 use crate::daemon::protocol::EventBody;
+use crate::daemon::recorder::{disk_error, Recorder};
 use crate::daemon::rig_commands::{self, RigRequest};
 use crate::daemon::rig_state::{probe, probe_all};
-use crate::daemon::recorder::{disk_error, Recorder};
 use crate::daemon::session::{Session, SessionState, SessionWriter};
 use crate::daemon::Shared;
 use crate::rig::Rig;
@@ -153,7 +153,9 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
     let outcome = close(session, outcome, &result, &images);
     // A job that failed on a live stage: the controller says whether the rig is in fault,
     // before any client hears of the end (and could submit again).
-    if matches!(job.source, JobSource::Live) && matches!(outcome, Outcome::Failed(JobError::Hardware { .. })) {
+    if matches!(job.source, JobSource::Live)
+        && matches!(outcome, Outcome::Failed(JobError::Hardware { .. }))
+    {
         if let Some(f) = probe(rig, job.spec.stage) {
             tracing::warn!(device = %f.device, reason = %f.reason, "the rig is in fault");
             shared.rig().fault = Some(f);

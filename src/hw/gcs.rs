@@ -317,7 +317,11 @@ impl GcsStage {
 
     /// `MOV` to a target already checked.
     fn move_to(&mut self, target_um: f64) -> Result<(), HwError> {
-        let cmd = format!("MOV {} {:.6}", self.opts.axis, target_um / self.opts.um_per_unit);
+        let cmd = format!(
+            "MOV {} {:.6}",
+            self.opts.axis,
+            target_um / self.opts.um_per_unit
+        );
         self.send(&cmd)?;
         self.check_error(&cmd, false)
     }
@@ -330,12 +334,12 @@ impl GcsStage {
         }
         let cmd = format!("FRF? {}", self.opts.axis);
         let axis = self.opts.axis.clone();
-        let done = self.guard(|s| s.query_line(&cmd, |l| axis_field(l, &axis).map(|v| v == "1")))?;
+        let done =
+            self.guard(|s| s.query_line(&cmd, |l| axis_field(l, &axis).map(|v| v == "1")))?;
         if !done {
             return Err(HwError::Other {
                 device: self.name.clone(),
-                message: "the reference move ended but FRF? says the axis is not referenced"
-                    .into(),
+                message: "the reference move ended but FRF? says the axis is not referenced".into(),
             });
         }
         Ok(())

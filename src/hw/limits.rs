@@ -84,7 +84,7 @@ impl TravelLimits {
         self.check_abs(device, target_um)?;
         let dist = (target_um - from_um).abs();
         // A NaN distance (an unknown start) is refused too.
-        if !(dist <= self.max_step_um) {
+        if dist.is_nan() || dist > self.max_step_um {
             return Err(HwError::Limit {
                 device: device.to_string(),
                 target_um,
@@ -162,7 +162,10 @@ mod tests {
 
     #[test]
     fn huge_numbers_print_short() {
-        let e = lim().check_move("axis", 0.0, 1e308).unwrap_err().to_string();
+        let e = lim()
+            .check_move("axis", 0.0, 1e308)
+            .unwrap_err()
+            .to_string();
         assert!(e.len() < 120 && e.contains("1e308"), "{e}");
     }
 

@@ -182,11 +182,9 @@ impl Xl80Log {
     /// and the last.
     pub fn summary(&self) -> String {
         let mut s = format!("{} readings", self.readings.len());
-        if let (Some((lo, hi)), Some(a), Some(b)) = (
-            self.span_um(),
-            self.readings.first(),
-            self.readings.last(),
-        ) {
+        if let (Some((lo, hi)), Some(a), Some(b)) =
+            (self.span_um(), self.readings.first(), self.readings.last())
+        {
             s += &format!(
                 ", span {lo:.3} .. {hi:.3} µm (first {:.3}, last {:.3} µm)",
                 a.position_um, b.position_um

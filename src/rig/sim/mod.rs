@@ -187,8 +187,12 @@ fn emulated_axis(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError
     // Behind a stable link: the port that comes back after a serial loss has a new pty.
     let dir = LinkDir::new().map_err(|e| sim_error("sim-grbl", e))?;
     let link = dir.0.join("grbl");
-    let grbl = GrblSim::spawn(Arc::clone(&rig.axis), GrblSimOptions::default(), Some(&link))
-        .map_err(|e| sim_error("sim-grbl", e))?;
+    let grbl = GrblSim::spawn(
+        Arc::clone(&rig.axis),
+        GrblSimOptions::default(),
+        Some(&link),
+    )
+    .map_err(|e| sim_error("sim-grbl", e))?;
     let mut go = GrblOptions::new(
         grbl.path().to_string_lossy(),
         limits("axis", s.axis_limits_um)?,
