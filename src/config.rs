@@ -464,6 +464,8 @@ impl Config {
     }
 
     fn validate_stage(&self, name: &str, s: &StageConfig) -> Result<(), ConfigError> {
+        // Numbers in messages print short: 1e308, not 309 digits.
+        use crate::rig::devices::short_um as um;
         let key = |k: &str| format!("{name}.{k}");
         let needs_port = matches!(s.driver, StageDriver::Grbl | StageDriver::Gcs);
         if needs_port && s.port.as_deref().unwrap_or("").is_empty() {
@@ -488,7 +490,8 @@ impl Config {
                 &key("soft_max_um"),
                 format!(
                     "soft_max_um ({}) must be above soft_min_um ({})",
-                    s.soft_max_um, s.soft_min_um
+                    um(s.soft_max_um),
+                    um(s.soft_min_um)
                 ),
             ));
         }
@@ -506,8 +509,10 @@ impl Config {
                 return Err(self.invalid(
                     &key("default_start_um"),
                     format!(
-                        "{v} is outside the soft limits [{}, {}]",
-                        s.soft_min_um, s.soft_max_um
+                        "{} is outside the soft limits [{}, {}]",
+                        um(v),
+                        um(s.soft_min_um),
+                        um(s.soft_max_um)
                     ),
                 ));
             }

@@ -381,5 +381,15 @@ mod jobs {
             .unwrap_err()
             .to_string();
         assert!(e.contains("axis.settle_ms") && e.contains("60000"), "{e}");
+        // Limits typed in the wrong unit by far print short too.
+        let text = "[axis]\ndriver = \"sim\"\nsoft_min_um = 1e300\nsoft_max_um = 1e299\n\
+                    max_step_um = 100.0\n";
+        let e = rigd::config::Config::from_toml_str(text, &dir.path().join("rig.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("soft_max_um (1e299) must be above soft_min_um (1e300)") && e.len() < 200,
+            "{e}"
+        );
     }
 }
