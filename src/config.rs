@@ -307,6 +307,9 @@ pub struct DaemonSettings {
     pub group: Option<String>,
     /// Where sessions are recorded.
     pub data_root: PathBuf,
+    /// Where the serial devices' locks live, shared with `rigctl hw` (default: /run/lock
+    /// when writable, else $XDG_RUNTIME_DIR, else /tmp: see `lock::lock_dir`).
+    pub lock_dir: Option<PathBuf>,
 }
 
 impl Default for DaemonSettings {
@@ -316,6 +319,7 @@ impl Default for DaemonSettings {
             socket: default_socket(),
             group: None,
             data_root: PathBuf::from("rigd-sessions"),
+            lock_dir: None,
         }
     }
 }
