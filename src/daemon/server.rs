@@ -62,6 +62,8 @@ pub async fn run(
     ready: impl FnOnce(),
 ) -> Result<Rig, ServerError> {
     let settings = owner.settings().clone();
+    // Handlers first: a signal that comes once READY=1 is out must stop us cleanly, not kill.
+    let signal = stop_signals(signals);
     let (last_id, marked) = session::recover(&settings.data_root)?;
     for name in &marked {
         tracing::warn!(session = %name, "marked incomplete: the daemon stopped while it ran");
@@ -71,28 +73,6 @@ pub async fn run(
     ready();
     let shared = Arc::new(Shared::new(settings.clone(), rig.info.clone(), last_id));
     let worker = tokio::spawn(worker::run(shared.clone(), rig));
-    let signal = async {
-        if !signals {
-            return std::future::pending::<&str>().await;
-        }
-        use tokio::signal::unix::{signal, SignalKind};
-        // All three stop cleanly: SIGHUP (a closed terminal; no reload) must not kill the
-        // daemon with a session left `running` and the socket behind.
-        match (
-            signal(SignalKind::terminate()),
-            signal(SignalKind::interrupt()),
-            signal(SignalKind::hangup()),
-        ) {
-            (Ok(mut t), Ok(mut i), Ok(mut h)) => {
-                tokio::select! {
-                    _ = t.recv() => "SIGTERM",
-                    _ = i.recv() => "SIGINT",
-                    _ = h.recv() => "SIGHUP",
-                }
-            }
-            _ => std::future::pending::<&str>().await,
-        }
-    };
     tokio::pin!(stop);
     tokio::pin!(signal);
     loop {
@@ -132,6 +112,33 @@ pub async fn run(
     })?;
     tracing::info!("rigd stopped");
     Ok(rig)
+}
+
+/// Resolves with the signal's name on SIGTERM, SIGINT or SIGHUP (never when `!signals`).
+/// The handlers are installed now, not when the future is first polled. All three stop
+/// cleanly: SIGHUP (a closed terminal; there is no reload) must not kill the daemon with a
+/// session left `running` and the socket behind.
+fn stop_signals(signals: bool) -> impl std::future::Future<Output = &'static str> {
+    use tokio::signal::unix::{signal, SignalKind};
+    let handlers = signals.then(|| {
+        (
+            signal(SignalKind::terminate()),
+            signal(SignalKind::interrupt()),
+            signal(SignalKind::hangup()),
+        )
+    });
+    async move {
+        match handlers {
+            Some((Ok(mut t), Ok(mut i), Ok(mut h))) => {
+                tokio::select! {
+                    _ = t.recv() => "SIGTERM",
+                    _ = i.recv() => "SIGINT",
+                    _ = h.recv() => "SIGHUP",
+                }
+            }
+            _ => std::future::pending().await,
+        }
+    }
 }
 
 /// A daemon running on its own thread and runtime (the demo's, and tests').
