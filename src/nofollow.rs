@@ -31,7 +31,10 @@ fn symlink_error(path: &Path) -> io::Error {
 }
 
 fn errno(path: &Path, e: nix::errno::Errno) -> io::Error {
-    if e == nix::errno::Errno::ELOOP {
+    use nix::errno::Errno;
+    // O_NOFOLLOW on a symlink is ELOOP; with O_DIRECTORY (a folder on the way) ENOTDIR.
+    let link = || std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink());
+    if e == Errno::ELOOP || (e == Errno::ENOTDIR && link()) {
         return symlink_error(path);
     }
     io::Error::from(e)
