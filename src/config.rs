@@ -296,8 +296,8 @@ impl Default for PipelineConfig {
 
 /// Where the daemon listens and records: `[daemon]` in a config file, overridden by
 /// `rigd --socket/--data-root`, defaulted when neither says ([`DaemonSettings::default`]).
-/// `rigd` serves on these and `rigctl hw` checks this socket for a daemon holding the
-/// hardware, so both resolve it the same way ([`DaemonSettings::overridden`]).
+/// `rigd` serves on these (and locks them: `daemon::ownership`); `rigd` and `rigctl hw`
+/// lock the devices in `lock_dir`, so both resolve it the same way.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct DaemonSettings {

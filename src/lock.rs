@@ -156,7 +156,10 @@ fn open_lock_file(path: &Path) -> io::Result<(File, bool)> {
         let (file, writable) = match rw {
             Ok(f) => (f, true),
             Err(e) if matches!(e.raw_os_error(), Some(libc::EACCES | libc::EROFS)) => {
-                let ro = OpenOptions::new().read(true).custom_flags(flags).open(path)?;
+                let ro = OpenOptions::new()
+                    .read(true)
+                    .custom_flags(flags)
+                    .open(path)?;
                 (ro, false)
             }
             Err(e) if e.kind() == io::ErrorKind::NotFound => {

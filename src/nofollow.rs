@@ -44,7 +44,8 @@ fn errno(path: &Path, e: nix::errno::Errno) -> io::Error {
 /// last component on; the file must be a regular file.
 pub fn open_in(dir: &Path, rel: &Path, access: Access) -> io::Result<File> {
     let folder = OFlag::O_RDONLY | OFlag::O_DIRECTORY | OFlag::O_NOFOLLOW | OFlag::O_CLOEXEC;
-    let mut fd: OwnedFd = nix::fcntl::open(dir, folder, Mode::empty()).map_err(|e| errno(dir, e))?;
+    let mut fd: OwnedFd =
+        nix::fcntl::open(dir, folder, Mode::empty()).map_err(|e| errno(dir, e))?;
     let names: Vec<_> = rel.components().collect();
     let mut at = dir.to_path_buf();
     for (i, c) in names.iter().enumerate() {
@@ -102,7 +103,10 @@ pub fn create_dir(path: &Path) -> io::Result<()> {
             } else if ft.is_dir() {
                 Ok(())
             } else {
-                Err(io::Error::other(format!("{}: not a folder", path.display())))
+                Err(io::Error::other(format!(
+                    "{}: not a folder",
+                    path.display()
+                )))
             }
         }
         Err(e) => Err(e),
@@ -124,7 +128,11 @@ mod tests {
         std::fs::write(s.join("frames/000000.png"), b"inside").unwrap();
         assert_eq!(read_in(&s, "frames/000000.png").unwrap(), b"inside");
         // The file, a folder on the way, and the session folder itself, each a symlink.
-        symlink(outside.path().join("secret.png"), s.join("frames/000001.png")).unwrap();
+        symlink(
+            outside.path().join("secret.png"),
+            s.join("frames/000001.png"),
+        )
+        .unwrap();
         symlink(outside.path(), s.join("images")).unwrap();
         symlink(&s, d.path().join("link")).unwrap();
         for (dir, rel) in [
@@ -133,7 +141,10 @@ mod tests {
             (d.path().join("link"), "frames/000000.png"),
         ] {
             let e = read_in(&dir, rel).unwrap_err().to_string();
-            assert!(e.contains("a symbolic link: not followed"), "{dir:?} {rel}: {e}");
+            assert!(
+                e.contains("a symbolic link: not followed"),
+                "{dir:?} {rel}: {e}"
+            );
         }
         assert!(read_in(&s, "../s/frames/000000.png").is_err());
     }

@@ -9,8 +9,8 @@ mod support;
 
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::{self, Session, SessionState, MANIFEST};
 use rigd::daemon::session::Manifest;
+use rigd::daemon::session::{self, Session, SessionState, MANIFEST};
 use std::os::unix::fs::{symlink, PermissionsExt};
 use std::path::{Path, PathBuf};
 use support::adversary::Logged;
@@ -45,7 +45,10 @@ fn mark_running(dir: &Path) {
 fn start(dir: &Path) -> (Logged, PathBuf) {
     let (sock, data) = (dir.join("a.sock"), dir.join("data"));
     let args = ["--sim", "--socket", s(&sock), "--data-root", s(&data)];
-    (Logged::spawn(&args, &[], &sock, &dir.join("rigd.log")), sock)
+    (
+        Logged::spawn(&args, &[], &sock, &dir.join("rigd.log")),
+        sock,
+    )
 }
 
 #[test]
@@ -83,21 +86,31 @@ fn recovery_never_writes_through_planted_symlinks_and_removes_leftovers() {
     // A is marked incomplete in a real file; its leftovers are gone, the planted link kept.
     let ma = std::fs::symlink_metadata(a.join(MANIFEST)).unwrap();
     assert!(ma.file_type().is_file());
-    assert_eq!(Session::open(&a).unwrap().manifest.state, SessionState::Incomplete);
+    assert_eq!(
+        Session::open(&a).unwrap().manifest.state,
+        SessionState::Incomplete
+    );
     assert!(!a.join("frames/.000001.png.tmp").exists());
     assert!(!a.join(".steps.csv.tmp").exists());
     assert!(!a.join(".manifest.json.tmp").exists());
-    assert!(std::fs::symlink_metadata(&planted_tmp).unwrap().file_type().is_symlink());
+    assert!(std::fs::symlink_metadata(&planted_tmp)
+        .unwrap()
+        .file_type()
+        .is_symlink());
     // Each skipped entry is logged with its path and why.
     let log = d.log_text();
     for p in [&b_link, &planted_tmp] {
         assert!(
-            log.lines().any(|l| l.contains("skipped at recovery") && l.contains(s(p))),
+            log.lines()
+                .any(|l| l.contains("skipped at recovery") && l.contains(s(p))),
             "{p:?} not logged: {log}"
         );
     }
     // B is no session of this daemon's.
-    let list = Client::connect(&sock).unwrap().request(&Request::List).unwrap();
+    let list = Client::connect(&sock)
+        .unwrap()
+        .request(&Request::List)
+        .unwrap();
     let listed: Vec<&str> = list["sessions"]
         .as_array()
         .unwrap()
@@ -128,7 +141,10 @@ fn a_replay_never_reads_a_frame_through_a_symlink() {
     let (_, events) = support::daemon::run_request(&mut c, &req);
     match events.last() {
         Some(EventBody::Failed { reason, .. }) => {
-            assert!(reason.contains("000001.png: a symbolic link: not followed"), "{reason}")
+            assert!(
+                reason.contains("000001.png: a symbolic link: not followed"),
+                "{reason}"
+            )
         }
         other => panic!("the replay read through the symlink: {other:?}"),
     }
@@ -150,11 +166,22 @@ fn the_socket_is_0600_without_a_group_and_0660_with_one() {
     assert_eq!(mode, 0o600, "{mode:o}");
     assert!(d.stop_with(libc::SIGTERM).success());
     // With [daemon] group (gid 0's group exists on every Linux): group read-write.
-    let group = nix::unistd::Group::from_gid(0.into()).unwrap().unwrap().name;
+    let group = nix::unistd::Group::from_gid(0.into())
+        .unwrap()
+        .unwrap()
+        .name;
     let cfg = dir.path().join("rig.toml");
     std::fs::write(&cfg, format!("[daemon]\ngroup = \"{group}\"\n")).unwrap();
     let data = dir.path().join("data");
-    let args = ["--sim", "--config", s(&cfg), "--socket", s(&sock), "--data-root", s(&data)];
+    let args = [
+        "--sim",
+        "--config",
+        s(&cfg),
+        "--socket",
+        s(&sock),
+        "--data-root",
+        s(&data),
+    ];
     let mut d = Logged::spawn(&args, &[], &sock, &dir.path().join("g.log"));
     let mode = std::fs::metadata(&sock).unwrap().permissions().mode() & 0o777;
     assert_eq!(mode, 0o660, "{mode:o}");

@@ -63,7 +63,10 @@ fn quiet(grbl: &GrblSim) -> u64 {
         if grbl.bytes_received() == n {
             return n;
         }
-        assert!(t.elapsed() < Duration::from_secs(10), "the axis never went quiet");
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "the axis never went quiet"
+        );
     }
 }
 
@@ -96,7 +99,14 @@ fn a_second_instance_sends_no_byte_and_changes_nothing() {
     let cfg = write_config(dir.path(), &grbl.path());
     let (sock, data) = (dir.path().join("a.sock"), dir.path().join("data"));
     let first = Logged::spawn(
-        &["--config", s(&cfg), "--socket", s(&sock), "--data-root", s(&data)],
+        &[
+            "--config",
+            s(&cfg),
+            "--socket",
+            s(&sock),
+            "--data-root",
+            s(&data),
+        ],
         &[],
         &sock,
         &dir.path().join("first.log"),
@@ -114,29 +124,82 @@ fn a_second_instance_sends_no_byte_and_changes_nothing() {
     let rigctl = env!("CARGO_BIN_EXE_rigctl");
     // (program, args, what the one line names)
     let attempts: Vec<(&str, Vec<&str>, String)> = vec![
-        (rigd, vec!["--config", s(&cfg), "--socket", s(&sock), "--data-root", s(&data)],
-            format!("socket {} {held_by}", sock.display())),
-        (rigd, vec!["--config", s(&cfg), "--socket", s(&b), "--data-root", s(&data)],
-            format!("data root {} {held_by}", data.display())),
-        (rigd, vec!["--config", s(&cfg), "--socket", s(&c_sock), "--data-root", s(&other_data)],
-            format!("[axis] port {} {held_by}", port.display())),
-        (rigd, vec!["--sim", "--socket", s(&d), "--data-root", s(&data)],
-            format!("data root {} {held_by}", data.display())),
-        (rigd, vec!["--sim", "--socket", s(&sock), "--data-root", s(&other_data)],
-            format!("socket {} {held_by}", sock.display())),
-        (rigctl, vec!["hw", "--config", s(&cfg), "position"],
-            format!("[axis] port {} {held_by}", port.display())),
+        (
+            rigd,
+            vec![
+                "--config",
+                s(&cfg),
+                "--socket",
+                s(&sock),
+                "--data-root",
+                s(&data),
+            ],
+            format!("socket {} {held_by}", sock.display()),
+        ),
+        (
+            rigd,
+            vec![
+                "--config",
+                s(&cfg),
+                "--socket",
+                s(&b),
+                "--data-root",
+                s(&data),
+            ],
+            format!("data root {} {held_by}", data.display()),
+        ),
+        (
+            rigd,
+            vec![
+                "--config",
+                s(&cfg),
+                "--socket",
+                s(&c_sock),
+                "--data-root",
+                s(&other_data),
+            ],
+            format!("[axis] port {} {held_by}", port.display()),
+        ),
+        (
+            rigd,
+            vec!["--sim", "--socket", s(&d), "--data-root", s(&data)],
+            format!("data root {} {held_by}", data.display()),
+        ),
+        (
+            rigd,
+            vec!["--sim", "--socket", s(&sock), "--data-root", s(&other_data)],
+            format!("socket {} {held_by}", sock.display()),
+        ),
+        (
+            rigctl,
+            vec!["hw", "--config", s(&cfg), "position"],
+            format!("[axis] port {} {held_by}", port.display()),
+        ),
     ];
     for (program, args, names) in &attempts {
         let (st, stderr) = run_to_end(program, args, &[]);
         assert!(!st.success(), "{args:?} started: {stderr}");
-        assert_eq!(stderr.trim().lines().count(), 1, "{args:?}: one line: {stderr}");
-        assert!(last_line(&stderr).contains(names.as_str()), "{args:?}: {stderr}");
-        assert_eq!(grbl.bytes_received(), bytes, "{args:?} talked to the controller");
+        assert_eq!(
+            stderr.trim().lines().count(),
+            1,
+            "{args:?}: one line: {stderr}"
+        );
+        assert!(
+            last_line(&stderr).contains(names.as_str()),
+            "{args:?}: {stderr}"
+        );
+        assert_eq!(
+            grbl.bytes_received(),
+            bytes,
+            "{args:?} talked to the controller"
+        );
         assert!(snapshot(&data) == before, "{args:?} changed the data root");
     }
     // The first daemon never noticed: its job is still in its settle and cancels normally.
-    assert!(matches!(cancel_and_end(&mut c, id), EventBody::Cancelled { .. }));
+    assert!(matches!(
+        cancel_and_end(&mut c, id),
+        EventBody::Cancelled { .. }
+    ));
     let m = Session::open(&data.join(&session)).unwrap().manifest;
     assert_eq!(m.state, SessionState::Cancelled, "{:?}", m.reason);
 }
@@ -153,8 +216,14 @@ fn rigd_honours_a_lock_taken_by_rigctl_hw() {
     let real = std::fs::canonicalize(grbl.path()).unwrap();
     let _held = LockFile::acquire(&device_lock_path(&locks, &real), "port", &me, "").unwrap();
     let (sock, data) = (dir.path().join("a.sock"), dir.path().join("data"));
-    let (st, stderr) =
-        rigd_to_end(&["--config", s(&cfg), "--socket", s(&sock), "--data-root", s(&data)]);
+    let (st, stderr) = rigd_to_end(&[
+        "--config",
+        s(&cfg),
+        "--socket",
+        s(&sock),
+        "--data-root",
+        s(&data),
+    ]);
     assert!(!st.success());
     let pid = std::process::id();
     assert!(
@@ -172,9 +241,7 @@ fn rigd_honours_a_lock_taken_by_rigctl_hw() {
 fn nothing_but_a_stale_socket_is_removed_at_the_socket_path() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    let start = |sock: &Path| {
-        rigd_to_end(&["--sim", "--socket", s(sock), "--data-root", s(&data)])
-    };
+    let start = |sock: &Path| rigd_to_end(&["--sim", "--socket", s(sock), "--data-root", s(&data)]);
     // A regular file, a symlink to one, a folder: each refused, each left as it was.
     let file = dir.path().join("file.sock");
     std::fs::write(&file, b"not a socket").unwrap();
@@ -182,11 +249,18 @@ fn nothing_but_a_stale_socket_is_removed_at_the_socket_path() {
     std::os::unix::fs::symlink(&file, &link).unwrap();
     let folder = dir.path().join("folder.sock");
     std::fs::create_dir(&folder).unwrap();
-    for (p, kind) in [(&file, "a regular file"), (&link, "a symbolic link"), (&folder, "a folder")] {
+    for (p, kind) in [
+        (&file, "a regular file"),
+        (&link, "a symbolic link"),
+        (&folder, "a folder"),
+    ] {
         let (st, stderr) = start(p);
         assert!(!st.success());
         assert!(
-            last_line(&stderr).contains(&format!("socket {}: exists and is {kind}: left alone", p.display())),
+            last_line(&stderr).contains(&format!(
+                "socket {}: exists and is {kind}: left alone",
+                p.display()
+            )),
             "{stderr}"
         );
     }
@@ -212,7 +286,11 @@ fn nothing_but_a_stale_socket_is_removed_at_the_socket_path() {
         &dir.path().join("rigd.log"),
     );
     assert!(d.stop_with(libc::SIGTERM).success());
-    assert!(d.log_text().contains("removing a stale socket"), "{}", d.log_text());
+    assert!(
+        d.log_text().contains("removing a stale socket"),
+        "{}",
+        d.log_text()
+    );
 }
 
 #[test]
@@ -226,20 +304,38 @@ fn demo_never_submits_to_a_daemon_it_did_not_start() {
         &dir.path().join("rigd.log"),
     );
     let demo_data = dir.path().join("demo");
-    let args = ["demo", "--socket", s(&sock), "--data-root", s(&demo_data), "--repeats", "1"];
+    let args = [
+        "demo",
+        "--socket",
+        s(&sock),
+        "--data-root",
+        s(&demo_data),
+        "--repeats",
+        "1",
+    ];
     let (st, stderr) = run_to_end(env!("CARGO_BIN_EXE_rigctl"), &args, &[]);
     assert!(!st.success());
-    assert!(last_line(&stderr).contains(&format!("socket {} is held by rigd", sock.display())), "{stderr}");
+    assert!(
+        last_line(&stderr).contains(&format!("socket {} is held by rigd", sock.display())),
+        "{stderr}"
+    );
     assert!(!demo_data.exists(), "the demo started before refusing");
     // The daemon that was there ran nothing.
-    let list = Client::connect(&sock).unwrap().request(&Request::List).unwrap();
+    let list = Client::connect(&sock)
+        .unwrap()
+        .request(&Request::List)
+        .unwrap();
     assert_eq!(list["jobs"].as_array().map(Vec::len), Some(0), "{list}");
     assert_eq!(list["sessions"].as_array().map(Vec::len), Some(0), "{list}");
 }
 
 #[test]
 fn sighup_sigint_and_sigterm_all_stop_cleanly() {
-    for (sig, name) in [(libc::SIGHUP, "SIGHUP"), (libc::SIGINT, "SIGINT"), (libc::SIGTERM, "SIGTERM")] {
+    for (sig, name) in [
+        (libc::SIGHUP, "SIGHUP"),
+        (libc::SIGINT, "SIGINT"),
+        (libc::SIGTERM, "SIGTERM"),
+    ] {
         let dir = tempfile::tempdir().unwrap();
         let (sock, data) = (dir.path().join("a.sock"), dir.path().join("data"));
         let args = ["--sim", "--socket", s(&sock), "--data-root", s(&data)];
@@ -250,11 +346,19 @@ fn sighup_sigint_and_sigterm_all_stop_cleanly() {
         let st = d.stop_with(sig);
         assert!(st.success(), "{name}: {st}");
         // The job was in a 30 s settle: it stopped at once, not after it.
-        assert!(t.elapsed() < Duration::from_secs(10), "{name}: {:?}", t.elapsed());
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "{name}: {:?}",
+            t.elapsed()
+        );
         assert!(!sock.exists(), "{name}: the socket is left behind");
         let m = Session::open(&data.join(&session)).unwrap().manifest;
         assert_eq!(m.state, SessionState::Cancelled, "{name}: {:?}", m.reason);
-        assert!(d.log_text().contains(&format!("signal=\"{name}\"")), "{}", d.log_text());
+        assert!(
+            d.log_text().contains(&format!("signal=\"{name}\"")),
+            "{}",
+            d.log_text()
+        );
         // The locks went with the daemon: the same socket and data root serve again.
         let mut again = Logged::spawn(&args, &[], &sock, &dir.path().join("again.log"));
         assert!(again.stop_with(libc::SIGTERM).success());

@@ -116,11 +116,7 @@ impl Ownership {
         devices: &[Device],
         program: &str,
     ) -> Result<Ownership, OwnershipError> {
-        let me = Holder::me(
-            program,
-            Some(&settings.socket),
-            Some(&settings.data_root),
-        );
+        let me = Holder::me(program, Some(&settings.socket), Some(&settings.data_root));
         let socket = &settings.socket;
         if let Some(dir) = socket.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).map_err(|source| OwnershipError::Io {
@@ -252,13 +248,25 @@ mod tests {
         let e = Ownership::claim(&settings(d.path(), "a.sock", "other"), &[], "rigd")
             .unwrap_err()
             .to_string();
-        assert!(e.starts_with(&format!("socket {} is held by rigd (pid ", d.path().join("a.sock").display())), "{e}");
+        assert!(
+            e.starts_with(&format!(
+                "socket {} is held by rigd (pid ",
+                d.path().join("a.sock").display()
+            )),
+            "{e}"
+        );
         // The refused claim never reached the other data root.
         assert!(!d.path().join("other").exists());
         let e = Ownership::claim(&settings(d.path(), "b.sock", "data"), &[], "rigd")
             .unwrap_err()
             .to_string();
-        assert!(e.starts_with(&format!("data root {} is held by", d.path().join("data").display())), "{e}");
+        assert!(
+            e.starts_with(&format!(
+                "data root {} is held by",
+                d.path().join("data").display()
+            )),
+            "{e}"
+        );
         drop(first);
         Ownership::claim(&settings(d.path(), "b.sock", "data"), &[], "rigd").unwrap();
     }
@@ -274,12 +282,16 @@ mod tests {
             key: "[axis] port".into(),
             path: p.display().to_string(),
         };
-        let first = Ownership::claim(&settings(d.path(), "a.sock", "a"), &[dev(&link)], "rigd").unwrap();
+        let first =
+            Ownership::claim(&settings(d.path(), "a.sock", "a"), &[dev(&link)], "rigd").unwrap();
         // Another daemon naming the node itself, not the link, is refused all the same.
         let e = Ownership::claim(&settings(d.path(), "b.sock", "b"), &[dev(&real)], "rigd")
             .unwrap_err()
             .to_string();
-        assert!(e.starts_with(&format!("[axis] port {} is held by rigd", real.display())), "{e}");
+        assert!(
+            e.starts_with(&format!("[axis] port {} is held by rigd", real.display())),
+            "{e}"
+        );
         drop(first);
     }
 
@@ -295,7 +307,10 @@ mod tests {
         let live = std::os::unix::net::UnixListener::bind(&p).unwrap();
         let e = clear_socket_path(&p).unwrap_err().to_string();
         let pid = std::process::id();
-        assert!(e.contains(&format!("another daemon (pid {pid}) is listening")), "{e}");
+        assert!(
+            e.contains(&format!("another daemon (pid {pid}) is listening")),
+            "{e}"
+        );
         drop(live); // the socket file stays, nobody listens: stale
         clear_socket_path(&p).unwrap();
         assert!(!p.exists());

@@ -16,8 +16,8 @@ use crate::acquisition::outcome::EndDetail;
 use crate::acquisition::plan::Plan;
 use crate::acquisition::JobSpec;
 use crate::atomic_file::{self, AtomicWriteError};
-use crate::nofollow::{self, Access};
 use crate::daemon::protocol::PROTOCOL_VERSION;
+use crate::nofollow::{self, Access};
 use crate::rig::{LogSample, LogSource, RigInfo};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
@@ -214,8 +214,8 @@ impl SessionWriter {
         };
         let steps_path = dir.join(STEPS);
         write_atomic(&steps_path, STEPS_HEADER.as_bytes())?;
-        let steps = nofollow::open_in(&dir, Path::new(STEPS), Access::Append)
-            .map_err(io(&steps_path))?;
+        let steps =
+            nofollow::open_in(&dir, Path::new(STEPS), Access::Append).map_err(io(&steps_path))?;
         let mut w = SessionWriter {
             dir,
             manifest,
@@ -257,9 +257,10 @@ impl SessionWriter {
         let path = self.dir.join(INTERFEROMETER);
         write_atomic(&path, INTERFEROMETER_HEADER.as_bytes())?;
         sync_dir(&self.dir)?;
-        self.log =
-            Some(nofollow::open_in(&self.dir, Path::new(INTERFEROMETER), Access::Append)
-                .map_err(io(&path))?);
+        self.log = Some(
+            nofollow::open_in(&self.dir, Path::new(INTERFEROMETER), Access::Append)
+                .map_err(io(&path))?,
+        );
         self.manifest.interferometer = Some(source);
         self.write_manifest()
     }
@@ -461,9 +462,10 @@ pub fn scan(data_root: &Path) -> (Vec<Session>, Vec<(PathBuf, String)>) {
         let path = e.path();
         // DirEntry::file_type does not follow a symlink.
         match e.file_type() {
-            Ok(t) if t.is_symlink() => {
-                skipped.push((path, "a symbolic link: not followed out of the data root".into()))
-            }
+            Ok(t) if t.is_symlink() => skipped.push((
+                path,
+                "a symbolic link: not followed out of the data root".into(),
+            )),
             Ok(t) if t.is_dir() => match Session::open(&path) {
                 Ok(s) => v.push(s),
                 // A folder without a manifest is not a session (nothing to say).
@@ -538,10 +540,16 @@ fn remove_leftovers(session: &Path) {
             let path = e.path();
             match e.file_type() {
                 Ok(t) if t.is_file() => match fs::remove_file(&path) {
-                    Ok(()) => tracing::info!(path = %path.display(), "removed a leftover temporary"),
-                    Err(err) => tracing::warn!(path = %path.display(), error = %err, "cannot remove a leftover temporary"),
+                    Ok(()) => {
+                        tracing::info!(path = %path.display(), "removed a leftover temporary")
+                    }
+                    Err(err) => {
+                        tracing::warn!(path = %path.display(), error = %err, "cannot remove a leftover temporary")
+                    }
                 },
-                _ => tracing::warn!(path = %path.display(), "skipped at recovery: not a regular file"),
+                _ => {
+                    tracing::warn!(path = %path.display(), "skipped at recovery: not a regular file")
+                }
             }
         }
     }

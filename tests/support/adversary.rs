@@ -116,7 +116,13 @@ pub fn snapshot(dir: &Path) -> Snapshot {
             let m = std::fs::symlink_metadata(&p).unwrap();
             let t = m.file_type();
             let (kind, body) = if t.is_symlink() {
-                ("link", std::fs::read_link(&p).unwrap().into_os_string().into_encoded_bytes())
+                (
+                    "link",
+                    std::fs::read_link(&p)
+                        .unwrap()
+                        .into_os_string()
+                        .into_encoded_bytes(),
+                )
             } else if t.is_dir() {
                 todo.push(p.clone());
                 ("dir", Vec::new())
@@ -131,5 +137,9 @@ pub fn snapshot(dir: &Path) -> Snapshot {
 
 /// The last non-empty line of a process's stderr (a refusal is one line).
 pub fn last_line(stderr: &str) -> &str {
-    stderr.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("")
+    stderr
+        .lines()
+        .rev()
+        .find(|l| !l.trim().is_empty())
+        .unwrap_or("")
 }
