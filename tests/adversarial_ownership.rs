@@ -397,3 +397,47 @@ fn systemd_hears_ready_once_the_socket_is_bound_and_logs_are_plain() {
     assert!(text.contains("rigd listening"), "{text}");
     assert!(!text.contains('\x1b'), "ANSI escapes in the log: {text:?}");
 }
+
+/// Below rigd's own locks, the port itself is opened exclusively by the real serialport
+/// path: TIOCEXCL on the tty (which root bypasses) and an `flock` on it (which root does not).
+#[test]
+fn the_daemons_port_is_opened_with_tiocexcl_and_an_flock() {
+    use std::os::fd::AsRawFd;
+    use std::os::unix::fs::OpenOptionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let (_axis, grbl) = fast_grbl();
+    let cfg = write_config(dir.path(), &grbl.path());
+    let (sock, data) = (dir.path().join("a.sock"), dir.path().join("data"));
+    let args = [
+        "--config",
+        s(&cfg),
+        "--socket",
+        s(&sock),
+        "--data-root",
+        s(&data),
+    ];
+    let _d = Logged::spawn(&args, &[], &sock, &dir.path().join("rigd.log"));
+    // Root may still open the tty (TIOCEXCL does not stop root); it reads the tty's flag.
+    let f = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .custom_flags(libc::O_NOCTTY | libc::O_NONBLOCK)
+        .open(grbl.path())
+        .unwrap();
+    let mut excl: libc::c_int = 0;
+    // SAFETY: TIOCGEXCL writes one int through the pointer; the fd is open.
+    let r = unsafe { libc::ioctl(f.as_raw_fd(), libc::TIOCGEXCL, &mut excl) };
+    assert_eq!(
+        (r, excl),
+        (0, 1),
+        "TIOCEXCL is not set on the daemon's port"
+    );
+    // SAFETY: flock on an open fd.
+    let r = unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+    let errno = std::io::Error::last_os_error().raw_os_error();
+    assert_eq!(
+        (r, errno),
+        (-1, Some(libc::EWOULDBLOCK)),
+        "the port is not flock'ed"
+    );
+}

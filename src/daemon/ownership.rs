@@ -296,6 +296,44 @@ mod tests {
     }
 
     #[test]
+    fn the_devices_of_a_config_are_its_serial_ports_and_a_camera_path() {
+        let text = r#"
+[axis]
+driver = "grbl"
+port = "/dev/serial/by-id/usb-grbl"
+soft_min_um = 0.0
+soft_max_um = 1.0
+max_step_um = 1.0
+[piezo]
+driver = "sim"
+port = "/dev/ttyUSB9"
+soft_min_um = 0.0
+soft_max_um = 1.0
+max_step_um = 1.0
+[camera]
+driver = "v4l2"
+device = "/dev/video0"
+"#;
+        let cfg = Config::from_toml_str(text, Path::new("/etc/rigd/rigd.toml")).unwrap();
+        let keys: Vec<(String, String)> = devices_of(&cfg)
+            .into_iter()
+            .map(|d| (d.key, d.path))
+            .collect();
+        // A sim piezo opens no port, whatever its `port` says.
+        assert_eq!(
+            keys,
+            [
+                ("[axis] port".into(), "/dev/serial/by-id/usb-grbl".into()),
+                ("[camera] device".into(), "/dev/video0".into()),
+            ]
+        );
+        // A camera given by name is found at open time: no path to lock.
+        let by_name = text.replace("/dev/video0", "USB Camera");
+        let cfg = Config::from_toml_str(&by_name, Path::new("/etc/rigd/rigd.toml")).unwrap();
+        assert_eq!(devices_of(&cfg).len(), 1);
+    }
+
+    #[test]
     fn only_a_stale_socket_is_removed() {
         let d = tempfile::tempdir().unwrap();
         let p = d.path().join("s.sock");
