@@ -146,7 +146,8 @@ fn a_second_instance_sends_no_byte_and_changes_nothing() {
                 "--data-root",
                 s(&data),
             ],
-            format!("data root {} {held_by}", data.display()),
+            // The port's lock comes before the data root's.
+            format!("[axis] port {} {held_by}", port.display()),
         ),
         (
             rigd,
@@ -194,6 +195,7 @@ fn a_second_instance_sends_no_byte_and_changes_nothing() {
             "{args:?} talked to the controller"
         );
         assert!(snapshot(&data) == before, "{args:?} changed the data root");
+        assert!(!other_data.exists(), "{args:?} created its data root");
     }
     // The first daemon never noticed: its job is still in its settle and cancels normally.
     assert!(matches!(

@@ -8,10 +8,11 @@
 //! 2. the socket path: a live socket (an old daemon that takes no lock) is refused naming
 //!    its pid; anything that is not a socket is refused and left alone; only a stale
 //!    socket is removed;
-//! 3. the data root's lock, `<data_root>/.rigd.lock`: sessions, recovery and job ids have
-//!    one writer;
-//! 4. each device the config names (serial ports, a V4L2 camera path), in the shared lock
-//!    folder ([`crate::lock::lock_dir`]) under every name it goes by.
+//! 3. each device the config names (serial ports, a V4L2 camera path), in the shared lock
+//!    folder ([`crate::lock::lock_dir`]) under every name it goes by;
+//! 4. the data root's lock, `<data_root>/.rigd.lock`: sessions, recovery and job ids have
+//!    one writer. Last, so an instance refused for a device does not even create its
+//!    (new) data root.
 
 use crate::config::{CameraDriver, Config, DaemonSettings, StageDriver};
 use crate::lock::{device_lock_path, device_names, lock_dir, Holder, LockError, LockFile};
@@ -74,6 +75,9 @@ pub fn lock_devices(
     holder: &Holder,
     hint: &str,
 ) -> Result<Vec<LockFile>, OwnershipError> {
+    if devices.is_empty() {
+        return Ok(Vec::new());
+    }
     std::fs::create_dir_all(dir).map_err(|source| OwnershipError::Io {
         what: "lock folder",
         path: dir.to_path_buf(),
@@ -132,6 +136,13 @@ impl Ownership {
             ": another daemon serves there (stop it, or give another --socket)",
         )?];
         clear_socket_path(socket)?;
+        let dir = lock_dir(settings.lock_dir.as_deref());
+        locks.extend(lock_devices(
+            &dir,
+            devices,
+            &me,
+            ": it owns the hardware (stop it first: `sudo systemctl stop rigd`)",
+        )?);
         let root = &settings.data_root;
         std::fs::create_dir_all(root).map_err(|source| OwnershipError::Io {
             what: "data root",
@@ -143,13 +154,6 @@ impl Ownership {
             &format!("data root {}", root.display()),
             &me,
             ": one daemon per data root (stop it, or give another --data-root)",
-        )?);
-        let dir = lock_dir(settings.lock_dir.as_deref());
-        locks.extend(lock_devices(
-            &dir,
-            devices,
-            &me,
-            ": it owns the hardware (stop it first: `sudo systemctl stop rigd`)",
         )?);
         Ok(Ownership {
             settings: settings.clone(),
