@@ -8,6 +8,8 @@
 //!
 //! A failure removes the temporary file (a write that filled the disk leaves no partial file
 //! taking the space), and the error names the file that was not written, not the temporary.
+//! Temporaries are created with O_EXCL|O_NOFOLLOW, so a symlink planted at a temporary's
+//! name is removed, never written through; the rename replaces a symlink at the final name.
 
 use std::fs;
 use std::io::{self, Write};
@@ -54,13 +56,40 @@ pub fn stage(path: &Path, bytes: &[u8]) -> Result<Staged, AtomicWriteError> {
         committed: false,
     };
     // On an error `staged` drops here, removing what was written of the temporary.
-    fs::File::create(&staged.tmp)
+    create_temp(&staged.tmp)
         .and_then(|mut f| {
             f.write_all(bytes)?;
             f.sync_all()
         })
         .map_err(fail(path, "cannot write"))?;
     Ok(staged)
+}
+
+/// Create the temporary afresh (O_EXCL: never through a symlink planted at its name, never
+/// into someone else's file). Something already there is a leftover (a crash mid-write) or
+/// was planted: the name is ours, so it is unlinked (a symlink itself, never its target)
+/// and the file created again.
+fn create_temp(tmp: &Path) -> io::Result<fs::File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let create = || {
+        fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .custom_flags(libc::O_NOFOLLOW | libc::O_CLOEXEC)
+            .open(tmp)
+    };
+    match create() {
+        Err(e) if e.kind() == io::ErrorKind::AlreadyExists => {
+            let kind = fs::symlink_metadata(tmp)?.file_type();
+            if kind.is_dir() {
+                return Err(e);
+            }
+            tracing::warn!(path = %tmp.display(), symlink = kind.is_symlink(), "removing a leftover temporary before writing");
+            fs::remove_file(tmp)?;
+            create()
+        }
+        r => r,
+    }
 }
 
 impl Staged {
@@ -125,6 +154,24 @@ mod tests {
         assert_eq!(a.commit().unwrap(), d.path().join("a.png"));
         drop(b);
         assert_eq!(names(d.path()), ["a.png"]);
+    }
+
+    #[test]
+    fn a_planted_temporary_symlink_is_replaced_not_written_through() {
+        let d = tempfile::tempdir().unwrap();
+        let outside = tempfile::tempdir().unwrap();
+        let victim = outside.path().join("victim.json");
+        fs::write(&victim, b"precious").unwrap();
+        let p = d.path().join("manifest.json");
+        std::os::unix::fs::symlink(&victim, d.path().join(".manifest.json.tmp")).unwrap();
+        write(&p, b"{}").unwrap();
+        assert_eq!(fs::read(&victim).unwrap(), b"precious");
+        assert_eq!(fs::read(&p).unwrap(), b"{}");
+        assert!(!fs::symlink_metadata(&p).unwrap().file_type().is_symlink());
+        // A leftover regular temporary (kill -9 mid-write) is replaced too.
+        fs::write(d.path().join(".manifest.json.tmp"), b"half").unwrap();
+        write(&p, b"{\"a\":1}").unwrap();
+        assert_eq!(names(d.path()), ["manifest.json"]);
     }
 
     #[test]

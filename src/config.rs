@@ -300,8 +300,8 @@ impl Default for PipelineConfig {
 
 /// Where the daemon listens and records: `[daemon]` in a config file, overridden by
 /// `rigd --socket/--data-root`, defaulted when neither says ([`DaemonSettings::default`]).
-/// `rigd` serves on these and `rigctl hw` checks this socket for a daemon holding the
-/// hardware, so both resolve it the same way ([`DaemonSettings::overridden`]).
+/// `rigd` serves on these (and locks them: `daemon::ownership`); `rigd` and `rigctl hw`
+/// lock the devices in `lock_dir`, so both resolve it the same way.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct DaemonSettings {
@@ -311,6 +311,9 @@ pub struct DaemonSettings {
     pub group: Option<String>,
     /// Where sessions are recorded.
     pub data_root: PathBuf,
+    /// Where the serial devices' locks live, shared with `rigctl hw` (default: /run/lock
+    /// when writable, else $XDG_RUNTIME_DIR, else /tmp: see `lock::lock_dir`).
+    pub lock_dir: Option<PathBuf>,
 }
 
 impl Default for DaemonSettings {
@@ -320,6 +323,7 @@ impl Default for DaemonSettings {
             socket: default_socket(),
             group: None,
             data_root: PathBuf::from("rigd-sessions"),
+            lock_dir: None,
         }
     }
 }

@@ -6,6 +6,8 @@
 //!   the target boards; re-exported from the `rigd-core` crate.
 //! - `folder`: the `rigctl process` folder contract (frames/*.png + steps.csv).
 //! - `atomic_file`: files written whole or not at all (temporary name, sync, rename).
+//! - `nofollow`: opening files below a folder without following a symlink.
+//! - `lock`: exclusive flock'd lock files that name their holder (one owner per resource).
 //! - `report`: the paper's tables and figures from repeated runs.
 //! - `hw`: hardware drivers (GRBL axis, PI GCS piezo, V4L2 camera) and their options.
 //! - `rig`: the device traits, `Rig`/`RigInfo`, and the rig builders (config, sim, replay).
@@ -21,6 +23,8 @@ pub mod config;
 pub mod daemon;
 pub mod folder;
 pub mod hw;
+pub mod lock;
+pub mod nofollow;
 pub mod report;
 pub mod rig;
 pub mod xl80;

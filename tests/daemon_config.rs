@@ -152,18 +152,25 @@ fn rigd_takes_its_socket_and_data_root_from_the_command_line_over_the_file() {
     assert_eq!(hello["data_root"], data.display().to_string());
 }
 
-/// `rigctl hw` looks for a daemon where rigd binds with the same config: `[daemon] socket`.
+/// `rigctl hw` honours the device locks rigd holds with the same config (`[daemon]
+/// lock_dir`), and names the daemon: its pid and `[daemon] socket`.
 #[test]
-fn rigctl_hw_refuses_while_rigd_serves_the_configs_socket() {
+fn rigctl_hw_refuses_while_rigd_holds_the_configs_port() {
     let dir = tempfile::tempdir().unwrap();
+    let (_axis, grbl) = fast_grbl();
     let (cfg, socket, data) = (
         dir.path().join("rig.toml"),
         dir.path().join("file.sock"),
         dir.path().join("data"),
     );
+    // SIM_RIG_SMALL's camera with the emulator as a GRBL axis.
+    let camera = &SIM_RIG_SMALL[SIM_RIG_SMALL.find("[camera]").unwrap()..];
     let text = format!(
-        "{SIM_RIG_SMALL}[daemon]\nsocket = \"{}\"\n",
-        socket.display()
+        "[axis]\ndriver = \"grbl\"\nport = \"{}\"\nsoft_min_um = 0.0\nsoft_max_um = 1000.0\n\
+         max_step_um = 1000.0\n{camera}[daemon]\nsocket = \"{}\"\nlock_dir = \"{}\"\n",
+        grbl.path().display(),
+        socket.display(),
+        dir.path().join("locks").display()
     );
     std::fs::write(&cfg, text).unwrap();
     let args = [
@@ -172,7 +179,8 @@ fn rigctl_hw_refuses_while_rigd_serves_the_configs_socket() {
         "--data-root".as_ref(),
         data.as_os_str(),
     ];
-    let _rigd = RigdProcess::spawn(&args, &socket);
+    let rigd = RigdProcess::spawn(&args, &socket);
+    let pid = rigd.0.as_ref().unwrap().id();
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
         .args(["hw", "--config"])
         .arg(&cfg)
@@ -181,8 +189,6 @@ fn rigctl_hw_refuses_while_rigd_serves_the_configs_socket() {
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
-    assert!(
-        stderr.contains("rigd is running") && stderr.contains("file.sock"),
-        "{stderr}"
-    );
+    let held = format!("is held by rigd (pid {pid}, socket {}", socket.display());
+    assert!(stderr.contains(&held), "{stderr}");
 }

@@ -39,10 +39,11 @@ supersample = 2
 
 fn write_config(dir: &Path, text: &str) -> std::path::PathBuf {
     let p = dir.join("rigd.toml");
-    // No daemon here: point the socket into the temp dir.
+    // No daemon here: point the socket and the device locks into the temp dir.
     let text = format!(
-        "{text}\n[daemon]\nsocket = \"{}\"\n",
-        dir.join("rigd.sock").display()
+        "{text}\n[daemon]\nsocket = \"{}\"\nlock_dir = \"{}\"\n",
+        dir.join("rigd.sock").display(),
+        dir.join("locks").display()
     );
     std::fs::write(&p, text).unwrap();
     p
@@ -174,12 +175,28 @@ fn bad_config_and_running_daemon_are_refused() {
         stderr.contains("rigd.toml") && stderr.contains("speed"),
         "{stderr}"
     );
-    // Something answers on the socket: a daemon holds the hardware.
-    let cfg = write_config(dir.path(), SIM_CAMERA);
-    let _listener = std::os::unix::net::UnixListener::bind(dir.path().join("rigd.sock")).unwrap();
-    let (ok, _, stderr) = rigctl(&cfg, &["grab", "x.png"]);
+    // A daemon holds the axis port's lock (this test process stands in for it): refused
+    // before the port is opened, naming the holder.
+    let port = "/dev/nonexistent-tty-rigctl-hw";
+    let cfg = write_config(
+        dir.path(),
+        &format!("[axis]\ndriver = \"grbl\"\nport = \"{port}\"\nsoft_min_um = 0.0\nsoft_max_um = 1.0\nmax_step_um = 1.0\n"),
+    );
+    let locks = dir.path().join("locks");
+    std::fs::create_dir_all(&locks).unwrap();
+    let me = rigd::lock::Holder::me("rigd", Some(&dir.path().join("rigd.sock")), None);
+    let lock = rigd::lock::device_lock_path(&locks, Path::new(port));
+    let _held = rigd::lock::LockFile::acquire(&lock, "port", &me, "").unwrap();
+    let (ok, _, stderr) = rigctl(&cfg, &["position"]);
     assert!(!ok);
-    assert!(stderr.contains("rigd is running"), "{stderr}");
+    let pid = std::process::id();
+    assert!(
+        stderr.contains(&format!("[axis] port {port} is held by rigd (pid {pid}")),
+        "{stderr}"
+    );
+    // Commands that open no serial port take no port lock: the XL-80 summary still runs.
+    let (_, _, stderr) = rigctl(&cfg, &["xl80"]);
+    assert!(!stderr.contains("is held by"), "{stderr}");
 }
 
 #[test]

@@ -74,6 +74,10 @@ impl GcsSim {
     pub fn faults(&self) -> &Faults {
         self.served.faults()
     }
+    /// Bytes the emulator has received from clients (see [`Served::bytes_received`]).
+    pub fn bytes_received(&self) -> u64 {
+        self.served.bytes_received()
+    }
 }
 
 struct Gcs {

@@ -75,6 +75,10 @@ impl GrblSim {
     pub fn faults(&self) -> &Faults {
         self.served.faults()
     }
+    /// Bytes the emulator has received from clients (see [`Served::bytes_received`]).
+    pub fn bytes_received(&self) -> u64 {
+        self.served.bytes_received()
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -9,7 +9,7 @@ use crate::pty::{PollResult, Pty, PtyLink};
 use std::collections::VecDeque;
 use std::io;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -163,6 +163,8 @@ pub const GARBAGE: &[u8] = &[0xff, 0xfe, b'#', 0x00, b'%', 0x9c, b'q', 0x81, b'<
 pub struct Served {
     path: Arc<Mutex<PathBuf>>,
     faults: Faults,
+    /// Bytes read from clients so far: lets a test see that a process sent nothing.
+    received: Arc<AtomicU64>,
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
 }
@@ -175,6 +177,10 @@ impl Served {
     }
     pub fn faults(&self) -> &Faults {
         &self.faults
+    }
+    /// Bytes received from whoever opened the port, since the emulator started.
+    pub fn bytes_received(&self) -> u64 {
+        self.received.load(Ordering::SeqCst)
     }
     /// Stop serving and wait for the thread.
     pub fn shutdown(mut self) {
@@ -212,9 +218,11 @@ pub fn serve<C: Controller>(
     };
     let path = Arc::new(Mutex::new(shown));
     let stop = Arc::new(AtomicBool::new(false));
+    let received = Arc::new(AtomicU64::new(0));
     let mut lp = Loop {
         ctrl,
         faults: faults.clone(),
+        received: received.clone(),
         pty: Some(pty),
         link,
         path: path.clone(),
@@ -228,6 +236,7 @@ pub fn serve<C: Controller>(
     Ok(Served {
         path,
         faults,
+        received,
         stop,
         thread: Some(thread),
     })
@@ -236,6 +245,7 @@ pub fn serve<C: Controller>(
 struct Loop<C: Controller> {
     ctrl: C,
     faults: Faults,
+    received: Arc<AtomicU64>,
     pty: Option<Pty>,
     link: Option<PtyLink>,
     path: Arc<Mutex<PathBuf>>,
@@ -285,7 +295,10 @@ impl<C: Controller> Loop<C> {
                         self.ctrl.on_open(now, &mut out);
                     }
                     match pty.read(&mut buf) {
-                        Ok(n) if n > 0 => self.ctrl.on_bytes(&buf[..n], now, &mut out),
+                        Ok(n) if n > 0 => {
+                            self.received.fetch_add(n as u64, Ordering::SeqCst);
+                            self.ctrl.on_bytes(&buf[..n], now, &mut out)
+                        }
                         _ => {}
                     }
                 }

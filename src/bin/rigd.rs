@@ -4,7 +4,8 @@
 use anyhow::{bail, Context};
 use clap::Parser;
 use rigd::config::{Config, DaemonSettings};
-use rigd::daemon::server;
+use rigd::daemon::ownership::{devices_of, Device, Ownership};
+use rigd::daemon::{notify, server};
 use rigd::rig::Rig;
 use std::path::PathBuf;
 
@@ -37,11 +38,15 @@ struct Args {
 }
 
 fn main() -> std::process::ExitCode {
+    use std::io::IsTerminal;
+    // Colours only for a person at a terminal: journald and log files get plain text.
+    let ansi = std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
+        .with_ansi(ansi)
         .with_writer(std::io::stderr)
         .init();
     match run(Args::parse()) {
@@ -58,15 +63,33 @@ fn run(a: Args) -> anyhow::Result<()> {
     let cfg = a.config.as_ref().map(Config::load).transpose()?;
     let file = cfg.as_ref().map(|c| c.daemon.clone()).unwrap_or_default();
     let settings: DaemonSettings = file.overridden(a.socket.clone(), a.data_root.clone());
+    // Everything this daemon will own is claimed before the first byte to a controller and
+    // before recovery touches a session: a second instance stops here, having changed nothing.
+    let owner = Ownership::claim(&settings, &devices(&a, cfg.as_ref()), "rigd")?;
     let rig = open_rig(&a, cfg.as_ref())?;
     let rt = tokio::runtime::Runtime::new()?;
-    rt.block_on(server::run(
-        settings,
+    let rig = rt.block_on(server::run(
+        &owner,
         rig,
         std::future::pending::<()>(),
         true,
+        || notify::notify("READY=1"),
     ))?;
+    // The ports close before the locks are released.
+    drop(rig);
+    drop(owner);
     Ok(())
+}
+
+/// The devices the rig will open: none for `--sim` (its emulators are its own), else the
+/// config's.
+fn devices(a: &Args, cfg: Option<&Config>) -> Vec<Device> {
+    #[cfg(feature = "sim")]
+    if a.sim {
+        return Vec::new();
+    }
+    let _ = a;
+    cfg.map(devices_of).unwrap_or_default()
 }
 
 /// The rig to serve: `--sim`'s (the config then only sets the daemon's socket and data

@@ -9,6 +9,7 @@ use crate::acquisition::study::{tables, StudySummary};
 use crate::acquisition::{JobSpec, PaperCase};
 use crate::cli::client::{follow, report_end, Client};
 use crate::config::DaemonSettings;
+use crate::daemon::ownership::Ownership;
 use crate::daemon::protocol::Request;
 use crate::daemon::server;
 use crate::rig::{simulated, SimSettings};
@@ -18,7 +19,8 @@ use std::time::Instant;
 
 #[derive(clap::Args, Debug)]
 pub struct DemoArgs {
-    /// Socket of the demo's daemon (default: a temporary one).
+    /// Socket of the demo's daemon (default: a temporary one). Refused when a daemon
+    /// already serves there: the demo only ever submits to the daemon it starts.
     #[arg(long, value_name = "PATH")]
     pub socket: Option<PathBuf>,
     /// Where the session and the report are written.
@@ -49,16 +51,19 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     let socket = a.socket.clone().unwrap_or_else(|| {
         std::env::temp_dir().join(format!("rigd-demo-{}.sock", std::process::id()))
     });
-    std::fs::create_dir_all(&a.data_root)
-        .with_context(|| format!("creating {}", a.data_root.display()))?;
     let settings = DaemonSettings {
         socket: socket.clone(),
         group: None,
         data_root: a.data_root.clone(),
+        lock_dir: None,
     };
+    // Claimed before anything starts: when a daemon serves at --socket (or holds the data
+    // root) the demo stops here, and never submits the study to a rig it did not start.
+    let owner = Ownership::claim(&settings, &[], "rigctl demo")
+        .context("rigctl demo starts its own daemon")?;
     let sim = SimSettings::default();
     let scale = sim.camera.scale_um_per_px;
-    let mut daemon = server::Background::start(settings, simulated(&sim)?)?;
+    let mut daemon = server::Background::start_owned(owner, simulated(&sim)?)?;
     let mut c = Client::connect(&socket)?;
     c.request(&Request::Subscribe { job_id: None })?;
     let r = c.request(&Request::Submit {

@@ -1,9 +1,11 @@
 //! `rigctl hw`: talk to the configured hardware directly, to bring a rig up and check it
-//! before running jobs. Refuses while a daemon answers on the socket rigd would bind with
-//! this config (`[daemon] socket`, else the default; `--socket` for a daemon started with
-//! one): it owns the ports and the camera then.
+//! before running jobs. Takes the same device locks as rigd (`daemon::ownership`, in the
+//! config's `[daemon] lock_dir`) for the devices the command opens, so it is refused while
+//! a daemon (or another `rigctl hw`) owns them, and names who does.
 
 use crate::config::{Config, StageConfig};
+use crate::daemon::ownership::{devices_of, lock_devices};
+use crate::lock::{lock_dir, Holder, LockFile};
 use crate::rig::{open_camera, open_stage, HwError, Stage};
 use anyhow::{bail, Context};
 use std::path::PathBuf;
@@ -17,10 +19,6 @@ pub struct HwArgs {
     /// Address the piezo ([piezo]) instead of the axis ([axis]).
     #[arg(long)]
     pub piezo: bool,
-    /// The socket of a daemon that may hold the hardware, if it was started with
-    /// `--socket` (default: the one the config gives rigd).
-    #[arg(long, value_name = "PATH")]
-    pub socket: Option<PathBuf>,
     #[command(subcommand)]
     pub command: HwCommand,
 }
@@ -63,8 +61,8 @@ pub fn run(args: HwArgs) -> anyhow::Result<()> {
         return cameras();
     }
     let cfg = Config::load(&args.config)?;
-    refuse_if_daemon_running(&cfg, args.socket.clone())?;
     let section = if args.piezo { "piezo" } else { "axis" };
+    let _locks = lock_devices_for(&cfg, &args.command, section)?;
     let stage_cfg = || -> anyhow::Result<_> {
         let purpose = "talk to a stage";
         Ok(if args.piezo {
@@ -90,17 +88,32 @@ pub fn run(args: HwArgs) -> anyhow::Result<()> {
     }
 }
 
-fn refuse_if_daemon_running(cfg: &Config, socket: Option<PathBuf>) -> anyhow::Result<()> {
-    // The same resolution as rigd's: the command line, then [daemon], then the default.
-    let settings = cfg.daemon.clone().overridden(socket, None);
-    let sock = &settings.socket;
-    if std::os::unix::net::UnixStream::connect(sock).is_ok() {
-        bail!(
-            "rigd is running and owns the hardware (it answers on {}): stop it first (`sudo systemctl stop rigd`)",
-            sock.display()
-        );
-    }
-    Ok(())
+/// Lock the devices `command` opens (a probe: all of them), as rigd does; held until the
+/// command is done.
+fn lock_devices_for(
+    cfg: &Config,
+    command: &HwCommand,
+    section: &str,
+) -> anyhow::Result<Vec<LockFile>> {
+    let stage_key = format!("[{section}] port");
+    let wanted = |key: &str| match command {
+        HwCommand::Probe => true,
+        HwCommand::Grab { .. } => key == "[camera] device",
+        HwCommand::Cameras | HwCommand::Xl80 => false,
+        _ => key == stage_key,
+    };
+    let devices: Vec<_> = devices_of(cfg)
+        .into_iter()
+        .filter(|d| wanted(&d.key))
+        .collect();
+    let me = Holder::me("rigctl hw", None, None);
+    let dir = lock_dir(cfg.daemon.lock_dir.as_deref());
+    Ok(lock_devices(
+        &dir,
+        &devices,
+        &me,
+        ": it owns the hardware (a daemon: stop it first, `sudo systemctl stop rigd`)",
+    )?)
 }
 
 /// Open the stage, run `act`, print its state and position after.

@@ -1,5 +1,7 @@
 //! The daemon: owns the rig, serves clients over a Unix socket, runs one job at a time and
 //! records each as a session. Laid out after tokio's mini-redis:
+//! - `ownership`: the socket, data root and device locks claimed before anything else;
+//!   `notify`: systemd readiness;
 //! - `protocol`: the JSON-lines wire format (docs/protocol.md);
 //! - `server`: the socket and the accept loop; `connection`: one client;
 //! - `commands`: what each request does; `jobs`: the job table and queue;
@@ -16,6 +18,8 @@ pub mod commands;
 pub mod connection;
 pub mod events;
 pub mod jobs;
+pub mod notify;
+pub mod ownership;
 pub mod protocol;
 pub mod recorder;
 pub mod replay;

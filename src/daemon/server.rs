@@ -1,11 +1,13 @@
-//! The socket and the accept loop, and a clean stop: on SIGTERM (or SIGINT) the server stops
-//! accepting, the running job stops after its current step with the axis stopped, queued
-//! jobs are cancelled, the session is closed and the socket removed.
+//! The socket and the accept loop, and a clean stop: on SIGTERM, SIGINT or SIGHUP the
+//! server stops accepting, the running job stops at once with the axis stopped, queued
+//! jobs are cancelled, the session is closed and the socket removed; the caller then drops
+//! the rig and its [`Ownership`] (the locks).
 
 use crate::config::DaemonSettings;
+use crate::daemon::ownership::{Ownership, OwnershipError};
 use crate::daemon::protocol::EventBody;
 use crate::daemon::session;
-use crate::daemon::{connection, worker, Shared};
+use crate::daemon::{connection, notify, worker, Shared};
 use crate::rig::Rig;
 use std::os::unix::fs::PermissionsExt;
 use std::path::Path;
@@ -19,28 +21,21 @@ pub enum ServerError {
     Socket { path: String, message: String },
     #[error("data root: {0}")]
     Session(#[from] session::SessionError),
+    #[error(transparent)]
+    Ownership(#[from] OwnershipError),
 }
 
-/// Bind the socket: mode 0660, group from the settings. A stale socket (nobody listening)
-/// is replaced; a live one is an error.
+/// Bind the socket: mode 0600, or 0660 with the group from the settings. The path was
+/// cleared by [`Ownership::claim`] (only a stale socket is ever removed).
 pub fn bind(path: &Path, group: Option<&str>) -> Result<UnixListener, ServerError> {
     let err = |message: String| ServerError::Socket {
         path: path.display().to_string(),
         message,
     };
-    if path.exists() {
-        if std::os::unix::net::UnixStream::connect(path).is_ok() {
-            return Err(err("another daemon is listening on it".into()));
-        }
-        std::fs::remove_file(path)
-            .map_err(|e| err(format!("cannot remove the stale socket: {e}")))?;
-    }
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| err(format!("cannot create its folder: {e}")))?;
-    }
     let listener = UnixListener::bind(path).map_err(|e| err(e.to_string()))?;
-    std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o660))
-        .map_err(|e| err(format!("chmod 0660: {e}")))?;
+    let mode = if group.is_some() { 0o660 } else { 0o600 };
+    std::fs::set_permissions(path, std::fs::Permissions::from_mode(mode))
+        .map_err(|e| err(format!("chmod {mode:o}: {e}")))?;
     if let Some(g) = group {
         let gid = group_id(g).ok_or_else(|| err(format!("no group {g:?}")))?;
         std::os::unix::fs::chown(path, None, Some(gid))
@@ -55,41 +50,29 @@ fn group_id(name: &str) -> Option<u32> {
     Some(group.gid.as_raw())
 }
 
-/// Run the daemon until `stop` resolves (or SIGTERM/SIGINT when `signals`). Returns the
-/// rig, stopped, once the running job has ended.
+/// Run the daemon that `owner` claimed the socket and data root for, until `stop`
+/// resolves (or SIGTERM/SIGINT/SIGHUP when `signals`): recover the sessions, bind, call
+/// `ready` (systemd's READY=1, or a waiting thread), serve. Returns the rig, stopped, once
+/// the running job has ended.
 pub async fn run(
-    settings: DaemonSettings,
+    owner: &Ownership,
     rig: Rig,
     stop: impl std::future::Future<Output = ()>,
     signals: bool,
+    ready: impl FnOnce(),
 ) -> Result<Rig, ServerError> {
-    std::fs::create_dir_all(&settings.data_root).map_err(|e| session::SessionError::Io {
-        path: settings.data_root.display().to_string(),
-        source: e,
-    })?;
+    let settings = owner.settings().clone();
+    // Handlers first: a signal that comes once READY=1 is out must stop us cleanly, not kill.
+    let signal = stop_signals(signals);
     let (last_id, marked) = session::recover(&settings.data_root)?;
     for name in &marked {
         tracing::warn!(session = %name, "marked incomplete: the daemon stopped while it ran");
     }
     let listener = bind(&settings.socket, settings.group.as_deref())?;
     tracing::info!(socket = %settings.socket.display(), data_root = %settings.data_root.display(), rig = %rig.info.mode, "rigd listening");
+    ready();
     let shared = Arc::new(Shared::new(settings.clone(), rig.info.clone(), last_id));
     let worker = tokio::spawn(worker::run(shared.clone(), rig));
-    let signal = async {
-        if !signals {
-            return std::future::pending::<()>().await;
-        }
-        use tokio::signal::unix::{signal, SignalKind};
-        match (
-            signal(SignalKind::terminate()),
-            signal(SignalKind::interrupt()),
-        ) {
-            (Ok(mut t), Ok(mut i)) => {
-                tokio::select! { _ = t.recv() => {}, _ = i.recv() => {} }
-            }
-            _ => std::future::pending::<()>().await,
-        }
-    };
     tokio::pin!(stop);
     tokio::pin!(signal);
     loop {
@@ -99,11 +82,14 @@ pub async fn run(
                 Err(e) => tracing::warn!(error = %e, "accept failed"),
             },
             _ = &mut stop => break,
-            _ = &mut signal => { tracing::info!("signal: stopping"); break; }
+            name = &mut signal => { tracing::info!(signal = name, "stopping"); break; }
         }
     }
     drop(listener);
     let _ = std::fs::remove_file(&settings.socket);
+    if signals {
+        notify::notify("STOPPING=1");
+    }
     // Stop: no new jobs, queued ones cancelled, the running one stops after its step.
     shared.shutting_down.store(true, Ordering::SeqCst);
     let drained = shared.jobs().drain_queue();
@@ -128,6 +114,33 @@ pub async fn run(
     Ok(rig)
 }
 
+/// Resolves with the signal's name on SIGTERM, SIGINT or SIGHUP (never when `!signals`).
+/// The handlers are installed now, not when the future is first polled. All three stop
+/// cleanly: SIGHUP (a closed terminal; there is no reload) must not kill the daemon with a
+/// session left `running` and the socket behind.
+fn stop_signals(signals: bool) -> impl std::future::Future<Output = &'static str> {
+    use tokio::signal::unix::{signal, SignalKind};
+    let handlers = signals.then(|| {
+        (
+            signal(SignalKind::terminate()),
+            signal(SignalKind::interrupt()),
+            signal(SignalKind::hangup()),
+        )
+    });
+    async move {
+        match handlers {
+            Some((Ok(mut t), Ok(mut i), Ok(mut h))) => {
+                tokio::select! {
+                    _ = t.recv() => "SIGTERM",
+                    _ = i.recv() => "SIGINT",
+                    _ = h.recv() => "SIGHUP",
+                }
+            }
+            _ => std::future::pending().await,
+        }
+    }
+}
+
 /// A daemon running on its own thread and runtime (the demo's, and tests').
 pub struct Background {
     stop: Option<tokio::sync::oneshot::Sender<()>>,
@@ -136,42 +149,50 @@ pub struct Background {
 }
 
 impl Background {
-    /// Start serving; returns once the socket accepts connections.
+    /// Claim the socket and data root (no devices: the rig is already open), then serve;
+    /// returns once this daemon's socket is bound.
     pub fn start(settings: DaemonSettings, rig: Rig) -> Result<Background, ServerError> {
-        let socket = settings.socket.clone();
+        let owner = Ownership::claim(&settings, &[], "rigd (in-process)")?;
+        Background::start_owned(owner, rig)
+    }
+
+    /// Serve what `owner` claimed; returns once this daemon's socket is bound (not merely
+    /// when something answers at the path: that could be another daemon).
+    pub fn start_owned(owner: Ownership, rig: Rig) -> Result<Background, ServerError> {
+        let socket = owner.settings().socket.clone();
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel::<()>();
         let thread = std::thread::spawn(move || {
             let rt = tokio::runtime::Builder::new_multi_thread()
                 .worker_threads(2)
                 .enable_all()
                 .build()
                 .map_err(|e| ServerError::Socket {
-                    path: settings.socket.display().to_string(),
+                    path: owner.settings().socket.display().to_string(),
                     message: format!("runtime: {e}"),
                 })?;
-            rt.block_on(run(
-                settings,
-                rig,
-                async move {
-                    let _ = stop_rx.await;
-                },
-                false,
-            ))
+            let stop = async move {
+                let _ = stop_rx.await;
+            };
+            // The locks are released when `owner` drops, after the daemon has stopped.
+            rt.block_on(run(&owner, rig, stop, false, move || {
+                let _ = ready_tx.send(());
+            }))
         });
         let mut bg = Background {
             stop: Some(stop_tx),
             thread: Some(thread),
             socket: socket.clone(),
         };
-        let t = std::time::Instant::now();
-        while std::os::unix::net::UnixStream::connect(&socket).is_err() {
-            if bg.thread.as_ref().is_some_and(|t| t.is_finished()) || t.elapsed().as_secs() > 10 {
-                return Err(bg.stop().err().unwrap_or(ServerError::Socket {
-                    path: socket.display().to_string(),
-                    message: "the daemon did not start".into(),
-                }));
-            }
-            std::thread::sleep(std::time::Duration::from_millis(10));
+        if ready_rx
+            .recv_timeout(std::time::Duration::from_secs(10))
+            .is_err()
+        {
+            // The thread ended (its error says why) or the daemon did not come up in time.
+            return Err(bg.stop().err().unwrap_or(ServerError::Socket {
+                path: socket.display().to_string(),
+                message: "the daemon did not start".into(),
+            }));
         }
         Ok(bg)
     }

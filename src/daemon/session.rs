@@ -17,6 +17,7 @@ use crate::acquisition::plan::Plan;
 use crate::acquisition::JobSpec;
 use crate::atomic_file::{self, AtomicWriteError};
 use crate::daemon::protocol::PROTOCOL_VERSION;
+use crate::nofollow::{self, Access};
 use crate::rig::{LogSample, LogSource, RigInfo};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
@@ -213,10 +214,8 @@ impl SessionWriter {
         };
         let steps_path = dir.join(STEPS);
         write_atomic(&steps_path, STEPS_HEADER.as_bytes())?;
-        let steps = fs::OpenOptions::new()
-            .append(true)
-            .open(&steps_path)
-            .map_err(io(&steps_path))?;
+        let steps =
+            nofollow::open_in(&dir, Path::new(STEPS), Access::Append).map_err(io(&steps_path))?;
         let mut w = SessionWriter {
             dir,
             manifest,
@@ -259,9 +258,7 @@ impl SessionWriter {
         write_atomic(&path, INTERFEROMETER_HEADER.as_bytes())?;
         sync_dir(&self.dir)?;
         self.log = Some(
-            fs::OpenOptions::new()
-                .append(true)
-                .open(&path)
+            nofollow::open_in(&self.dir, Path::new(INTERFEROMETER), Access::Append)
                 .map_err(io(&path))?,
         );
         self.manifest.interferometer = Some(source);
@@ -317,7 +314,7 @@ impl SessionWriter {
     ) -> Result<(), SessionError> {
         if !images.is_empty() {
             let dir = self.dir.join("images");
-            fs::create_dir_all(&dir).map_err(io(&dir))?;
+            nofollow::create_dir(&dir).map_err(io(&dir))?;
             for (name, img) in images {
                 let path = dir.join(format!("{name}.png"));
                 let mut png = Vec::new();
@@ -361,16 +358,18 @@ pub struct Session {
 }
 
 impl Session {
+    /// Read the session in `dir`. Nothing is read through a symlink: not `dir` itself, nor
+    /// any file in it ([`nofollow`]).
     pub fn open(dir: &Path) -> Result<Session, SessionError> {
         let mpath = dir.join(MANIFEST);
-        let text = fs::read(&mpath).map_err(io(&mpath))?;
+        let text = nofollow::read_in(dir, MANIFEST).map_err(io(&mpath))?;
         let manifest: Manifest =
             serde_json::from_slice(&text).map_err(|e| SessionError::Format {
                 path: mpath.display().to_string(),
                 message: e.to_string(),
             })?;
         let spath = dir.join(STEPS);
-        let text = fs::read(&spath).map_err(io(&spath))?;
+        let text = nofollow::read_in(dir, STEPS).map_err(io(&spath))?;
         // A crash mid-append can leave half a row: every complete row ends in a newline.
         let complete = match text.iter().rposition(|&b| b == b'\n') {
             Some(i) => &text[..=i],
@@ -399,8 +398,8 @@ impl Session {
     /// the session has none. An unterminated last line (cut by a crash) is skipped.
     pub fn interferometer_samples(&self) -> Result<Vec<LogSample>, SessionError> {
         let path = self.dir.join(INTERFEROMETER);
-        let text = match fs::read_to_string(&path) {
-            Ok(t) => t,
+        let text = match nofollow::read_in(&self.dir, INTERFEROMETER) {
+            Ok(t) => String::from_utf8_lossy(&t).into_owned(),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
             Err(e) => return Err(io(&path)(e)),
         };
@@ -436,36 +435,69 @@ impl Session {
 
     /// The stored result, if the job got that far.
     pub fn result(&self) -> Option<serde_json::Value> {
-        let bytes = fs::read(self.dir.join(RESULT)).ok()?;
+        let bytes = nofollow::read_in(&self.dir, RESULT).ok()?;
         serde_json::from_slice(&bytes).ok()
     }
 }
 
 /// Sessions under `data_root`, oldest first (by name: names start with a UTC stamp).
 pub fn list(data_root: &Path) -> Vec<Session> {
+    let (sessions, skipped) = scan(data_root);
+    for (path, reason) in skipped {
+        tracing::debug!(path = %path.display(), %reason, "not a session");
+    }
+    sessions
+}
+
+/// Sessions under `data_root`, oldest first, and the entries skipped that looked like one
+/// (a symlink, a session that cannot be read), each with why. Only real folders are
+/// entered: a symlink is never followed out of the data root.
+pub fn scan(data_root: &Path) -> (Vec<Session>, Vec<(PathBuf, String)>) {
     let Ok(rd) = fs::read_dir(data_root) else {
-        return Vec::new();
+        return (Vec::new(), Vec::new());
     };
-    let mut v: Vec<Session> = rd
-        .flatten()
-        .filter(|e| e.path().join(MANIFEST).is_file())
-        .filter_map(|e| Session::open(&e.path()).ok())
-        .collect();
+    let mut v = Vec::new();
+    let mut skipped = Vec::new();
+    for e in rd.flatten() {
+        let path = e.path();
+        // DirEntry::file_type does not follow a symlink.
+        match e.file_type() {
+            Ok(t) if t.is_symlink() => skipped.push((
+                path,
+                "a symbolic link: not followed out of the data root".into(),
+            )),
+            Ok(t) if t.is_dir() => match Session::open(&path) {
+                Ok(s) => v.push(s),
+                // A folder without a manifest is not a session (nothing to say).
+                Err(SessionError::Io { source, .. })
+                    if source.kind() == std::io::ErrorKind::NotFound => {}
+                Err(err) => skipped.push((path, err.to_string())),
+            },
+            _ => {}
+        }
+    }
     v.sort_by(|a, b| a.manifest.name.cmp(&b.manifest.name));
-    v
+    (v, skipped)
 }
 
 /// At daemon start: sessions left `running` by a daemon that died (or that could not write
-/// its final manifest, e.g. on a full disk) are marked `incomplete`. A session that cannot
-/// be marked now (the disk is still full) is left `running` with a warning, to be marked at
-/// a later start: it must not keep the daemon from starting. Returns the highest job id
-/// seen, so new ids do not collide with recorded ones, and the sessions marked.
+/// its final manifest, e.g. on a full disk) are marked `incomplete`, after their leftover
+/// temporaries (`.NAME.tmp` of a write cut short) are removed. A session that cannot be
+/// marked now (the disk is still full) is left `running` with a warning, to be marked at
+/// a later start: it must not keep the daemon from starting. Entries that are skipped (a
+/// symlink, an unreadable session) are logged with their path and why. Returns the highest
+/// job id seen, so new ids do not collide with recorded ones, and the sessions marked.
 pub fn recover(data_root: &Path) -> Result<(u64, Vec<String>), SessionError> {
     let mut max_id = 0;
     let mut marked = Vec::new();
-    for s in list(data_root) {
+    let (sessions, skipped) = scan(data_root);
+    for (path, reason) in skipped {
+        tracing::warn!(path = %path.display(), %reason, "skipped at recovery");
+    }
+    for s in sessions {
         max_id = max_id.max(s.manifest.job_id);
         if s.manifest.state == SessionState::Running {
+            remove_leftovers(&s.dir);
             let mut m = s.manifest.clone();
             m.state = SessionState::Incomplete;
             m.reason = Some("the daemon stopped while the job ran".into());
@@ -482,6 +514,45 @@ pub fn recover(data_root: &Path) -> Result<(u64, Vec<String>), SessionError> {
         }
     }
     Ok((max_id, marked))
+}
+
+/// Remove the temporaries (`.NAME.tmp`) a write cut short left in a session, its `frames/`
+/// and `images/`: regular files only, found without following a symlink (a symlinked
+/// folder or temporary is logged and left alone).
+fn remove_leftovers(session: &Path) {
+    for sub in ["", "frames", "images"] {
+        let dir = session.join(sub);
+        match fs::symlink_metadata(&dir) {
+            Ok(m) if m.file_type().is_dir() => {}
+            Ok(m) if m.file_type().is_symlink() => {
+                tracing::warn!(path = %dir.display(), "skipped at recovery: a symbolic link: not followed");
+                continue;
+            }
+            _ => continue,
+        }
+        let Ok(rd) = fs::read_dir(&dir) else { continue };
+        for e in rd.flatten() {
+            let name = e.file_name();
+            let name = name.to_string_lossy();
+            if !(name.starts_with('.') && name.ends_with(".tmp")) {
+                continue;
+            }
+            let path = e.path();
+            match e.file_type() {
+                Ok(t) if t.is_file() => match fs::remove_file(&path) {
+                    Ok(()) => {
+                        tracing::info!(path = %path.display(), "removed a leftover temporary")
+                    }
+                    Err(err) => {
+                        tracing::warn!(path = %path.display(), error = %err, "cannot remove a leftover temporary")
+                    }
+                },
+                _ => {
+                    tracing::warn!(path = %path.display(), "skipped at recovery: not a regular file")
+                }
+            }
+        }
+    }
 }
 
 /// `YYYYMMDDTHHMMSSZ` for seconds since the epoch (UTC).

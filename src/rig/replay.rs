@@ -9,7 +9,7 @@ use super::devices::{
 use super::{Rig, RigInfo, RigMode};
 use crate::daemon::session::{Session, SessionError, StepRow, INTERFEROMETER};
 use std::collections::VecDeque;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -99,11 +99,11 @@ impl ReplayCamera {
             .unwrap_or_else(|e| e.into_inner())
             .pop_front()
             .ok_or_else(|| err("no recorded frame left".into()))?;
-        let path = self
-            .dir
-            .join("frames")
-            .join(crate::daemon::session::frame_name(row.index));
-        let image = image::open(&path)
+        let rel = Path::new("frames").join(crate::daemon::session::frame_name(row.index));
+        let path = self.dir.join(&rel);
+        // Never through a symlink planted in the session: the frame must be the session's.
+        let bytes = crate::nofollow::read_in(&self.dir, &rel).map_err(|e| err(e.to_string()))?;
+        let image = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
             .map_err(|e| err(format!("{}: {e}", path.display())))?
             .into_rgb8();
         Ok(Frame {

@@ -78,6 +78,7 @@ impl Daemon {
             socket: dir.path().join("rigd.sock"),
             group: None,
             data_root: data.clone(),
+            lock_dir: None,
         };
         Daemon {
             bg: Background::start(settings, rig).unwrap(),
