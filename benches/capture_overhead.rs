@@ -61,6 +61,7 @@ fn main() {
         socket: dir.path().join("rigd.sock"),
         group: None,
         data_root: data.clone(),
+        ..DaemonSettings::default()
     };
     let rig = simulated(&SimSettings::default()).unwrap();
     let _bg = Background::start(settings, rig).unwrap();

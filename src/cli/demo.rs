@@ -55,6 +55,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
         socket: socket.clone(),
         group: None,
         data_root: a.data_root.clone(),
+        ..DaemonSettings::default()
     };
     let sim = SimSettings::default();
     let scale = sim.camera.scale_um_per_px;

@@ -10,15 +10,20 @@
 //!
 //! The rig a job runs on is `crate::rig`; the daemon's settings are `config::DaemonSettings`.
 
+pub mod accept;
 pub mod commands;
 pub mod connection;
 pub mod events;
+pub mod job_ids;
 pub mod jobs;
+pub mod listing;
+pub mod outbox;
 pub mod protocol;
 pub mod recorder;
 pub mod replay;
 pub mod server;
 pub mod session;
+pub mod strict_json;
 pub mod worker;
 
 use crate::config::DaemonSettings;
@@ -40,11 +45,11 @@ pub struct Shared {
 }
 
 impl Shared {
-    pub fn new(settings: DaemonSettings, rig_info: RigInfo, last_job_id: u64) -> Shared {
+    pub fn new(settings: DaemonSettings, rig_info: RigInfo, ids: job_ids::JobIds) -> Shared {
         Shared {
             settings,
             rig_info,
-            jobs: Mutex::new(Jobs::starting_after(last_job_id)),
+            jobs: Mutex::new(Jobs::new(ids)),
             events: EventBus::default(),
             wake: Notify::new(),
             shutting_down: std::sync::atomic::AtomicBool::new(false),

@@ -10,6 +10,7 @@ use crate::acquisition::record::{StepRecord, StepTimings};
 use crate::acquisition::{JobSpec, Processing};
 use crate::daemon::jobs::JobStatus;
 use crate::daemon::session::SessionState;
+use crate::daemon::strict_json;
 use crate::rig::RigMode;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -18,13 +19,21 @@ use std::path::PathBuf;
 pub const PROTOCOL_VERSION: u32 = 1;
 /// Longest request line the server reads; longer lines get a `line_too_long` error.
 pub const MAX_LINE_BYTES: usize = 64 * 1024;
+/// Jobs and sessions a `list` page holds when the request gives no `limit`.
+pub const LIST_DEFAULT: u32 = 100;
+/// Most jobs and sessions a `list` page holds (a larger `limit` is refused).
+pub const LIST_MAX: u32 = 1000;
+/// Largest integer `id` echoed: 2^53 - 1, the largest every JSON reader (JavaScript's
+/// numbers, any double) holds exactly. Larger integers and fractions are refused.
+pub const MAX_ID: u64 = (1 << 53) - 1;
 
 /// What a client asks. Tagged by `kind`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Request {
-    /// Protocol and daemon versions, rig description.
-    Hello,
+    /// Protocol and daemon versions, rig description. (A struct variant, not a unit one: serde
+    /// lets unknown fields through on an internally tagged unit variant.)
+    Hello {},
     Submit {
         job: JobSpec,
     },
@@ -33,8 +42,16 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         job_id: Option<u64>,
     },
-    /// Jobs known to this daemon run and the sessions on disk.
-    List,
+    /// Jobs known to this daemon run and the sessions on disk: a page of each, newest first.
+    List {
+        /// At most this many jobs and this many sessions ([`LIST_DEFAULT`] when left out,
+        /// at most [`LIST_MAX`]).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        limit: Option<u32>,
+        /// Only those with a job id below this one (the previous page's `next_before`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        before: Option<u64>,
+    },
     Cancel {
         job_id: u64,
     },
@@ -112,11 +129,13 @@ pub fn decode_request(line: &[u8]) -> Result<Envelope, (Option<serde_json::Value
             ),
         ));
     }
-    let value: serde_json::Value = serde_json::from_slice(line).map_err(|e| {
-        (
-            None,
-            ProtoError::new(ErrorCode::Malformed, format!("not JSON: {e}")),
-        )
+    let value = strict_json::parse(line).map_err(|e| {
+        let message = match e.is_data() {
+            // A duplicate key: well-formed JSON of a shape the protocol refuses.
+            true => return (None, ProtoError::new(ErrorCode::BadRequest, e.to_string())),
+            false => format!("not JSON: {e}"),
+        };
+        (None, ProtoError::new(ErrorCode::Malformed, message))
     })?;
     let serde_json::Value::Object(mut map) = value else {
         return Err((
@@ -126,12 +145,7 @@ pub fn decode_request(line: &[u8]) -> Result<Envelope, (Option<serde_json::Value
     };
     let id = map.remove("id");
     if let Some(id) = &id {
-        if !(id.is_number() || id.is_string()) {
-            return Err((
-                None,
-                ProtoError::new(ErrorCode::BadRequest, "`id` must be a number or a string"),
-            ));
-        }
+        check_id(id).map_err(|e| (None, e))?;
     }
     if let Some(v) = map.remove("v") {
         if v.as_u64() != Some(PROTOCOL_VERSION as u64) {
@@ -144,12 +158,78 @@ pub fn decode_request(line: &[u8]) -> Result<Envelope, (Option<serde_json::Value
             ));
         }
     }
+    if let Err(e) = check_objects(&map) {
+        return Err((id, e));
+    }
     match serde_json::from_value::<Request>(serde_json::Value::Object(map)) {
         Ok(request) => Ok(Envelope { id, request }),
         Err(e) => Err((
             id,
             ProtoError::new(ErrorCode::BadRequest, format!("bad request: {e}")),
         )),
+    }
+}
+
+/// An `id` is echoed exactly: a string, or an integer within ±[`MAX_ID`].
+fn check_id(id: &serde_json::Value) -> Result<(), ProtoError> {
+    let ok = match id {
+        serde_json::Value::String(_) => true,
+        serde_json::Value::Number(n) => match (n.as_u64(), n.as_i64()) {
+            (Some(u), _) => u <= MAX_ID,
+            (None, Some(i)) => i.unsigned_abs() <= MAX_ID,
+            (None, None) => false,
+        },
+        _ => false,
+    };
+    match ok {
+        true => Ok(()),
+        false => Err(ProtoError::new(
+            ErrorCode::BadRequest,
+            format!(
+                "`id` must be a string or an integer within ±{MAX_ID} (2^53 - 1), got {}",
+                short(id)
+            ),
+        )),
+    }
+}
+
+/// Fields that hold a document must hold an object: serde would also take a struct as a
+/// JSON array of its fields in order (`"job":[...]`), which no client means.
+fn check_objects(map: &serde_json::Map<String, serde_json::Value>) -> Result<(), ProtoError> {
+    for field in ["job", "processing"] {
+        match map.get(field) {
+            None | Some(serde_json::Value::Object(_)) => {}
+            Some(other) => {
+                return Err(ProtoError::new(
+                    ErrorCode::BadRequest,
+                    format!(
+                        "`{field}` must be a JSON object, got {}",
+                        kind_of(other)
+                    ),
+                ))
+            }
+        }
+    }
+    Ok(())
+}
+
+fn kind_of(v: &serde_json::Value) -> &'static str {
+    match v {
+        serde_json::Value::Null => "null",
+        serde_json::Value::Bool(_) => "a boolean",
+        serde_json::Value::Number(_) => "a number",
+        serde_json::Value::String(_) => "a string",
+        serde_json::Value::Array(_) => "an array",
+        serde_json::Value::Object(_) => "an object",
+    }
+}
+
+/// A value for a message, cut to 40 characters.
+fn short(v: &serde_json::Value) -> String {
+    let s = v.to_string();
+    match s.char_indices().nth(40) {
+        Some((i, _)) => format!("{}...", &s[..i]),
+        None => s,
     }
 }
 
@@ -359,6 +439,8 @@ pub struct SessionSummary {
 pub struct ListReply {
     pub jobs: Vec<JobStatus>,
     pub sessions: Vec<SessionSummary>,
+    /// Set when older jobs or sessions are left out: ask again with `before` this.
+    pub next_before: Option<u64>,
 }
 
 /// A queued job is cancelled at once; a running one is told to stop.
