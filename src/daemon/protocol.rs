@@ -194,23 +194,21 @@ fn check_id(id: &serde_json::Value) -> Result<(), ProtoError> {
 }
 
 /// Fields that hold a document must hold an object: serde would also take a struct as a
-/// JSON array of its fields in order (`"job":[...]`), which no client means.
+/// JSON array of its fields in order (`"job":[...]`), which no client means. (Elsewhere such
+/// a field is unknown, and serde names it.)
 fn check_objects(map: &serde_json::Map<String, serde_json::Value>) -> Result<(), ProtoError> {
-    for field in ["job", "processing"] {
-        match map.get(field) {
-            None | Some(serde_json::Value::Object(_)) => {}
-            Some(other) => {
-                return Err(ProtoError::new(
-                    ErrorCode::BadRequest,
-                    format!(
-                        "`{field}` must be a JSON object, got {}",
-                        kind_of(other)
-                    ),
-                ))
-            }
-        }
+    let field = match map.get("kind").and_then(|k| k.as_str()) {
+        Some("submit") => "job",
+        Some("replay") => "processing",
+        _ => return Ok(()),
+    };
+    match map.get(field) {
+        None | Some(serde_json::Value::Object(_)) => Ok(()),
+        Some(other) => Err(ProtoError::new(
+            ErrorCode::BadRequest,
+            format!("`{field}` must be a JSON object, got {}", kind_of(other)),
+        )),
     }
-    Ok(())
 }
 
 fn kind_of(v: &serde_json::Value) -> &'static str {
@@ -542,6 +540,63 @@ mod tests {
         );
         let (_, e) = decode_request(b"[1,2]").unwrap_err();
         assert_eq!(e.code, ErrorCode::Malformed);
+    }
+
+    #[test]
+    fn the_protocol_is_strict_on_every_request() {
+        let refused = |line: &[u8]| decode_request(line).unwrap_err().1;
+        // Unknown fields on the requests with none or optional ones.
+        for line in [
+            &br#"{"kind":"hello","x":1}"#[..],
+            br#"{"kind":"list","lmit":5}"#,
+            br#"{"kind":"subscribe","job":1}"#,
+        ] {
+            let e = refused(line);
+            assert_eq!(e.code, ErrorCode::BadRequest, "{e:?}");
+            assert!(e.message.contains("unknown field"), "{}", e.message);
+        }
+        // A job as an array of its fields in order, which serde alone would take.
+        let e = refused(br#"{"kind":"submit","job":["axis",50,3]}"#);
+        assert_eq!(
+            e.message,
+            "`job` must be a JSON object, got an array"
+        );
+        let e = refused(br#"{"kind":"replay","session":"s","processing":[10]}"#);
+        assert!(e.message.starts_with("`processing` must be a JSON object"));
+        // Duplicate keys, at the top and inside the job: the last would have won.
+        let e = refused(br#"{"kind":"submit","job":{"steps":3,"step_um":5,"steps":3000}}"#);
+        assert_eq!(e.code, ErrorCode::BadRequest);
+        assert!(
+            e.message.starts_with(r#"duplicate key "steps" in `job`"#),
+            "{}",
+            e.message
+        );
+        let e = refused(br#"{"id":1,"id":2,"kind":"hello"}"#);
+        assert!(e.message.contains(r#"duplicate key "id""#), "{}", e.message);
+        // Ids: strings and integers within ±(2^53 - 1) come back; others are refused.
+        for id in ["9007199254740991", "-9007199254740991", "0", "\"x\""] {
+            let line = format!(r#"{{"id":{id},"kind":"hello"}}"#);
+            let e = decode_request(line.as_bytes()).unwrap();
+            assert_eq!(e.id.unwrap().to_string(), id.replace('\\', ""));
+        }
+        for id in ["9007199254740992", "18446744073709551616", "1.5", "1e3", "true", "[1]"] {
+            let line = format!(r#"{{"id":{id},"kind":"hello"}}"#);
+            let (back, e) = decode_request(line.as_bytes()).unwrap_err();
+            assert_eq!((back, e.code), (None, ErrorCode::BadRequest), "{id}");
+            assert!(e.message.starts_with("`id` must be a string or an integer within ±9007199254740991"), "{}", e.message);
+        }
+        // The strict requests still decode.
+        assert_eq!(
+            decode_request(br#"{"kind":"list","limit":5,"before":40}"#).unwrap().request,
+            Request::List {
+                limit: Some(5),
+                before: Some(40)
+            }
+        );
+        assert_eq!(
+            decode_request(br#"{"kind":"hello"}"#).unwrap().request,
+            Request::Hello {}
+        );
     }
 
     #[test]
