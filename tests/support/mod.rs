@@ -3,6 +3,7 @@
 //! driver tests in [`emulated`]; the daemon, its clients and sessions in [`daemon`].
 #![allow(dead_code)]
 
+pub mod adversary;
 pub mod daemon;
 pub mod emulated;
 pub mod skip;
