@@ -10,10 +10,12 @@ mod support;
 
 use serde_json::Value;
 use std::time::{Duration, Instant};
-use support::adversary::{capture_job, follow, idle_flood, Line, Spawn};
+use support::adversary::{capture_job, follow, idle_flood, Spawn};
 
-fn rigd() -> &'static str {
-    env!("CARGO_BIN_EXE_rigd")
+/// The binary under test: this build's, or `RIGD_BIN` (to see the attacks against another
+/// build, e.g. main's before this change).
+fn rigd() -> String {
+    std::env::var("RIGD_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_rigd").to_string())
 }
 
 /// The attack: 1100 idle connections at the common 1024-fd soft limit while a job
