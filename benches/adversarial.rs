@@ -191,7 +191,10 @@ fn whole_frame(bin: &str) {
 
 fn main() {
     // `cargo bench` passes `--bench`; a filter picks attacks by name.
-    let filter: Vec<String> = std::env::args().skip(1).filter(|a| !a.starts_with("--")).collect();
+    let filter: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .collect();
     let (bin, other) = bin();
     println!("rigd: {bin}");
     let run = |name: &str| filter.is_empty() || filter.iter().any(|f| name.contains(f.as_str()));

@@ -66,7 +66,10 @@ fn an_fd_flood_leaves_the_job_whole_the_log_short_and_new_clients_served() {
         if c.read().is_some_and(|r| r["ok"] == true) {
             break;
         }
-        assert!(t.elapsed() < Duration::from_secs(1), "not served within 1 s");
+        assert!(
+            t.elapsed() < Duration::from_secs(1),
+            "not served within 1 s"
+        );
         std::thread::sleep(Duration::from_millis(10));
     }
     let served_after = t.elapsed();
@@ -102,7 +105,10 @@ fn a_client_that_reads_nothing_is_cut_off_and_others_are_served() {
     let one = serde_json::to_vec(&serde_json::json!({"kind": "list"})).unwrap();
     let reply_bytes = {
         let mut probe = d.client();
-        probe.request(std::str::from_utf8(&one).unwrap()).to_string().len()
+        probe
+            .request(std::str::from_utf8(&one).unwrap())
+            .to_string()
+            .len()
     };
     assert!(reply_bytes > 5000, "{reply_bytes}");
     // Writes may block once the daemon stops reading: send from a thread.
@@ -179,7 +185,10 @@ fn a_slow_subscriber_loses_events_with_one_notice_and_a_fast_one_loses_none() {
                 seen += 1
             }
             _ => {
-                let m = v["error"]["message"].as_str().unwrap_or_default().to_string();
+                let m = v["error"]["message"]
+                    .as_str()
+                    .unwrap_or_default()
+                    .to_string();
                 assert!(lost.is_none(), "a second notice: {m}");
                 let n: usize = m
                     .strip_prefix("this client fell behind and lost ")
@@ -290,7 +299,10 @@ fn a_job_or_replay_over_the_memory_budget_is_refused_before_anything_moves() {
         .parse()
         .unwrap();
     assert!(mb > 5400, "{m}");
-    assert!(m.contains("budget of 2048 MB ([daemon] max_job_memory_mb)"), "{m}");
+    assert!(
+        m.contains("budget of 2048 MB ([daemon] max_job_memory_mb)"),
+        "{m}"
+    );
     // Nothing was queued.
     let st = c.request(r#"{"kind":"status"}"#);
     assert_eq!(st["result"]["queued"], serde_json::json!([]));
@@ -311,7 +323,10 @@ fn a_job_or_replay_over_the_memory_budget_is_refused_before_anything_moves() {
     );
     assert_eq!(r["error"]["code"], "rejected", "{r}");
     let m = r["error"]["message"].as_str().unwrap();
-    assert!(m.contains("at k = 32 with the whole frame reconstructed"), "{m}");
+    assert!(
+        m.contains("at k = 32 with the whole frame reconstructed"),
+        "{m}"
+    );
     // k = 4 on the whole frame fits (about 0.3 GB) and is accepted.
     let r = c.request(&whole(4));
     assert_eq!(r["ok"], true, "{r}");

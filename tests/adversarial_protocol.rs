@@ -28,8 +28,14 @@ fn malformed_shapes_are_refused_and_nothing_runs() {
             r#"{"id":1,"kind":"submit","job":["axis",10.0,3]}"#,
             "`job` must be a JSON object, got an array",
         ),
-        (r#"{"id":2,"kind":"hello","please":true}"#, "unknown field `please`"),
-        (r#"{"id":3,"kind":"list","all":true}"#, "unknown field `all`"),
+        (
+            r#"{"id":2,"kind":"hello","please":true}"#,
+            "unknown field `please`",
+        ),
+        (
+            r#"{"id":3,"kind":"list","all":true}"#,
+            "unknown field `all`",
+        ),
         (
             r#"{"id":4,"kind":"submit","job":{"steps":1,"step_um":10,"steps":3000,"process":false}}"#,
             r#"duplicate key "steps" in `job`"#,
@@ -48,11 +54,14 @@ fn malformed_shapes_are_refused_and_nothing_runs() {
     let st = c.request(r#"{"kind":"status"}"#);
     assert_eq!(st["result"]["running"], serde_json::Value::Null);
     assert_eq!(st["result"]["queued"], serde_json::json!([]));
-    assert!(!d.data.exists() || std::fs::read_dir(&d.data).unwrap().all(|e| e
-        .unwrap()
-        .file_name()
-        .to_string_lossy()
-        .starts_with('.')));
+    assert!(
+        !d.data.exists()
+            || std::fs::read_dir(&d.data).unwrap().all(|e| e
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .starts_with('.'))
+    );
 }
 
 #[test]
@@ -60,7 +69,12 @@ fn ids_come_back_exactly_or_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let d = Spawn::new(rigd(), dir.path()).start();
     let mut c = d.client();
-    for id in [r#""a-string""#, "9007199254740991", "-9007199254740991", "7"] {
+    for id in [
+        r#""a-string""#,
+        "9007199254740991",
+        "-9007199254740991",
+        "7",
+    ] {
         let line = format!(r#"{{"id":{id},"kind":"hello"}}"#);
         c.send(&line);
         let mut raw = String::new();
@@ -68,12 +82,21 @@ fn ids_come_back_exactly_or_are_refused() {
         // The id's very text comes back.
         assert!(raw.contains(&format!(r#""id":{id}"#)), "{raw}");
     }
-    for id in ["9007199254740993", "123456789012345678901234567890", "2.5", "1e2", "null"] {
+    for id in [
+        "9007199254740993",
+        "123456789012345678901234567890",
+        "2.5",
+        "1e2",
+        "null",
+    ] {
         let r = c.request(&format!(r#"{{"id":{id},"kind":"hello"}}"#));
         assert_eq!(r["error"]["code"], "bad_request", "{id}: {r}");
         assert!(r.get("id").is_none(), "{r}");
         let m = r["error"]["message"].as_str().unwrap();
-        assert!(m.contains("`id` must be a string or an integer within"), "{m}");
+        assert!(
+            m.contains("`id` must be a string or an integer within"),
+            "{m}"
+        );
     }
 }
 

@@ -404,7 +404,12 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
     assert_eq!(s.manifest.state, want);
     assert_eq!(s.manifest.frames_captured as usize, reported.len());
     check(&s);
-    let listed = c.request(&Request::List { limit: None, before: None }).unwrap();
+    let listed = c
+        .request(&Request::List {
+            limit: None,
+            before: None,
+        })
+        .unwrap();
     let entry = listed["sessions"]
         .as_array()
         .unwrap()

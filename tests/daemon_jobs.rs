@@ -117,7 +117,12 @@ fn jobs_queue_behind_the_running_one_and_cancel_stops_them() {
     let st = c.request(&Request::Status { job_id: Some(long) }).unwrap();
     let done = st["frames_done"].as_u64().unwrap();
     assert!((3..200).contains(&done), "{done}");
-    let list = c.request(&Request::List { limit: None, before: None }).unwrap();
+    let list = c
+        .request(&Request::List {
+            limit: None,
+            before: None,
+        })
+        .unwrap();
     let sessions = list["sessions"].as_array().unwrap();
     assert_eq!(sessions.len(), 1, "the cancelled queued job has no session");
     assert_eq!(sessions[0]["state"], "cancelled");
@@ -185,7 +190,11 @@ fn many_clients_at_once_all_get_their_jobs_done() {
                 subscribe(&mut c);
                 let id = submit(&mut c, scan(1 + i % 3, 0));
                 // Interleave other requests while the queue drains.
-                c.request(&Request::List { limit: None, before: None }).unwrap();
+                c.request(&Request::List {
+                    limit: None,
+                    before: None,
+                })
+                .unwrap();
                 c.request(&Request::Status { job_id: None }).unwrap();
                 let ev = events_until_end(&mut c, id);
                 (id, ev.last().cloned(), 1 + i % 3)
@@ -202,7 +211,12 @@ fn many_clients_at_once_all_get_their_jobs_done() {
     ids.dedup();
     assert_eq!(ids.len(), 16);
     let mut c = d.client();
-    let list = c.request(&Request::List { limit: None, before: None }).unwrap();
+    let list = c
+        .request(&Request::List {
+            limit: None,
+            before: None,
+        })
+        .unwrap();
     let frames: u64 = list["sessions"]
         .as_array()
         .unwrap()

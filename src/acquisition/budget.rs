@@ -80,7 +80,11 @@ pub fn check_memory(plan: &Plan, rig: &RigInfo, budget_mb: u64) -> Result<u64, P
         .iter()
         .filter_map(|r| r.processing.as_ref().map(|o| (r, o)))
         .max_by_key(|(r, o)| {
-            o.peak_memory_bytes(rig.frame_size, r.positions_um.len() as u32, rig.board.as_ref())
+            o.peak_memory_bytes(
+                rig.frame_size,
+                r.positions_um.len() as u32,
+                rig.board.as_ref(),
+            )
         });
     let what = match heaviest {
         Some((r, o)) => format!(
@@ -161,7 +165,10 @@ mod tests {
             ..p
         };
         let disk = reconstruction_bytes(&plan_whole, &r);
-        assert!(disk > whole && disk < whole + whole / 20, "{disk} vs {whole}");
+        assert!(
+            disk > whole && disk < whole + whole / 20,
+            "{disk} vs {whole}"
+        );
         // In memory: the 4 k² w h f32 reconstruction, its 16-bit copy kept, then copied
         // again and encoded when the job ends: well over 5 GB, over a 2 GB budget.
         let mem = memory_bytes(&plan_whole, &r);
@@ -190,10 +197,7 @@ mod tests {
         let png = reconstruction_bytes(&p, &r);
         let want = 2 * 100 * (1280 * 720 + 12 * 59 * 59);
         assert!(png >= want && png < want + want / 100, "{png} vs {want}");
-        assert_eq!(
-            disk_bytes(&p, &r),
-            png + estimated_bytes(4, (1280, 720))
-        );
+        assert_eq!(disk_bytes(&p, &r), png + estimated_bytes(4, (1280, 720)));
         // Capture only: nothing kept, nothing processed.
         let raw = JobSpec {
             process: false,

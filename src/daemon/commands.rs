@@ -5,12 +5,11 @@ use crate::acquisition::budget;
 use crate::acquisition::plan::{check_disk, plan, Plan, PlanError};
 use crate::acquisition::JobSpec;
 use crate::daemon::jobs::{JobSource, JobState, JobStatus, QueueError};
+use crate::daemon::listing;
 use crate::daemon::protocol::{
     CancelReply, CancelState, DaemonStatus, ErrorCode, EventBody, HelloReply, ListReply,
-    ProtoError, ReplyBody, Request, ResultReply, RigSummary, SubmitReply,
-    PROTOCOL_VERSION,
+    ProtoError, ReplyBody, Request, ResultReply, RigSummary, SubmitReply, PROTOCOL_VERSION,
 };
-use crate::daemon::listing;
 use crate::daemon::replay::replay_job;
 use crate::daemon::session::{self, Session};
 use crate::daemon::Shared;
@@ -98,7 +97,13 @@ fn submit(shared: &Shared, job: JobSpec) -> Result<SubmitReply, ProtoError> {
     // echoed as resolved.
     let job = job.with_defaults(&shared.rig_info.job_defaults);
     let plan = plan(&job, &shared.rig_info, &shared.settings.data_root, 0).map_err(rejected)?;
-    let (id, ahead) = queue(shared, job.clone(), plan.clone(), &shared.rig_info, JobSource::Live)?;
+    let (id, ahead) = queue(
+        shared,
+        job.clone(),
+        plan.clone(),
+        &shared.rig_info,
+        JobSource::Live,
+    )?;
     Ok(announce(shared, id, ahead, job, &plan))
 }
 

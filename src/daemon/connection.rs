@@ -8,8 +8,8 @@ use crate::daemon::commands;
 use crate::daemon::events::Published;
 use crate::daemon::outbox::{Line, Outbox};
 use crate::daemon::protocol::{
-    decode_request, encode, Envelope, ErrorCode, ProtoError, Reply, ReplyBody, Request,
-    ServerLine, SubscribeReply, MAX_LINE_BYTES,
+    decode_request, encode, Envelope, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
+    SubscribeReply, MAX_LINE_BYTES,
 };
 use crate::daemon::Shared;
 use futures_util::StreamExt;
@@ -160,7 +160,9 @@ fn subscribe(
     if subs.len() >= MAX_SUBSCRIPTIONS {
         let e = ProtoError::new(
             ErrorCode::Unavailable,
-            format!("this connection already holds {MAX_SUBSCRIPTIONS} subscriptions, the most one may"),
+            format!(
+                "this connection already holds {MAX_SUBSCRIPTIONS} subscriptions, the most one may"
+            ),
         );
         return Reply::err(id, e);
     }

@@ -103,16 +103,16 @@ mod tests {
         // Restart: job 2 made no session (the disk says 0), its id is still not reused.
         let mut ids = JobIds::load(d.path(), 0).unwrap();
         assert_eq!(ids.take().unwrap(), 3);
-        assert_eq!(
-            std::fs::read_to_string(d.path().join(FILE)).unwrap(),
-            "4\n"
-        );
+        assert_eq!(std::fs::read_to_string(d.path().join(FILE)).unwrap(), "4\n");
         // Sessions recording higher ids (an older data root) win.
         let mut ids = JobIds::load(d.path(), 41).unwrap();
         assert_eq!(ids.take().unwrap(), 42);
         std::fs::write(d.path().join(FILE), "forty\n").unwrap();
         let e = JobIds::load(d.path(), 0).unwrap_err().to_string();
-        assert!(e.contains(".next-job-id") && e.contains("\"forty\\n\""), "{e}");
+        assert!(
+            e.contains(".next-job-id") && e.contains("\"forty\\n\""),
+            "{e}"
+        );
     }
 
     #[test]

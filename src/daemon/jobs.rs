@@ -2,8 +2,8 @@
 //! time because the rig is exclusive.
 
 use crate::acquisition::plan::Plan;
-use crate::daemon::job_ids::{JobIdError, JobIds};
 use crate::acquisition::{JobSpec, Processing, StopFlag};
+use crate::daemon::job_ids::{JobIdError, JobIds};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;

@@ -44,7 +44,9 @@ fn manifest_job_id(dir: &Path) -> Option<u64> {
         job_id: u64,
     }
     let bytes = std::fs::read(dir.join(session::MANIFEST)).ok()?;
-    serde_json::from_slice::<JobId>(&bytes).ok().map(|j| j.job_id)
+    serde_json::from_slice::<JobId>(&bytes)
+        .ok()
+        .map(|j| j.job_id)
 }
 
 /// The newest session of job `id`.

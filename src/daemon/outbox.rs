@@ -185,7 +185,10 @@ mod tests {
     async fn a_full_queue_nobody_drains_stalls_and_a_drained_one_makes_room() {
         let o = Arc::new(Outbox::new(100, notice));
         o.reply(line(150));
-        let e = o.wait_for_room(Duration::from_millis(30)).await.unwrap_err();
+        let e = o
+            .wait_for_room(Duration::from_millis(30))
+            .await
+            .unwrap_err();
         assert_eq!(e.queued_bytes, 150);
         let o2 = o.clone();
         let writer = tokio::spawn(async move { o2.next().await });

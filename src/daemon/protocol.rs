@@ -557,10 +557,7 @@ mod tests {
         }
         // A job as an array of its fields in order, which serde alone would take.
         let e = refused(br#"{"kind":"submit","job":["axis",50,3]}"#);
-        assert_eq!(
-            e.message,
-            "`job` must be a JSON object, got an array"
-        );
+        assert_eq!(e.message, "`job` must be a JSON object, got an array");
         let e = refused(br#"{"kind":"replay","session":"s","processing":[10]}"#);
         assert!(e.message.starts_with("`processing` must be a JSON object"));
         // Duplicate keys, at the top and inside the job: the last would have won.
@@ -579,15 +576,29 @@ mod tests {
             let e = decode_request(line.as_bytes()).unwrap();
             assert_eq!(e.id.unwrap().to_string(), id.replace('\\', ""));
         }
-        for id in ["9007199254740992", "18446744073709551616", "1.5", "1e3", "true", "[1]"] {
+        for id in [
+            "9007199254740992",
+            "18446744073709551616",
+            "1.5",
+            "1e3",
+            "true",
+            "[1]",
+        ] {
             let line = format!(r#"{{"id":{id},"kind":"hello"}}"#);
             let (back, e) = decode_request(line.as_bytes()).unwrap_err();
             assert_eq!((back, e.code), (None, ErrorCode::BadRequest), "{id}");
-            assert!(e.message.starts_with("`id` must be a string or an integer within ±9007199254740991"), "{}", e.message);
+            assert!(
+                e.message
+                    .starts_with("`id` must be a string or an integer within ±9007199254740991"),
+                "{}",
+                e.message
+            );
         }
         // The strict requests still decode.
         assert_eq!(
-            decode_request(br#"{"kind":"list","limit":5,"before":40}"#).unwrap().request,
+            decode_request(br#"{"kind":"list","limit":5,"before":40}"#)
+                .unwrap()
+                .request,
             Request::List {
                 limit: Some(5),
                 before: Some(40)

@@ -11,7 +11,10 @@ use std::fmt;
 /// (with its line and column) or `duplicate key "k" in <path>`.
 pub fn parse(bytes: &[u8]) -> Result<Value, serde_json::Error> {
     let mut de = serde_json::Deserializer::from_slice(bytes);
-    let v = Strict { path: String::new() }.deserialize(&mut de)?;
+    let v = Strict {
+        path: String::new(),
+    }
+    .deserialize(&mut de)?;
     de.end()?;
     Ok(v)
 }

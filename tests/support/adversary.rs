@@ -278,7 +278,9 @@ pub fn raise_fd_limit(n: u64) {
 
 /// Open `n` connections and leave them idle; the ones the kernel refuses are left out.
 pub fn idle_flood(socket: &Path, n: usize) -> Vec<UnixStream> {
-    (0..n).filter_map(|_| UnixStream::connect(socket).ok()).collect()
+    (0..n)
+        .filter_map(|_| UnixStream::connect(socket).ok())
+        .collect()
 }
 
 /// A capture-only job of `steps` frames 10 µm apart, settling `settle_ms`, as JSON.
