@@ -73,7 +73,8 @@ fn flood(bin: &str) {
     c.request(&format!(r#"{{"kind":"cancel","job_id":{id}}}"#));
     std::thread::sleep(Duration::from_secs(1));
     let st = c.request(&format!(r#"{{"kind":"status","job_id":{id}}}"#))["result"].clone();
-    let end = serde_json::json!({"event": st["state"], "reason": st["reason"], "session": st["session"]});
+    let end =
+        serde_json::json!({"event": st["state"], "reason": st["reason"], "session": st["session"]});
     let steps = std::fs::read_to_string(
         d.data
             .join(end["session"].as_str().unwrap_or("none"))

@@ -43,7 +43,8 @@ pub fn reconstruction_bytes(plan: &Plan, rig: &RigInfo) -> u64 {
 
 /// The most memory a job's processing holds at once. Runs are processed one after the
 /// other; each run's reconstructions are kept until the job ends, when each is copied and
-/// encoded in turn (the copy and the PNG buffer: twice the largest image on top of all).
+/// encoded in turn: the copy, and the PNG buffer growing by doubling (up to twice the image
+/// while it reallocates), three times the largest image on top of them all.
 pub fn memory_bytes(plan: &Plan, rig: &RigInfo) -> u64 {
     let (w, h) = rig.frame_size;
     let in_flight = FRAMES_IN_FLIGHT * 3 * w as u64 * h as u64;
@@ -59,7 +60,7 @@ pub fn memory_bytes(plan: &Plan, rig: &RigInfo) -> u64 {
         kept = kept.saturating_add(*img);
     }
     let largest = images.iter().copied().max().unwrap_or(0);
-    let closing = kept.saturating_add(2 * largest);
+    let closing = kept.saturating_add(3 * largest);
     peak.max(closing).saturating_add(in_flight)
 }
 
@@ -68,10 +69,12 @@ fn mb(bytes: u64) -> u64 {
 }
 
 /// Refuse a plan whose processing needs more than `budget_mb` MB, naming the estimate, what
-/// drives it and the budget.
+/// drives it and the budget. A capture-only job is not refused: it holds only the frames in
+/// flight.
 pub fn check_memory(plan: &Plan, rig: &RigInfo, budget_mb: u64) -> Result<u64, PlanError> {
     let need = memory_bytes(plan, rig);
-    if need <= budget_mb.saturating_mul(1 << 20) {
+    let processes = plan.runs.iter().any(|r| r.processing.is_some());
+    if !processes || need <= budget_mb.saturating_mul(1 << 20) {
         return Ok(need);
     }
     let (w, h) = rig.frame_size;
@@ -169,10 +172,11 @@ mod tests {
             disk > whole && disk < whole + whole / 20,
             "{disk} vs {whole}"
         );
-        // In memory: the 4 k² w h f32 reconstruction, its 16-bit copy kept, then copied
-        // again and encoded when the job ends: well over 5 GB, over a 2 GB budget.
+        // In memory: the 4 k² w h f32 reconstruction and its 16-bit copy while the run
+        // ends, then the copy kept, copied again and encoded when the job ends: four 16-bit
+        // images, 7.55 GB. Issue 14 measured this job's peak: 7.5 GB.
         let mem = memory_bytes(&plan_whole, &r);
-        assert!(mem > 5 * (1 << 30), "{mem}");
+        assert!((7_200_000_000..8_000_000_000).contains(&mem), "{mem}");
         let e = check_memory(&plan_whole, &r, 2048).unwrap_err().0;
         assert!(
             e.starts_with("processing this job needs about ")
