@@ -76,7 +76,7 @@ pub fn page(
     let limit = limit as usize;
     let below = |id: u64| before.is_none_or(|b| id < b);
     let mut jobs: Vec<JobStatus> = jobs.into_iter().filter(|j| below(j.job_id)).collect();
-    jobs.sort_unstable_by(|a, b| b.job_id.cmp(&a.job_id));
+    jobs.sort_unstable_by_key(|j| std::cmp::Reverse(j.job_id));
     let more_jobs = jobs.len() > limit;
     jobs.truncate(limit);
     let on_disk: Vec<(u64, String)> = index(data_root)
