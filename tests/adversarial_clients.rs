@@ -291,14 +291,15 @@ fn a_job_or_replay_over_the_memory_budget_is_refused_before_anything_moves() {
     assert_eq!(r["error"]["code"], "rejected", "{r}");
     let m = r["error"]["message"].as_str().unwrap();
     assert!(m.starts_with("processing this job needs about "), "{m}");
-    // 4 k² w h of f32 and two 16-bit copies (6 k² w h) alone are 5.7 GB.
+    // 4 k² w h of f32 and its 16-bit copy (6 k² w h, 5.7 GB) while the run ends; then
+    // the copy kept, copied again and encoded: issue 14 measured a 7.5 GB peak.
     let mb: u64 = m["processing this job needs about ".len()..]
         .split(' ')
         .next()
         .unwrap()
         .parse()
         .unwrap();
-    assert!(mb > 5400, "{m}");
+    assert!((7000..8100).contains(&mb), "{m}");
     assert!(
         m.contains("budget of 2048 MB ([daemon] max_job_memory_mb)"),
         "{m}"
@@ -331,4 +332,33 @@ fn a_job_or_replay_over_the_memory_budget_is_refused_before_anything_moves() {
     let r = c.request(&whole(4));
     assert_eq!(r["ok"], true, "{r}");
     let _: Value = r;
+}
+
+/// Connections that hold a place and say nothing are closed after `idle_timeout_s`;
+/// subscribers, who wait for events by design, are not.
+#[test]
+fn idle_connections_are_closed_and_subscribers_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Spawn {
+        daemon_toml: "idle_timeout_s = 1",
+        ..Spawn::new(rigd(), dir.path())
+    }
+    .start();
+    let mut idle = d.client();
+    let mut sub = d.client();
+    sub.request(r#"{"kind":"subscribe"}"#);
+    let t = Instant::now();
+    let (lines, closed) = idle.drain(Duration::from_secs(5));
+    assert!(closed && lines.is_empty(), "{lines:?}");
+    let after = t.elapsed();
+    assert!(
+        after >= Duration::from_millis(900),
+        "closed after {after:?}"
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    let mut ctl = d.client();
+    let id = ctl.request(&capture_job(1, 0, ""))["result"]["job_id"]
+        .as_u64()
+        .unwrap();
+    assert_eq!(follow(&mut sub, id).last().unwrap()["event"], "finished");
 }
