@@ -61,7 +61,7 @@ fn main() {
         socket: dir.path().join("rigd.sock"),
         group: None,
         data_root: data.clone(),
-        lock_dir: None,
+        ..DaemonSettings::default()
     };
     let rig = simulated(&SimSettings::default()).unwrap();
     let _bg = Background::start(settings, rig).unwrap();

@@ -314,7 +314,22 @@ pub struct DaemonSettings {
     /// Where the serial devices' locks live, shared with `rigctl hw` (default: /run/lock
     /// when writable, else $XDG_RUNTIME_DIR, else /tmp: see `lock::lock_dir`).
     pub lock_dir: Option<PathBuf>,
+    /// Clients served at once; one more is told `unavailable` and closed. Lowered to what
+    /// the open-file limit leaves (`daemon::accept::RESERVED_FDS` kept for the rig).
+    pub max_connections: usize,
+    /// Bytes queued for one client (replies and events) before its events are dropped and
+    /// its requests wait.
+    pub output_queue_bytes: usize,
+    /// A client whose queue stays full this long (it reads nothing) is disconnected.
+    pub stalled_client_ms: u64,
+    /// A connection with no subscription that sends nothing this long is closed (0: never).
+    pub idle_timeout_s: u64,
+    /// The memory one job may need to process (its estimate at submit), MB.
+    pub max_job_memory_mb: u64,
 }
+
+/// `[daemon] max_connections` when the config leaves it out.
+pub const DEFAULT_MAX_CONNECTIONS: usize = 64;
 
 impl Default for DaemonSettings {
     /// The socket clients look for by default ([`default_socket`]) and `./rigd-sessions`.
@@ -324,6 +339,11 @@ impl Default for DaemonSettings {
             group: None,
             data_root: PathBuf::from("rigd-sessions"),
             lock_dir: None,
+            max_connections: DEFAULT_MAX_CONNECTIONS,
+            output_queue_bytes: 1 << 20,
+            stalled_client_ms: 10_000,
+            idle_timeout_s: 600,
+            max_job_memory_mb: 2048,
         }
     }
 }

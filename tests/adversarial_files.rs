@@ -13,8 +13,8 @@ use rigd::daemon::session::Manifest;
 use rigd::daemon::session::{self, Session, SessionState, MANIFEST};
 use std::os::unix::fs::{symlink, PermissionsExt};
 use std::path::{Path, PathBuf};
-use support::adversary::Logged;
 use support::daemon::{capture_job, run_job, session_name, subscribe};
+use support::instances::Logged;
 
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
@@ -109,7 +109,10 @@ fn recovery_never_writes_through_planted_symlinks_and_removes_leftovers() {
     // B is no session of this daemon's.
     let list = Client::connect(&sock)
         .unwrap()
-        .request(&Request::List)
+        .request(&Request::List {
+            limit: None,
+            before: None,
+        })
         .unwrap();
     let listed: Vec<&str> = list["sessions"]
         .as_array()

@@ -370,7 +370,7 @@ mod jobs {
         );
         assert_eq!(axis.position_at(Instant::now()), 0.0);
         // A refused move is no fault: the rig is ready.
-        let hello = c.request(&Request::Hello).unwrap();
+        let hello = c.request(&Request::Hello {}).unwrap();
         assert_eq!(hello["rig_state"]["state"], "ready", "{hello}");
     }
 

@@ -16,8 +16,8 @@ use rigd::lock::{device_lock_path, Holder, LockFile};
 use rigd::sim::grbl::GrblSim;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
-use support::adversary::{last_line, rigd_to_end, run_to_end, snapshot, Logged};
 use support::daemon::{capture_job, fast_grbl, submit, subscribe};
+use support::instances::{last_line, rigd_to_end, run_to_end, snapshot, Logged};
 
 /// A hardware-mode config: the GRBL emulator at `port` as [axis], a small sim camera, and
 /// device locks in `dir/locks`.
@@ -325,7 +325,10 @@ fn demo_never_submits_to_a_daemon_it_did_not_start() {
     // The daemon that was there ran nothing.
     let list = Client::connect(&sock)
         .unwrap()
-        .request(&Request::List)
+        .request(&Request::List {
+            limit: None,
+            before: None,
+        })
         .unwrap();
     assert_eq!(list["jobs"].as_array().map(Vec::len), Some(0), "{list}");
     assert_eq!(list["sessions"].as_array().map(Vec::len), Some(0), "{list}");

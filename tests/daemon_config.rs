@@ -110,7 +110,7 @@ fn a_hardware_rig_takes_its_scan_start_and_axis_direction_from_the_config() {
     assert!(rig.info.bounds(StageKind::Piezo).is_none(), "no [piezo]");
     let d = Daemon::start_in(rig, dir);
     let mut c = d.client();
-    let hello = c.request(&Request::Hello).unwrap();
+    let hello = c.request(&Request::Hello {}).unwrap();
     assert_eq!(hello["rig"]["default_start_um"], 7_250.0);
     subscribe(&mut c);
     let job = capture_job(100.0, 2, 0);
@@ -146,7 +146,7 @@ fn rigd_takes_its_socket_and_data_root_from_the_command_line_over_the_file() {
     let _rigd = RigdProcess::spawn(&args, &socket);
     let hello = rigd::cli::client::Client::connect(&socket)
         .unwrap()
-        .request(&Request::Hello)
+        .request(&Request::Hello {})
         .unwrap();
     assert_eq!(hello["rig"]["mode"], "sim");
     assert_eq!(hello["data_root"], data.display().to_string());

@@ -67,7 +67,7 @@ fn pipeline_defaults_fill_what_a_job_omits_and_explicit_values_win() {
     assert_eq!(rig.info.grab_timeout_ms, 1500, "[camera] frame_timeout_ms");
     let d = Daemon::start_in(rig, dir);
     let mut c = d.client();
-    let hello = c.request(&Request::Hello).unwrap();
+    let hello = c.request(&Request::Hello {}).unwrap();
     assert_eq!(hello["rig"]["job_defaults"]["estimator"], "paper");
     subscribe(&mut c);
     let bare = JobSpec {

@@ -388,7 +388,7 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
 
     // A restart while the disk is still full: the daemon starts and serves all the same.
     let mut c = ns.restart_rigd();
-    c.request(&Request::Hello).unwrap();
+    c.request(&Request::Hello {}).unwrap();
     let s = Session::open(&data.join(&session)).unwrap();
     assert_eq!(s.manifest.state, was, "nothing could be written");
     check(&s);
@@ -404,7 +404,12 @@ fn a_disk_too_full_for_the_manifest_is_recovered_by_a_restart() {
     assert_eq!(s.manifest.state, want);
     assert_eq!(s.manifest.frames_captured as usize, reported.len());
     check(&s);
-    let listed = c.request(&Request::List).unwrap();
+    let listed = c
+        .request(&Request::List {
+            limit: None,
+            before: None,
+        })
+        .unwrap();
     let entry = listed["sessions"]
         .as_array()
         .unwrap()

@@ -43,7 +43,7 @@ fn scan(steps: u32) -> JobSpec {
 fn settled(c: &mut Client) -> serde_json::Value {
     let t = std::time::Instant::now();
     loop {
-        let s = c.request(&Request::Hello).unwrap()["rig_state"].clone();
+        let s = c.request(&Request::Hello {}).unwrap()["rig_state"].clone();
         if s != serde_json::json!({"state": "busy"}) || t.elapsed() > Duration::from_secs(10) {
             return s;
         }
@@ -52,13 +52,18 @@ fn settled(c: &mut Client) -> serde_json::Value {
 }
 
 fn rig_state(c: &mut Client) -> (serde_json::Value, serde_json::Value) {
-    let hello = c.request(&Request::Hello).unwrap();
+    let hello = c.request(&Request::Hello {}).unwrap();
     let status = c.request(&Request::Status { job_id: None }).unwrap();
     (hello["rig_state"].clone(), status["rig_state"].clone())
 }
 
 fn sessions(c: &mut Client) -> usize {
-    let list = c.request(&Request::List).unwrap();
+    let list = c
+        .request(&Request::List {
+            limit: None,
+            before: None,
+        })
+        .unwrap();
     list["sessions"].as_array().unwrap().len()
 }
 
@@ -238,7 +243,12 @@ fn a_cancel_during_the_last_settle_ends_cancelled_without_its_frame() {
         "{ev:?}"
     );
     assert!(reported_steps(&ev).is_empty(), "{ev:?}");
-    let list = c.request(&Request::List).unwrap();
+    let list = c
+        .request(&Request::List {
+            limit: None,
+            before: None,
+        })
+        .unwrap();
     let s = &list["sessions"][0];
     assert_eq!(
         (s["state"].as_str(), s["frames_captured"].as_u64()),

@@ -13,7 +13,7 @@ use rigd::rig::{simulated, Fault, SimSettings};
 use serde_json::Value;
 use support::daemon::{
     assert_finished, assert_frames_decode, capture_job, events_until_end, fast_camera, job_id,
-    submit, subscribe, Daemon,
+    list_all_sessions, submit, subscribe, Daemon,
 };
 
 fn start(faults: Vec<Fault>) -> Daemon {
@@ -117,7 +117,12 @@ fn jobs_queue_behind_the_running_one_and_cancel_stops_them() {
     let st = c.request(&Request::Status { job_id: Some(long) }).unwrap();
     let done = st["frames_done"].as_u64().unwrap();
     assert!((3..200).contains(&done), "{done}");
-    let list = c.request(&Request::List).unwrap();
+    let list = c
+        .request(&Request::List {
+            limit: None,
+            before: None,
+        })
+        .unwrap();
     let sessions = list["sessions"].as_array().unwrap();
     assert_eq!(sessions.len(), 1, "the cancelled queued job has no session");
     assert_eq!(sessions[0]["state"], "cancelled");
@@ -147,7 +152,7 @@ fn each_injected_fault_fails_the_job_with_its_reason_and_keeps_the_frames() {
         assert_eq!(s.steps.len(), kept, "{fault:?}");
         assert!(s.manifest.reason.as_deref().unwrap().contains(want));
         // The daemon keeps serving.
-        c.request(&Request::Hello).unwrap();
+        c.request(&Request::Hello {}).unwrap();
     }
 }
 
@@ -185,7 +190,11 @@ fn many_clients_at_once_all_get_their_jobs_done() {
                 subscribe(&mut c);
                 let id = submit(&mut c, scan(1 + i % 3, 0));
                 // Interleave other requests while the queue drains.
-                c.request(&Request::List).unwrap();
+                c.request(&Request::List {
+                    limit: None,
+                    before: None,
+                })
+                .unwrap();
                 c.request(&Request::Status { job_id: None }).unwrap();
                 let ev = events_until_end(&mut c, id);
                 (id, ev.last().cloned(), 1 + i % 3)
@@ -202,7 +211,12 @@ fn many_clients_at_once_all_get_their_jobs_done() {
     ids.dedup();
     assert_eq!(ids.len(), 16);
     let mut c = d.client();
-    let list = c.request(&Request::List).unwrap();
+    let list = c
+        .request(&Request::List {
+            limit: None,
+            before: None,
+        })
+        .unwrap();
     let frames: u64 = list["sessions"]
         .as_array()
         .unwrap()
@@ -311,14 +325,13 @@ fn soak_short_jobs_leak_neither_files_nor_memory() {
     assert!(fd1 <= fd0 + 2, "open files grew: {fd0} -> {fd1}");
     assert!(rss1 < rss0 + 8 * 1024, "memory grew: {rss0} -> {rss1} kB");
     let mut c = d.client();
-    let list = c.request(&Request::List).unwrap();
-    assert_eq!(list["sessions"].as_array().unwrap().len(), n + 30);
+    assert_eq!(list_all_sessions(&mut c).len(), n + 30);
 }
 
 #[test]
 fn hello_names_the_protocol_and_the_rig() {
     let d = start(vec![]);
-    let r: Value = d.client().request(&Request::Hello).unwrap();
+    let r: Value = d.client().request(&Request::Hello {}).unwrap();
     assert_eq!(r["protocol"], 1);
     assert_eq!(r["rig"]["mode"], "sim");
     assert_eq!(r["rig"]["frame_size"], serde_json::json!([48, 32]));

@@ -46,6 +46,100 @@ proptest! {
     }
 }
 
+/// Every kind and the fields it takes (`docs/protocol.md`).
+const KINDS: &[(&str, &[&str])] = &[
+    ("hello", &[]),
+    ("submit", &["job"]),
+    ("status", &["job_id"]),
+    ("list", &["limit", "before"]),
+    ("cancel", &["job_id"]),
+    ("result", &["job_id"]),
+    ("subscribe", &["job_id"]),
+    ("replay", &["session", "processing"]),
+    ("unlock", &["stage"]),
+    ("home", &["stage"]),
+    ("reconnect", &["stage"]),
+];
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 500, ..ProptestConfig::default() })]
+
+    /// Whatever the kind, a field it does not take is refused, naming the field.
+    #[test]
+    fn unknown_fields_are_refused_on_every_kind(
+        kind in 0..KINDS.len(),
+        key in "[a-z_]{1,8}",
+        val in arb_json(),
+    ) {
+        let (name, fields) = KINDS[kind];
+        prop_assume!(!fields.contains(&key.as_str()) && !["kind", "id", "v"].contains(&key.as_str()));
+        let mut m = serde_json::Map::new();
+        m.insert("kind".into(), Value::from(name));
+        m.insert(key.clone(), val);
+        let (_, e) = decode_request(&serde_json::to_vec(&m).unwrap()).unwrap_err();
+        prop_assert_eq!(e.code, ErrorCode::BadRequest);
+        prop_assert!(e.message.contains(&key), "{}", e.message);
+    }
+
+    /// A key twice, at the top or inside the job, is refused whatever the values: serde_json
+    /// alone keeps the last one.
+    #[test]
+    fn duplicate_keys_are_refused_at_any_depth(
+        key in prop_oneof![
+            Just("steps".to_string()),
+            Just("step_um".to_string()),
+            Just("label".to_string()),
+            "[a-z]{1,5}",
+        ],
+        a in arb_json(),
+        b in arb_json(),
+        inside in any::<bool>(),
+    ) {
+        let (a, b) = (a.to_string(), b.to_string());
+        let line = match inside {
+            true => format!(r#"{{"kind":"submit","job":{{"{key}":{a},"steps":1,"{key}":{b}}}}}"#),
+            false => format!(r#"{{"{key}":{a},"kind":"list","{key}":{b}}}"#),
+        };
+        let (_, e) = decode_request(line.as_bytes()).unwrap_err();
+        prop_assert_eq!(e.code, ErrorCode::BadRequest, "{}", line);
+        prop_assert!(e.message.contains(&format!("duplicate key {key:?}")), "{}: {}", line, e.message);
+    }
+
+    /// Integer ids within ±(2^53 - 1) come back as the same number; others are refused.
+    #[test]
+    fn integer_ids_are_echoed_exactly_or_refused(id in prop_oneof![
+        -(1i128 << 53)..(1i128 << 53),
+        any::<i128>(),
+        ((1i128 << 53) - 2)..((1i128 << 53) + 2),
+    ]) {
+        let line = format!(r#"{{"id":{id},"kind":"hello"}}"#);
+        match decode_request(line.as_bytes()) {
+            Ok(env) => {
+                prop_assert!(id.unsigned_abs() < 1 << 53, "{} accepted", id);
+                prop_assert_eq!(env.id.unwrap().to_string(), id.to_string());
+            }
+            Err((back, e)) => {
+                prop_assert!(id.unsigned_abs() >= 1 << 53, "{} refused: {}", id, e.message);
+                prop_assert_eq!(back, None);
+                prop_assert!(e.message.starts_with("`id` must be"), "{}", e.message);
+            }
+        }
+    }
+
+    /// A job (or a replay's processing) that is not an object is refused, whatever it holds.
+    #[test]
+    fn a_job_must_be_an_object(v in arb_json(), replay in any::<bool>()) {
+        prop_assume!(!v.is_object());
+        let line = match replay {
+            true => serde_json::json!({"kind": "replay", "session": "s", "processing": v}),
+            false => serde_json::json!({"kind": "submit", "job": v}),
+        };
+        let (_, e) = decode_request(&serde_json::to_vec(&line).unwrap()).unwrap_err();
+        prop_assert_eq!(e.code, ErrorCode::BadRequest);
+        prop_assert!(e.message.contains("must be a JSON object"), "{}", e.message);
+    }
+}
+
 fn arb_json() -> impl Strategy<Value = Value> {
     let leaf = prop_oneof![
         Just(Value::Null),

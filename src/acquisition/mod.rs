@@ -11,6 +11,7 @@
 //! - `outcome`: how a job ended, typed; `study`: a job's runs reduced to the paper's tables;
 //! - `fake`: scripted devices for testing the engine without hardware or time.
 
+pub mod budget;
 pub mod engine;
 pub mod fake;
 pub mod interferometer;

@@ -3,6 +3,7 @@
 //! run's complete processing options (the pipeline validates them, so a job with a `k` it
 //! cannot reconstruct is refused at submit, not after the rig has moved).
 
+use crate::acquisition::budget;
 use crate::acquisition::job::{
     combine_for, CaseScan, JobRegistration, JobSpec, Processing, StageKind,
 };
@@ -112,19 +113,31 @@ fn mb(bytes: u64) -> u64 {
     bytes >> 20
 }
 
-fn disk_message(frames: u32, need: u64, committed: u64, root: &Path, free: u64) -> String {
+fn disk_message(
+    frames: u32,
+    (need, images): (u64, u64),
+    committed: u64,
+    root: &Path,
+    free: u64,
+) -> String {
     let root = root.display();
+    let need = match images >= 1 << 20 {
+        true => format!(
+            "{} MB ({} MB of them the reconstructions' images)",
+            mb(need),
+            mb(images)
+        ),
+        false => format!("{} MB", mb(need)),
+    };
     if committed == 0 {
         format!(
-            "{frames} frames need about {} MB but {root} has {} MB free",
-            mb(need),
+            "{frames} frames need about {need} but {root} has {} MB free",
             mb(free)
         )
     } else {
         format!(
-            "{frames} frames need about {} MB, {} MB are already committed to queued and \
+            "{frames} frames need about {need}, {} MB are already committed to queued and \
              running jobs, and {root} has {} MB free",
-            mb(need),
             mb(committed),
             mb(free)
         )
@@ -281,17 +294,20 @@ fn check_steps(plan: &Plan, max_step_um: f64, stage: StageKind) -> Result<(), Pl
     Ok(())
 }
 
-fn check_disk(
+/// The plan's frames and reconstructions ([`budget::disk_bytes`]) next to `committed_bytes`
+/// against the free space under `data_root` (a replay is checked with this too).
+pub fn check_disk(
     plan: &Plan,
     rig: &RigInfo,
     data_root: &Path,
     committed_bytes: u64,
 ) -> Result<(), PlanError> {
-    let need = estimated_bytes(plan.total_frames as u64, rig.frame_size);
+    let need = budget::disk_bytes(plan, rig);
+    let images = budget::reconstruction_bytes(plan, rig);
     match free_bytes(data_root) {
         Some(free) if need.saturating_add(committed_bytes) > free => Err(rejected(disk_message(
             plan.total_frames,
-            need,
+            (need, images),
             committed_bytes,
             data_root,
             free,

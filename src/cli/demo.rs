@@ -55,7 +55,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
         socket: socket.clone(),
         group: None,
         data_root: a.data_root.clone(),
-        lock_dir: None,
+        ..DaemonSettings::default()
     };
     // Claimed before anything starts: when a daemon serves at --socket (or holds the data
     // root) the demo stops here, and never submits the study to a rig it did not start.

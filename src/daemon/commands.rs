@@ -1,13 +1,14 @@
 //! What each request does. Quick and synchronous: nothing here touches the rig; jobs are
 //! only checked (the plan) and queued for the worker.
 
-use crate::acquisition::plan::{estimated_bytes, plan, Plan, PlanError};
+use crate::acquisition::budget;
+use crate::acquisition::plan::{check_disk, plan, Plan, PlanError};
 use crate::acquisition::JobSpec;
-use crate::daemon::jobs::{JobSource, JobState, JobStatus};
+use crate::daemon::jobs::{JobSource, JobState, JobStatus, QueueError};
+use crate::daemon::listing;
 use crate::daemon::protocol::{
     CancelReply, CancelState, DaemonStatus, ErrorCode, EventBody, HelloReply, ListReply,
-    ProtoError, ReplyBody, Request, ResultReply, RigSummary, SessionSummary, SubmitReply,
-    PROTOCOL_VERSION,
+    ProtoError, ReplyBody, Request, ResultReply, RigSummary, SubmitReply, PROTOCOL_VERSION,
 };
 use crate::daemon::replay::replay_job;
 use crate::daemon::session::{self, Session};
@@ -25,7 +26,7 @@ fn rejected(e: PlanError) -> ProtoError {
 /// Handle every request but `subscribe` (the connection owns subscriptions).
 pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
     match req {
-        Request::Hello => Ok(ReplyBody::Hello(hello(shared))),
+        Request::Hello {} => Ok(ReplyBody::Hello(hello(shared))),
         Request::Submit { job } => submit(shared, job).map(ReplyBody::Submit),
         Request::Replay {
             session: name,
@@ -45,7 +46,8 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
                 dir,
                 overrides: processing,
             };
-            let (id, ahead) = shared.jobs().submit(spec.clone(), plan.clone(), source);
+            // Checked as a live job is: the replay writes its frames and images again.
+            let (id, ahead) = queue(shared, spec.clone(), plan.clone(), &s.manifest.rig, source)?;
             Ok(ReplyBody::Submit(announce(shared, id, ahead, spec, &plan)))
         }
         Request::Status { job_id: None } => {
@@ -61,7 +63,7 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
             }))
         }
         Request::Status { job_id: Some(id) } => status(shared, id).map(ReplyBody::JobStatus),
-        Request::List => Ok(ReplyBody::List(list(shared))),
+        Request::List { limit, before } => list(shared, limit, before).map(ReplyBody::List),
         Request::Cancel { job_id } => cancel(shared, job_id).map(ReplyBody::Cancel),
         Request::Result { job_id } => result(shared, job_id).map(ReplyBody::Result),
         Request::Subscribe { .. }
@@ -102,20 +104,36 @@ fn submit(shared: &Shared, job: JobSpec) -> Result<SubmitReply, ProtoError> {
     // What the client leaves out, the rig's configuration decides; the job is recorded and
     // echoed as resolved.
     let job = job.with_defaults(&shared.rig_info.job_defaults);
-    // The disk must hold this job next to what the queued and running ones will still
-    // write; the table stays locked from the check to the queueing so two submits cannot
-    // both count on the same free space.
-    let info = &shared.rig_info;
-    let mut jobs = shared.jobs();
-    let committed: u64 = jobs
-        .frames_left()
-        .into_iter()
-        .map(|n| estimated_bytes(n, info.frame_size))
-        .sum();
-    let plan = plan(&job, info, &shared.settings.data_root, committed).map_err(rejected)?;
-    let (id, ahead) = jobs.submit(job.clone(), plan.clone(), JobSource::Live);
-    drop(jobs);
+    let plan = plan(&job, &shared.rig_info, &shared.settings.data_root, 0).map_err(rejected)?;
+    let (id, ahead) = queue(
+        shared,
+        job.clone(),
+        plan.clone(),
+        &shared.rig_info,
+        JobSource::Live,
+    )?;
     Ok(announce(shared, id, ahead, job, &plan))
+}
+
+/// Check a planned job against the budgets and queue it. The disk must hold it next to what
+/// the queued and running jobs will still write; the table stays locked from the check to
+/// the queueing so two submits cannot both count on the same free space.
+fn queue(
+    shared: &Shared,
+    job: JobSpec,
+    plan: Plan,
+    rig: &crate::rig::RigInfo,
+    source: JobSource,
+) -> Result<(u64, usize), ProtoError> {
+    budget::check_memory(&plan, rig, shared.settings.max_job_memory_mb).map_err(rejected)?;
+    let disk = budget::disk_bytes(&plan, rig);
+    let mut jobs = shared.jobs();
+    let committed = jobs.committed_disk_bytes();
+    check_disk(&plan, rig, &shared.settings.data_root, committed).map_err(rejected)?;
+    jobs.submit(job, plan, source, disk).map_err(|e| match e {
+        QueueError::Full => ProtoError::new(ErrorCode::Unavailable, e.to_string()),
+        QueueError::Id(e) => ProtoError::new(ErrorCode::Internal, e.to_string()),
+    })
 }
 
 fn refuse_if_stopping(shared: &Shared) -> Result<(), ProtoError> {
@@ -148,25 +166,10 @@ fn announce(shared: &Shared, id: u64, ahead: usize, job: JobSpec, plan: &Plan) -
     }
 }
 
-fn list(shared: &Shared) -> ListReply {
-    let jobs: Vec<_> = shared.jobs().all().map(|r| r.status()).collect();
-    let sessions = session::list(&shared.settings.data_root)
-        .into_iter()
-        .map(|s| {
-            let m = &s.manifest;
-            SessionSummary {
-                name: m.name.clone(),
-                job_id: m.job_id,
-                state: m.state,
-                reason: m.reason.clone(),
-                frames_captured: s.steps.len(),
-                total_frames: m.plan.total_frames,
-                replay_of: m.replay_of.clone(),
-                label: m.job.label.clone(),
-            }
-        })
-        .collect();
-    ListReply { jobs, sessions }
+fn list(shared: &Shared, limit: Option<u32>, before: Option<u64>) -> Result<ListReply, ProtoError> {
+    // The statuses are copied out first: the disk is not read under the table's lock.
+    let jobs: Vec<JobStatus> = shared.jobs().all().map(|r| r.status()).collect();
+    listing::page(jobs, &shared.settings.data_root, limit, before)
 }
 
 fn cancel(shared: &Shared, job_id: u64) -> Result<CancelReply, ProtoError> {
@@ -241,10 +244,7 @@ pub fn status(shared: &Shared, id: u64) -> Result<JobStatus, ProtoError> {
 }
 
 fn find_session(shared: &Shared, id: u64) -> Option<Session> {
-    session::list(&shared.settings.data_root)
-        .into_iter()
-        .rev()
-        .find(|s| s.manifest.job_id == id)
+    listing::find(&shared.settings.data_root, id)
 }
 
 /// A session name from a client, confined to the data root.

@@ -1,22 +1,25 @@
 //! One client connection: read request lines (bounded), answer each, and forward events
-//! after `subscribe`. A client that goes away only ends its connection, never a job.
+//! after `subscribe`. A client that goes away only ends its connection, never a job. What
+//! is queued for the client is bounded in bytes (`outbox`): a slow reader loses events (and
+//! is told), one that reads nothing is disconnected.
 
+use crate::daemon::accept::Permit;
+use crate::daemon::commands;
+use crate::daemon::events::Published;
+use crate::daemon::outbox::{Line, Outbox};
 use crate::daemon::protocol::{
-    decode_request, encode, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
+    decode_request, encode, Envelope, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
     SubscribeReply, MAX_LINE_BYTES,
 };
-use crate::daemon::Shared;
-use crate::daemon::{commands, rig_commands};
+use crate::daemon::{rig_commands, Shared};
 use futures_util::StreamExt;
 use std::sync::Arc;
+use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWriteExt};
-use tokio::net::unix::OwnedReadHalf;
+use tokio::net::unix::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::net::UnixStream;
-use tokio::sync::{broadcast, mpsc};
+use tokio::sync::broadcast;
 use tokio_util::codec::{FramedRead, LinesCodec, LinesCodecError};
-
-/// Lines queued for a slow client before its events are dropped (it is told so).
-const OUTBOX: usize = 1024;
 
 /// Request lines, at most [`MAX_LINE_BYTES`] each (tokio-util's bounded `LinesCodec`).
 type Lines = FramedRead<OwnedReadHalf, LinesCodec>;
@@ -65,113 +68,151 @@ async fn read_line<R: AsyncRead + Unpin>(
     }
 }
 
-pub async fn serve(stream: UnixStream, shared: Arc<Shared>) {
-    let (rd, mut wr) = stream.into_split();
-    let (out_tx, mut out_rx) = mpsc::channel::<Vec<u8>>(OUTBOX);
-    let writer = tokio::spawn(async move {
-        while let Some(line) = out_rx.recv().await {
-            if wr.write_all(&line).await.is_err() {
-                break;
-            }
-        }
-    });
-    let mut lines: Lines = FramedRead::new(rd, LinesCodec::new_with_max_length(MAX_LINE_BYTES));
-    let mut after_error = false;
-    let mut forwarders: Vec<tokio::task::JoinHandle<()>> = Vec::new();
-    loop {
-        let reply = match read_line(&mut lines, &mut after_error).await {
-            LineRead::Eof => break,
-            LineRead::Refused(e) => Reply::err(None, e),
-            LineRead::Line(line) => {
-                if line.trim().is_empty() {
-                    continue;
-                }
-                match decode_request(line.as_bytes()) {
-                    Err((id, e)) => Reply::err(id, e),
-                    Ok(env) => match env.request {
-                        Request::Subscribe { job_id } => {
-                            // Subscribe before reading the status: no event falls between.
-                            let rx = shared.events.subscribe();
-                            let status = job_id.map(|id| commands::status(&shared, id));
-                            match status {
-                                Some(Err(e)) => Reply::err(env.id, e),
-                                st => {
-                                    forwarders.push(tokio::spawn(forward(
-                                        rx,
-                                        job_id,
-                                        out_tx.clone(),
-                                    )));
-                                    Reply::with(
-                                        env.id,
-                                        &ReplyBody::Subscribe(SubscribeReply {
-                                            subscribed: job_id,
-                                            status: st.and_then(|s| s.ok()),
-                                        }),
-                                    )
-                                }
-                            }
-                        }
-                        req if req.rig_action().is_some() => {
-                            let (action, stage) = req.rig_action().expect("a rig request");
-                            match rig_commands::request(&shared, action, stage).await {
-                                Ok(body) => Reply::with(env.id, &body),
-                                Err(e) => Reply::err(env.id, e),
-                            }
-                        }
-                        req => match commands::handle(&shared, req) {
-                            Ok(body) => Reply::with(env.id, &body),
-                            Err(e) => Reply::err(env.id, e),
-                        },
-                    },
-                }
-            }
-        };
-        if out_tx
-            .send(encode(&ServerLine::Reply(reply)))
-            .await
-            .is_err()
-        {
-            break;
-        }
-    }
-    for f in forwarders {
-        f.abort();
-    }
-    drop(out_tx);
-    let _ = writer.await;
+/// Subscriptions one connection may hold at once (each is a task and a place on the bus).
+pub const MAX_SUBSCRIPTIONS: usize = 16;
+
+/// The notice a client gets once it has caught up after losing events.
+fn lost_notice(n: u64) -> Line {
+    let note = Reply::err(
+        None,
+        ProtoError::new(
+            ErrorCode::Internal,
+            format!(
+                "this client fell behind and lost {n} events (it read too slowly: its \
+                 output queue is bounded)"
+            ),
+        ),
+    );
+    encode(&ServerLine::Reply(note)).into()
 }
 
-/// Copy events (of one job, or all) to the client's outbox.
-async fn forward(
-    mut rx: broadcast::Receiver<crate::daemon::protocol::Event>,
+/// Serve one client until it leaves, stalls or idles out; `_permit` holds its place under
+/// the connection limit until then.
+pub async fn serve(stream: UnixStream, shared: Arc<Shared>, _permit: Permit) {
+    let settings = &shared.settings;
+    let stall = Duration::from_millis(settings.stalled_client_ms.max(1));
+    let idle = (settings.idle_timeout_s > 0).then(|| Duration::from_secs(settings.idle_timeout_s));
+    let (rd, wr) = stream.into_split();
+    let outbox = Arc::new(Outbox::new(settings.output_queue_bytes, lost_notice));
+    let mut writer = tokio::spawn(write_out(outbox.clone(), wr));
+    let mut lines: Lines = FramedRead::new(rd, LinesCodec::new_with_max_length(MAX_LINE_BYTES));
+    let mut after_error = false;
+    let mut subs: Vec<tokio::task::JoinHandle<()>> = Vec::new();
+    loop {
+        // Back-pressure: no request is read while the client's queue is full.
+        if let Err(s) = outbox.wait_for_room(stall).await {
+            tracing::warn!(
+                queued_bytes = s.queued_bytes,
+                "disconnecting a client that reads none of its replies: its queue stayed full \
+                 for {} ms",
+                stall.as_millis()
+            );
+            break;
+        }
+        subs.retain(|h| !h.is_finished());
+        let read = read_line(&mut lines, &mut after_error);
+        let next = match idle.filter(|_| subs.is_empty()) {
+            Some(d) => match tokio::time::timeout(d, read).await {
+                Ok(r) => r,
+                Err(_) => {
+                    tracing::debug!("closing a connection idle for {} s", d.as_secs());
+                    break;
+                }
+            },
+            None => read.await,
+        };
+        let reply = match next {
+            LineRead::Eof => break,
+            LineRead::Refused(e) => Reply::err(None, e),
+            LineRead::Line(line) if line.trim().is_empty() => continue,
+            LineRead::Line(line) => match decode_request(line.as_bytes()) {
+                Err((id, e)) => Reply::err(id, e),
+                Ok(Envelope {
+                    id,
+                    request: Request::Subscribe { job_id },
+                }) => subscribe(&shared, id, job_id, &outbox, &mut subs),
+                Ok(env) if env.request.rig_action().is_some() => {
+                    let (action, stage) = env.request.rig_action().expect("a rig request");
+                    match rig_commands::request(&shared, action, stage).await {
+                        Ok(body) => Reply::with(env.id, &body),
+                        Err(e) => Reply::err(env.id, e),
+                    }
+                }
+                Ok(env) => match commands::handle(&shared, env.request) {
+                    Ok(body) => Reply::with(env.id, &body),
+                    Err(e) => Reply::err(env.id, e),
+                },
+            },
+        };
+        outbox.reply(encode(&ServerLine::Reply(reply)).into());
+    }
+    for f in subs {
+        f.abort();
+    }
+    outbox.close();
+    // What is queued goes out if the client takes it within the stall time.
+    if tokio::time::timeout(stall, &mut writer).await.is_err() {
+        writer.abort();
+    }
+}
+
+/// Start a subscription (subscribed before the status is read: no event falls between).
+fn subscribe(
+    shared: &Shared,
+    id: Option<serde_json::Value>,
     job_id: Option<u64>,
-    out: mpsc::Sender<Vec<u8>>,
-) {
+    outbox: &Arc<Outbox>,
+    subs: &mut Vec<tokio::task::JoinHandle<()>>,
+) -> Reply {
+    if subs.len() >= MAX_SUBSCRIPTIONS {
+        let e = ProtoError::new(
+            ErrorCode::Unavailable,
+            format!(
+                "this connection already holds {MAX_SUBSCRIPTIONS} subscriptions, the most one may"
+            ),
+        );
+        return Reply::err(id, e);
+    }
+    let rx = shared.events.subscribe();
+    let status = match job_id.map(|j| commands::status(shared, j)).transpose() {
+        Ok(s) => s,
+        Err(e) => return Reply::err(id, e),
+    };
+    subs.push(tokio::spawn(forward(rx, job_id, outbox.clone())));
+    Reply::with(
+        id,
+        &ReplyBody::Subscribe(SubscribeReply {
+            subscribed: job_id,
+            status,
+        }),
+    )
+}
+
+/// Write the queue to the client until it closes or the socket fails.
+async fn write_out(outbox: Arc<Outbox>, mut wr: OwnedWriteHalf) {
+    while let Some(line) = outbox.next().await {
+        if wr.write_all(&line).await.is_err() {
+            return;
+        }
+    }
+}
+
+/// Copy events (of one job, or all) to the client's queue, never waiting for it.
+async fn forward(mut rx: broadcast::Receiver<Published>, job_id: Option<u64>, out: Arc<Outbox>) {
     loop {
         match rx.recv().await {
             Ok(ev) => {
                 if job_id.is_some_and(|id| id != ev.job_id) {
                     continue;
                 }
-                let terminal = job_id.is_some() && ev.body.is_terminal();
-                if out.send(encode(&ServerLine::Event(ev))).await.is_err() {
-                    return;
-                }
-                if terminal {
+                out.event(ev.line);
+                if job_id.is_some() && ev.terminal {
                     return;
                 }
             }
             Err(broadcast::error::RecvError::Lagged(n)) => {
-                let note = Reply::err(
-                    None,
-                    ProtoError::new(
-                        ErrorCode::Internal,
-                        format!("this subscriber fell behind and lost {n} events"),
-                    ),
-                );
-                if out.send(encode(&ServerLine::Reply(note))).await.is_err() {
-                    return;
-                }
+                // The bus dropped them before this forwarder ran (rare: it never waits).
+                out.reply(lost_notice(n));
             }
             Err(broadcast::error::RecvError::Closed) => return,
         }

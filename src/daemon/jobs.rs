@@ -3,6 +3,7 @@
 
 use crate::acquisition::plan::Plan;
 use crate::acquisition::{JobSpec, Processing, StopFlag};
+use crate::daemon::job_ids::{JobIdError, JobIds};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
@@ -10,6 +11,9 @@ use std::sync::Arc;
 
 /// Finished jobs kept in memory; older ones are still listed from their sessions on disk.
 const KEEP_FINISHED: usize = 256;
+/// Jobs that may wait in the queue: each holds its plan (a position per frame) in memory,
+/// so the queue must not grow with what clients send.
+pub const MAX_QUEUED: usize = 256;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -47,6 +51,8 @@ pub struct JobRecord {
     pub frames_done: u32,
     pub reason: Option<String>,
     pub stop: Arc<StopFlag>,
+    /// What the job writes, estimated at submit (`acquisition::budget::disk_bytes`).
+    pub disk_bytes: u64,
 }
 
 /// The public view of a job (status and list replies).
@@ -83,9 +89,17 @@ impl JobRecord {
     }
 }
 
-#[derive(Default)]
+/// Why a job was not queued.
+#[derive(Debug, thiserror::Error)]
+pub enum QueueError {
+    #[error("the queue is full ({MAX_QUEUED} jobs wait): submit again once some have run")]
+    Full,
+    #[error(transparent)]
+    Id(#[from] JobIdError),
+}
+
 pub struct Jobs {
-    next_id: u64,
+    ids: JobIds,
     table: BTreeMap<u64, JobRecord>,
     queue: VecDeque<u64>,
     running: Option<u64>,
@@ -93,18 +107,30 @@ pub struct Jobs {
 }
 
 impl Jobs {
-    /// Start numbering after `last_id` (the highest id recorded on disk).
-    pub fn starting_after(last_id: u64) -> Jobs {
+    /// A table handing out `ids`.
+    pub fn new(ids: JobIds) -> Jobs {
         Jobs {
-            next_id: last_id + 1,
-            ..Jobs::default()
+            ids,
+            table: BTreeMap::new(),
+            queue: VecDeque::new(),
+            running: None,
+            finished_order: VecDeque::new(),
         }
     }
 
-    /// Queue a job; returns its id and how many jobs are ahead of it.
-    pub fn submit(&mut self, spec: JobSpec, plan: Plan, source: JobSource) -> (u64, usize) {
-        let id = self.next_id;
-        self.next_id += 1;
+    /// Queue a job; returns its id and how many jobs are ahead of it. Refused when the
+    /// queue is full or the id cannot be recorded.
+    pub fn submit(
+        &mut self,
+        spec: JobSpec,
+        plan: Plan,
+        source: JobSource,
+        disk_bytes: u64,
+    ) -> Result<(u64, usize), QueueError> {
+        if self.queue.len() >= MAX_QUEUED {
+            return Err(QueueError::Full);
+        }
+        let id = self.ids.take()?;
         self.table.insert(
             id,
             JobRecord {
@@ -117,11 +143,12 @@ impl Jobs {
                 frames_done: 0,
                 reason: None,
                 stop: Arc::new(StopFlag::default()),
+                disk_bytes,
             },
         );
         let ahead = self.queue.len() + usize::from(self.running.is_some());
         self.queue.push_back(id);
-        (id, ahead)
+        Ok((id, ahead))
     }
 
     /// Take the next queued job and mark it running.
@@ -149,18 +176,28 @@ impl Jobs {
         self.queue.iter().copied().collect()
     }
 
-    /// Frames the running and queued jobs have yet to capture, one entry a job.
-    pub fn frames_left(&self) -> Vec<u64> {
-        self.running
-            .iter()
-            .chain(self.queue.iter())
-            .filter_map(|id| self.table.get(id))
-            .map(|r| r.plan.total_frames.saturating_sub(r.frames_done) as u64)
-            .collect()
+    /// What the running and queued jobs have yet to write: each one's estimate, less the
+    /// share of the frames it has captured.
+    pub fn committed_disk_bytes(&self) -> u64 {
+        self.pending()
+            .map(|r| {
+                let total = r.plan.total_frames.max(1) as u128;
+                let left = r.plan.total_frames.saturating_sub(r.frames_done) as u128;
+                (r.disk_bytes as u128 * left / total) as u64
+            })
+            .sum()
     }
 
     pub fn all(&self) -> impl Iterator<Item = &JobRecord> {
         self.table.values()
+    }
+
+    /// The running job and the queued ones.
+    pub fn pending(&self) -> impl Iterator<Item = &JobRecord> {
+        self.running
+            .iter()
+            .chain(self.queue.iter())
+            .filter_map(|id| self.table.get(id))
     }
 
     /// Cancel: a queued job ends now (returns true); a running one is told to stop after

@@ -14,11 +14,15 @@
 //!
 //! The rig a job runs on is `crate::rig`; the daemon's settings are `config::DaemonSettings`.
 
+pub mod accept;
 pub mod commands;
 pub mod connection;
 pub mod events;
+pub mod job_ids;
 pub mod jobs;
+pub mod listing;
 pub mod notify;
+pub mod outbox;
 pub mod ownership;
 pub mod protocol;
 pub mod recorder;
@@ -27,6 +31,7 @@ pub mod rig_commands;
 pub mod rig_state;
 pub mod server;
 pub mod session;
+pub mod strict_json;
 pub mod worker;
 
 use crate::config::DaemonSettings;
@@ -54,7 +59,7 @@ pub struct Shared {
 }
 
 impl Shared {
-    pub fn new(settings: DaemonSettings, rig_info: RigInfo, last_job_id: u64) -> Shared {
+    pub fn new(settings: DaemonSettings, rig_info: RigInfo, ids: job_ids::JobIds) -> Shared {
         let (tx, rx) = tokio::sync::mpsc::channel(rig_commands::QUEUE);
         Shared {
             rig: Mutex::new(RigCondition {
@@ -65,7 +70,7 @@ impl Shared {
             rig_requests_rx: Mutex::new(Some(rx)),
             settings,
             rig_info,
-            jobs: Mutex::new(Jobs::starting_after(last_job_id)),
+            jobs: Mutex::new(Jobs::new(ids)),
             events: EventBus::default(),
             wake: Notify::new(),
             shutting_down: std::sync::atomic::AtomicBool::new(false),

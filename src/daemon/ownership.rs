@@ -242,6 +242,7 @@ mod tests {
             group: None,
             data_root: dir.join(data),
             lock_dir: Some(dir.join("locks")),
+            ..DaemonSettings::default()
         }
     }
 

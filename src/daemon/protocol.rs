@@ -11,6 +11,7 @@ use crate::acquisition::{JobSpec, Processing, StageKind};
 use crate::daemon::jobs::JobStatus;
 use crate::daemon::rig_state::{RigAction, RigState};
 use crate::daemon::session::SessionState;
+use crate::daemon::strict_json;
 use crate::hw::MotionState;
 use crate::rig::RigMode;
 use serde::{Deserialize, Serialize};
@@ -20,13 +21,21 @@ use std::path::PathBuf;
 pub const PROTOCOL_VERSION: u32 = 1;
 /// Longest request line the server reads; longer lines get a `line_too_long` error.
 pub const MAX_LINE_BYTES: usize = 64 * 1024;
+/// Jobs and sessions a `list` page holds when the request gives no `limit`.
+pub const LIST_DEFAULT: u32 = 100;
+/// Most jobs and sessions a `list` page holds (a larger `limit` is refused).
+pub const LIST_MAX: u32 = 1000;
+/// Largest integer `id` echoed: 2^53 - 1, the largest every JSON reader (JavaScript's
+/// numbers, any double) holds exactly. Larger integers and fractions are refused.
+pub const MAX_ID: u64 = (1 << 53) - 1;
 
 /// What a client asks. Tagged by `kind`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Request {
-    /// Protocol and daemon versions, rig description.
-    Hello,
+    /// Protocol and daemon versions, rig description. (A struct variant, not a unit one: serde
+    /// lets unknown fields through on an internally tagged unit variant.)
+    Hello {},
     Submit {
         job: JobSpec,
     },
@@ -35,8 +44,16 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         job_id: Option<u64>,
     },
-    /// Jobs known to this daemon run and the sessions on disk.
-    List,
+    /// Jobs known to this daemon run and the sessions on disk: a page of each, newest first.
+    List {
+        /// At most this many jobs and this many sessions ([`LIST_DEFAULT`] when left out,
+        /// at most [`LIST_MAX`]).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        limit: Option<u32>,
+        /// Only those with a job id below this one (the previous page's `next_before`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        before: Option<u64>,
+    },
     Cancel {
         job_id: u64,
     },
@@ -146,11 +163,13 @@ pub fn decode_request(line: &[u8]) -> Result<Envelope, (Option<serde_json::Value
             ),
         ));
     }
-    let value: serde_json::Value = serde_json::from_slice(line).map_err(|e| {
-        (
-            None,
-            ProtoError::new(ErrorCode::Malformed, format!("not JSON: {e}")),
-        )
+    let value = strict_json::parse(line).map_err(|e| {
+        let message = match e.is_data() {
+            // A duplicate key: well-formed JSON of a shape the protocol refuses.
+            true => return (None, ProtoError::new(ErrorCode::BadRequest, e.to_string())),
+            false => format!("not JSON: {e}"),
+        };
+        (None, ProtoError::new(ErrorCode::Malformed, message))
     })?;
     let serde_json::Value::Object(mut map) = value else {
         return Err((
@@ -160,12 +179,7 @@ pub fn decode_request(line: &[u8]) -> Result<Envelope, (Option<serde_json::Value
     };
     let id = map.remove("id");
     if let Some(id) = &id {
-        if !(id.is_number() || id.is_string()) {
-            return Err((
-                None,
-                ProtoError::new(ErrorCode::BadRequest, "`id` must be a number or a string"),
-            ));
-        }
+        check_id(id).map_err(|e| (None, e))?;
     }
     if let Some(v) = map.remove("v") {
         if v.as_u64() != Some(PROTOCOL_VERSION as u64) {
@@ -178,12 +192,76 @@ pub fn decode_request(line: &[u8]) -> Result<Envelope, (Option<serde_json::Value
             ));
         }
     }
+    if let Err(e) = check_objects(&map) {
+        return Err((id, e));
+    }
     match serde_json::from_value::<Request>(serde_json::Value::Object(map)) {
         Ok(request) => Ok(Envelope { id, request }),
         Err(e) => Err((
             id,
             ProtoError::new(ErrorCode::BadRequest, format!("bad request: {e}")),
         )),
+    }
+}
+
+/// An `id` is echoed exactly: a string, or an integer within ±[`MAX_ID`].
+fn check_id(id: &serde_json::Value) -> Result<(), ProtoError> {
+    let ok = match id {
+        serde_json::Value::String(_) => true,
+        serde_json::Value::Number(n) => match (n.as_u64(), n.as_i64()) {
+            (Some(u), _) => u <= MAX_ID,
+            (None, Some(i)) => i.unsigned_abs() <= MAX_ID,
+            (None, None) => false,
+        },
+        _ => false,
+    };
+    match ok {
+        true => Ok(()),
+        false => Err(ProtoError::new(
+            ErrorCode::BadRequest,
+            format!(
+                "`id` must be a string or an integer within ±{MAX_ID} (2^53 - 1), got {}",
+                short(id)
+            ),
+        )),
+    }
+}
+
+/// Fields that hold a document must hold an object: serde would also take a struct as a
+/// JSON array of its fields in order (`"job":[...]`), which no client means. (Elsewhere such
+/// a field is unknown, and serde names it.)
+fn check_objects(map: &serde_json::Map<String, serde_json::Value>) -> Result<(), ProtoError> {
+    let field = match map.get("kind").and_then(|k| k.as_str()) {
+        Some("submit") => "job",
+        Some("replay") => "processing",
+        _ => return Ok(()),
+    };
+    match map.get(field) {
+        None | Some(serde_json::Value::Object(_)) => Ok(()),
+        Some(other) => Err(ProtoError::new(
+            ErrorCode::BadRequest,
+            format!("`{field}` must be a JSON object, got {}", kind_of(other)),
+        )),
+    }
+}
+
+fn kind_of(v: &serde_json::Value) -> &'static str {
+    match v {
+        serde_json::Value::Null => "null",
+        serde_json::Value::Bool(_) => "a boolean",
+        serde_json::Value::Number(_) => "a number",
+        serde_json::Value::String(_) => "a string",
+        serde_json::Value::Array(_) => "an array",
+        serde_json::Value::Object(_) => "an object",
+    }
+}
+
+/// A value for a message, cut to 40 characters.
+fn short(v: &serde_json::Value) -> String {
+    let s = v.to_string();
+    match s.char_indices().nth(40) {
+        Some((i, _)) => format!("{}...", &s[..i]),
+        None => s,
     }
 }
 
@@ -408,6 +486,8 @@ pub struct SessionSummary {
 pub struct ListReply {
     pub jobs: Vec<JobStatus>,
     pub sessions: Vec<SessionSummary>,
+    /// Set when older jobs or sessions are left out: ask again with `before` this.
+    pub next_before: Option<u64>,
 }
 
 /// A queued job is cancelled at once; a running one is told to stop.
@@ -510,6 +590,74 @@ mod tests {
         );
         let (_, e) = decode_request(b"[1,2]").unwrap_err();
         assert_eq!(e.code, ErrorCode::Malformed);
+    }
+
+    #[test]
+    fn the_protocol_is_strict_on_every_request() {
+        let refused = |line: &[u8]| decode_request(line).unwrap_err().1;
+        // Unknown fields on the requests with none or optional ones.
+        for line in [
+            &br#"{"kind":"hello","x":1}"#[..],
+            br#"{"kind":"list","lmit":5}"#,
+            br#"{"kind":"subscribe","job":1}"#,
+        ] {
+            let e = refused(line);
+            assert_eq!(e.code, ErrorCode::BadRequest, "{e:?}");
+            assert!(e.message.contains("unknown field"), "{}", e.message);
+        }
+        // A job as an array of its fields in order, which serde alone would take.
+        let e = refused(br#"{"kind":"submit","job":["axis",50,3]}"#);
+        assert_eq!(e.message, "`job` must be a JSON object, got an array");
+        let e = refused(br#"{"kind":"replay","session":"s","processing":[10]}"#);
+        assert!(e.message.starts_with("`processing` must be a JSON object"));
+        // Duplicate keys, at the top and inside the job: the last would have won.
+        let e = refused(br#"{"kind":"submit","job":{"steps":3,"step_um":5,"steps":3000}}"#);
+        assert_eq!(e.code, ErrorCode::BadRequest);
+        assert!(
+            e.message.starts_with(r#"duplicate key "steps" in `job`"#),
+            "{}",
+            e.message
+        );
+        let e = refused(br#"{"id":1,"id":2,"kind":"hello"}"#);
+        assert!(e.message.contains(r#"duplicate key "id""#), "{}", e.message);
+        // Ids: strings and integers within ±(2^53 - 1) come back; others are refused.
+        for id in ["9007199254740991", "-9007199254740991", "0", "\"x\""] {
+            let line = format!(r#"{{"id":{id},"kind":"hello"}}"#);
+            let e = decode_request(line.as_bytes()).unwrap();
+            assert_eq!(e.id.unwrap().to_string(), id.replace('\\', ""));
+        }
+        for id in [
+            "9007199254740992",
+            "18446744073709551616",
+            "1.5",
+            "1e3",
+            "true",
+            "[1]",
+        ] {
+            let line = format!(r#"{{"id":{id},"kind":"hello"}}"#);
+            let (back, e) = decode_request(line.as_bytes()).unwrap_err();
+            assert_eq!((back, e.code), (None, ErrorCode::BadRequest), "{id}");
+            assert!(
+                e.message
+                    .starts_with("`id` must be a string or an integer within ±9007199254740991"),
+                "{}",
+                e.message
+            );
+        }
+        // The strict requests still decode.
+        assert_eq!(
+            decode_request(br#"{"kind":"list","limit":5,"before":40}"#)
+                .unwrap()
+                .request,
+            Request::List {
+                limit: Some(5),
+                before: Some(40)
+            }
+        );
+        assert_eq!(
+            decode_request(br#"{"kind":"hello"}"#).unwrap().request,
+            Request::Hello {}
+        );
     }
 
     #[test]

@@ -7,7 +7,7 @@ use crate::config::DaemonSettings;
 use crate::daemon::ownership::{Ownership, OwnershipError};
 use crate::daemon::protocol::EventBody;
 use crate::daemon::session;
-use crate::daemon::{connection, notify, worker, Shared};
+use crate::daemon::{accept, connection, notify, worker, Shared};
 use crate::rig::Rig;
 use std::os::unix::fs::PermissionsExt;
 use std::path::Path;
@@ -23,6 +23,8 @@ pub enum ServerError {
     Session(#[from] session::SessionError),
     #[error(transparent)]
     Ownership(#[from] OwnershipError),
+    #[error("data root: {0}")]
+    JobIds(#[from] crate::daemon::job_ids::JobIdError),
 }
 
 /// Bind the socket: mode 0600, or 0660 with the group from the settings. The path was
@@ -70,17 +72,24 @@ pub async fn run(
     }
     let listener = bind(&settings.socket, settings.group.as_deref())?;
     tracing::info!(socket = %settings.socket.display(), data_root = %settings.data_root.display(), rig = %rig.info.mode, "rigd listening");
+    let ids = crate::daemon::job_ids::JobIds::load(&settings.data_root, last_id)?;
+    let shared = Arc::new(Shared::new(settings.clone(), rig.info.clone(), ids));
     ready();
-    let shared = Arc::new(Shared::new(settings.clone(), rig.info.clone(), last_id));
     let worker = tokio::spawn(worker::run(shared.clone(), rig));
     tokio::pin!(stop);
     tokio::pin!(signal);
+    let mut accepting = Accepting::new(&settings);
     loop {
         tokio::select! {
-            acc = listener.accept() => match acc {
-                Ok((stream, _)) => { tokio::spawn(connection::serve(stream, shared.clone())); }
-                Err(e) => tracing::warn!(error = %e, "accept failed"),
-            },
+            acc = listener.accept() => {
+                if let Some(pause) = accepting.handle(acc, &shared) {
+                    tokio::select! {
+                        _ = tokio::time::sleep(pause) => {},
+                        _ = &mut stop => break,
+                        _ = &mut signal => { tracing::info!("signal: stopping"); break; }
+                    }
+                }
+            }
             _ = &mut stop => break,
             name = &mut signal => { tracing::info!(signal = name, "stopping"); break; }
         }
@@ -138,6 +147,68 @@ fn stop_signals(signals: bool) -> impl std::future::Future<Output = &'static str
             }
             _ => std::future::pending().await,
         }
+    }
+}
+
+/// The accept loop's state: the connection limit, the back-off and the rate-limited logs.
+struct Accepting {
+    gate: accept::Gate,
+    backoff: accept::Backoff,
+    refused_log: accept::RateLimited,
+    error_log: accept::RateLimited,
+}
+
+impl Accepting {
+    fn new(settings: &DaemonSettings) -> Accepting {
+        let (max, lowered) =
+            accept::effective_limit(settings.max_connections, accept::fd_soft_limit());
+        if let Some(why) = lowered {
+            tracing::warn!("{why}");
+        }
+        let second = std::time::Duration::from_secs(1);
+        Accepting {
+            gate: accept::Gate::new(max),
+            backoff: accept::Backoff::default(),
+            refused_log: accept::RateLimited::per(second),
+            error_log: accept::RateLimited::per(second),
+        }
+    }
+
+    /// Serve, refuse or count one accept; the pause to take before the next, if any.
+    fn handle(
+        &mut self,
+        acc: std::io::Result<(tokio::net::UnixStream, tokio::net::unix::SocketAddr)>,
+        shared: &Arc<Shared>,
+    ) -> Option<std::time::Duration> {
+        let now = std::time::Instant::now();
+        let stream = match acc {
+            Ok((stream, _)) => stream,
+            Err(e) => {
+                let resource = accept::is_resource_error(&e);
+                if let Some(held) = self.error_log.allow(now) {
+                    tracing::warn!(error = %e, suppressed = held, "accept failed");
+                }
+                return resource.then(|| self.backoff.failed());
+            }
+        };
+        self.backoff.succeeded();
+        match self.gate.admit() {
+            Some(permit) => {
+                tokio::spawn(connection::serve(stream, shared.clone(), permit));
+            }
+            None => {
+                // One line, without waiting on the client; then the fd is closed.
+                let _ = stream.try_write(&accept::refusal(self.gate.max()));
+                if let Some(held) = self.refused_log.allow(now) {
+                    tracing::warn!(
+                        limit = self.gate.max(),
+                        suppressed = held,
+                        "refused a client: too many connections"
+                    );
+                }
+            }
+        }
+        None
     }
 }
 

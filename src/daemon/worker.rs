@@ -190,6 +190,7 @@ fn capture(
     if let Some(log) = rig.log.as_deref_mut() {
         log.begin(SystemTime::now());
         if let Err(e) = session.begin_interferometer(log.source()) {
+            log.end();
             let e = crate::acquisition::engine::sink_error(disk_error(e));
             return (Outcome::Failed(e), Some(session), Vec::new(), Vec::new());
         }
@@ -215,6 +216,9 @@ fn capture(
         }
     };
     rig.log = sink.log.take();
+    if let Some(log) = rig.log.as_deref_mut() {
+        log.end();
+    }
     let Some(mut recorder) = sink.inner.into_inner() else {
         // The recorder's thread panicked: the session cannot be closed here; the next
         // start marks it incomplete.

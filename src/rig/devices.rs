@@ -155,6 +155,9 @@ pub trait PositionLog: Send {
     fn take_samples(&mut self) -> Vec<LogSample>;
     /// What the source log says about itself, for the session's manifest.
     fn source(&self) -> LogSource;
+    /// The job ended. A log written for the job (the simulated laser's) stops growing; a
+    /// real log, written by the laser's own software, is only followed and left alone.
+    fn end(&mut self) {}
 }
 
 /// One interferometer sample on the PC clock.

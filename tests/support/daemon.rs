@@ -78,7 +78,7 @@ impl Daemon {
             socket: dir.path().join("rigd.sock"),
             group: None,
             data_root: data.clone(),
-            lock_dir: None,
+            ..DaemonSettings::default()
         };
         Daemon {
             bg: Background::start(settings, rig).unwrap(),
@@ -148,6 +148,25 @@ pub fn end_of(c: &mut Client, id: u64) -> EventBody {
 pub fn run_request(c: &mut Client, req: &Request) -> (u64, Vec<EventBody>) {
     let id = job_id(&c.request(req).unwrap());
     (id, events_until_end(c, id))
+}
+
+/// Every session `list` gives, page after page (newest first).
+pub fn list_all_sessions(c: &mut Client) -> Vec<serde_json::Value> {
+    let mut all = Vec::new();
+    let mut before = None;
+    loop {
+        let r = c
+            .request(&Request::List {
+                limit: Some(rigd::daemon::protocol::LIST_MAX),
+                before,
+            })
+            .unwrap();
+        all.extend(r["sessions"].as_array().unwrap().iter().cloned());
+        match r["next_before"].as_u64() {
+            Some(b) => before = Some(b),
+            None => return all,
+        }
+    }
 }
 
 /// Submit `job` and follow it to its end: its id and its events, the terminal one last.

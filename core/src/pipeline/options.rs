@@ -211,6 +211,27 @@ impl ValidOptions {
         (fine + (threads * building).max(png_largest), fine / 2)
     }
 
+    /// Bytes of the 16-bit images one run hands back (`Finished::images`, kept images):
+    /// every target's reconstruction and, with `whole_frame`, the whole frame's (2 k² w h).
+    /// A caller keeping them all (the daemon writes them when the job ends) holds this much
+    /// per run, and a PNG of them takes about as much on disk (16-bit noise barely
+    /// compresses).
+    pub fn kept_image_bytes(&self, frame_size: (u32, u32), board: Option<&Board>) -> u64 {
+        let k2 = (self.k as u64).pow(2);
+        let mut px = 0;
+        if self.combine != Combine::Mean {
+            px += self
+                .window_sides_px(frame_size, board)
+                .iter()
+                .map(|s| s * s)
+                .sum::<u64>();
+        }
+        if self.whole_frame {
+            px += frame_size.0 as u64 * frame_size.1 as u64;
+        }
+        2 * k2 * px
+    }
+
     /// Side of each target's reconstruction window in camera pixels, as the pipeline cuts
     /// them (rim + margin each way, one pixel of slack for the blur-widened measured rim).
     fn window_sides_px(&self, frame_size: (u32, u32), board: Option<&Board>) -> Vec<u64> {

@@ -2,7 +2,8 @@
 //! the simulated laser (`rigd_sim::xl80::LiveLog`, from the line of sight's true position
 //! with the laser's noise), followed by the daemon with the hardware rig's code
 //! ([`FollowedLog`]). A new capture is started for every job, as an operator starts one per
-//! test, so the file holds one job and does not grow with the daemon's uptime.
+//! test, and finished when the job ends, so the file holds one job and does not grow while
+//! the daemon idles (it grew ~24 kB/s at 1 kHz before).
 
 use crate::rig::devices::{HwError, LogSample, LogSource, PositionLog};
 use crate::rig::FollowedLog;
@@ -79,9 +80,19 @@ impl SimXl80 {
             live: None,
             log,
         };
-        // Check the file can be written now, not at the first job.
+        // Check the file can be written now, not at the first job; then stop: the laser
+        // logs only while a job runs, so the file does not grow while the daemon idles.
         x.restart()?;
+        x.stop_capture()?;
         Ok(x)
+    }
+
+    /// Finish the running capture, if any: the file is complete and stops growing.
+    fn stop_capture(&mut self) -> Result<(), HwError> {
+        match self.live.take() {
+            Some(l) => l.finish().map(drop).map_err(|e| sim_error(e.to_string())),
+            None => Ok(()),
+        }
     }
 
     /// Finish the running capture and start a new one in a fresh file.
@@ -167,6 +178,11 @@ impl PositionLog for SimXl80 {
     }
     fn source(&self) -> LogSource {
         self.log.source()
+    }
+    fn end(&mut self) {
+        if let Err(e) = self.stop_capture() {
+            tracing::warn!("{e}");
+        }
     }
 }
 
