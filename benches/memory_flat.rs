@@ -11,6 +11,8 @@
 //! `RIGD_MEMORY_CASES=interp-fit,splat-paper,mean-fit,whole-interp` (the default: all) the
 //! processing: k = 10 with the named combine and estimator (`whole-interp`: the whole-frame
 //! reconstruction as well, on at most 1000 frames unless asked for by name alone).
+//! `RIGD_MEMORY_VERBOSE=1` prints every target's offset and sigma at full precision (to
+//! compare the results of two builds).
 
 use rigd::pipeline::{Combine, Estimator, Pipeline, ProcessOptions};
 use rigd::sim::render::{render_frame, View};
@@ -143,6 +145,11 @@ fn main() {
                 o.offset_um[0],
                 o.offset_um[1]
             );
+            if std::env::var_os("RIGD_MEMORY_VERBOSE").is_some() {
+                for o in &done.result.objects {
+                    println!("    {:?} {:?} {:?}", o.name, o.offset_um, o.sigma_um);
+                }
+            }
         }
     }
 }
