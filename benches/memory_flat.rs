@@ -110,7 +110,10 @@ fn main() {
         .collect();
     println!("case          frames   peak heap   time    first target's offset_um");
     for case in &CASES {
-        if asked.as_ref().is_some_and(|a| !a.split(',').any(|c| c == case.name)) {
+        if asked
+            .as_ref()
+            .is_some_and(|a| !a.split(',').any(|c| c == case.name))
+        {
             continue;
         }
         let opts = ProcessOptions {

@@ -64,7 +64,10 @@ fn flat_in_the_number_of_frames() {
     let places: Vec<(image::RgbImage, f64)> = (0..20u32)
         .map(|i| {
             let pos = 50.0 * i as f64;
-            (frame(&scene, View::at([123.0 + pos, 456.0]), 70 + i as u64), pos)
+            (
+                frame(&scene, View::at([123.0 + pos, 456.0]), 70 + i as u64),
+                pos,
+            )
         })
         .collect();
     let place = |i: usize| {

@@ -320,16 +320,13 @@ fn splat_cols(out: &mut [f32], rows: &[f32], sy: i64, h: usize, k: usize) {
 /// A flushed splat group's counts added to the weight plane (fine rows it reaches).
 fn splat_weight(weight: &mut [f32], count_x: &[f32], sy: i64, fh: usize) {
     let fw = count_x.len();
-    weight
-        .par_chunks_mut(fw)
-        .enumerate()
-        .for_each(|(yy, dst)| {
-            if (0..fh as i64).contains(&(yy as i64 + sy)) {
-                for (d, c) in dst.iter_mut().zip(count_x) {
-                    *d += c;
-                }
+    weight.par_chunks_mut(fw).enumerate().for_each(|(yy, dst)| {
+        if (0..fh as i64).contains(&(yy as i64 + sy)) {
+            for (d, c) in dst.iter_mut().zip(count_x) {
+                *d += c;
             }
-        });
+        }
+    });
 }
 
 #[cfg(test)]

@@ -59,11 +59,11 @@ impl OffsetMean {
             }
             _ => self.weighted = false,
         }
-        for a in 0..2 {
-            self.sum[a] += o[a];
-            let d = o[a] - self.mean[a];
+        for (a, &x) in o.iter().enumerate() {
+            self.sum[a] += x;
+            let d = x - self.mean[a];
             self.mean[a] += d / self.n as f64;
-            self.m2[a] += d * (o[a] - self.mean[a]);
+            self.m2[a] += d * (x - self.mean[a]);
         }
     }
 
@@ -110,9 +110,15 @@ mod tests {
         }
         let (o, s) = m.result();
         // mean 0.3; sample std of {0.1, 0.3, 0.2, 0.6} = 0.21602, / sqrt(4) = 0.10801.
-        assert!((o[0] - 0.3).abs() < 1e-15 && (o[1] + 0.3).abs() < 1e-15, "{o:?}");
+        assert!(
+            (o[0] - 0.3).abs() < 1e-15 && (o[1] + 0.3).abs() < 1e-15,
+            "{o:?}"
+        );
         let s = s.unwrap();
-        assert!((s[0] - 0.108012).abs() < 1e-6 && (s[1] - s[0]).abs() < 1e-15, "{s:?}");
+        assert!(
+            (s[0] - 0.108012).abs() < 1e-6 && (s[1] - s[0]).abs() < 1e-15,
+            "{s:?}"
+        );
     }
 
     #[test]
@@ -126,7 +132,10 @@ mod tests {
         assert!((s.unwrap()[0] - 0.8f64.sqrt()).abs() < 1e-12);
         m.add(&est([3.0, 0.0], None));
         let (o, _) = m.result();
-        assert!((o[0] - 2.0).abs() < 1e-12, "plain mean once a frame has no covariance");
+        assert!(
+            (o[0] - 2.0).abs() < 1e-12,
+            "plain mean once a frame has no covariance"
+        );
         assert_eq!(m.frames(), 3);
         assert!(OffsetMean::default().result().0[0].is_nan());
     }

@@ -206,7 +206,11 @@ impl ValidOptions {
             false => (f.min(open), f > open),
         };
         let sums = g * 4 * k * w * h + if splat { 4 * w * h + g * 4 * k * w } else { 0 };
-        let flushed = if flushes { fine * (1 + splat as u64) } else { 0 };
+        let flushed = if flushes {
+            fine * (1 + splat as u64)
+        } else {
+            0
+        };
         let pushing = sums + flushed + 4 * w * h;
         let finishing = kept_png + sums + flushed.max(fine) + TAP_BYTES * k * h;
         (targets_peak + sums + flushed)
@@ -380,7 +384,12 @@ mod tests {
         let o = opts(10, Combine::Interp, false);
         let at = |n| o.peak_memory_bytes(size, n, Some(&board));
         assert_eq!(at(100_000), at(1000));
-        assert!(at(1000) - at(40) <= 2 * 960 * STEP_BYTES, "{} {}", at(1000), at(40));
+        assert!(
+            at(1000) - at(40) <= 2 * 960 * STEP_BYTES,
+            "{} {}",
+            at(1000),
+            at(40)
+        );
         let w = opts(10, Combine::Splat, true);
         assert_eq!(
             w.peak_memory_bytes(size, 100_000, None),

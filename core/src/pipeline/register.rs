@@ -90,8 +90,8 @@ impl StepLog {
     pub fn push(&mut self, r: StepResidual) {
         let s = &mut self.summary;
         s.frames += 1;
-        for a in 0..2 {
-            self.sum_sq_um2[a] += r.residual_um[a].powi(2);
+        for (q, x) in self.sum_sq_um2.iter_mut().zip(r.residual_um) {
+            *q += x * x;
         }
         let size = |r: &StepResidual| r.residual_um[0].hypot(r.residual_um[1]);
         if s.largest.as_ref().is_none_or(|l| size(&r) > size(l)) {
@@ -150,7 +150,11 @@ mod tests {
         let n = MAX_LISTED_STEPS + 500;
         for i in 0..n {
             // A stale frame past the listed ones: 50 µm off on x, the rest 0.774 µm on y.
-            let img = if i == n - 3 { [0.0, 0.001] } else { [-(i as f64) * 50.0 / 774.0, 0.001] };
+            let img = if i == n - 3 {
+                [0.0, 0.001]
+            } else {
+                [-(i as f64) * 50.0 / 774.0, 0.001]
+            };
             log.push(residual(i, 50.0 * i as f64, 0.0, img, 774.0, [-1.0, 0.0]));
         }
         let (listed, s) = log.finish();

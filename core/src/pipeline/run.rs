@@ -200,13 +200,7 @@ impl Pipeline {
         if self.opts.whole_frame && self.keep_images {
             let (w, h) = self.size.expect("frame 0's size is known");
             let (w, h) = (w as usize, h as usize);
-            self.whole = Some(Accumulator::new(
-                method,
-                w,
-                h,
-                k,
-                WHOLE_FRAME_OPEN_GROUPS,
-            ));
+            self.whole = Some(Accumulator::new(method, w, h, k, WHOLE_FRAME_OPEN_GROUPS));
         }
     }
 
