@@ -422,7 +422,7 @@ impl Pipeline {
                 image: f.to_png16(),
             })
             .collect();
-        if let Some(whole) = self.whole.take() {
+        if let Some(whole) = self.whole.take().filter(|_| self.keep_images) {
             named.push(NamedImage {
                 name: "whole-frame".into(),
                 image: whole.finish().to_png16(),
