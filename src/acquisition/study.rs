@@ -159,6 +159,7 @@ mod tests {
                 }],
                 skipped: vec![],
                 steps: vec![],
+                step_summary: Default::default(),
             }),
             error: None,
         }

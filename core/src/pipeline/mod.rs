@@ -9,9 +9,11 @@
 //! Conventions: image coordinates in pixels with pixel centres at integers (OpenCV's);
 //! x to the right, y down; lengths on the board in micrometres.
 
+pub mod accumulate;
 pub mod detect;
 pub mod estimate;
 pub mod layout;
+pub mod mean;
 pub mod options;
 pub mod plane;
 pub mod reconstruct;
@@ -114,6 +116,18 @@ pub struct StepResidual {
     pub residual_um: [f64; 2],
 }
 
+/// Every step's residual in brief (`ProcessResult::steps` lists only the first
+/// [`register::MAX_LISTED_STEPS`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+pub struct StepSummary {
+    /// Steps the run had.
+    pub frames: usize,
+    /// Root mean square of `residual_um` over every step, per axis.
+    pub rms_residual_um: [f64; 2],
+    /// The step with the largest residual (by its length), wherever it is in the run.
+    pub largest: Option<StepResidual>,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ProcessResult {
     pub options: ProcessOptions,
@@ -122,7 +136,11 @@ pub struct ProcessResult {
     pub height: u32,
     pub objects: Vec<ObjectResult>,
     pub skipped: Vec<Skipped>,
+    /// Per step, the first [`register::MAX_LISTED_STEPS`] of the run.
     pub steps: Vec<StepResidual>,
+    /// Every step, in brief (absent from results written before rigd 0.2: all steps listed).
+    #[serde(default)]
+    pub step_summary: StepSummary,
 }
 
 #[derive(Debug, thiserror::Error)]

@@ -134,13 +134,19 @@ impl From<ValidOptions> for ProcessOptions {
     }
 }
 
-/// Bytes a frame's estimate of one target takes (the estimate, its covariance).
-const ESTIMATE_BYTES: u64 = std::mem::size_of::<Option<CentreEstimate>>() as u64;
+/// Bytes frame 0's estimate of one target takes (the estimate, its covariance), and a
+/// target's running mean.
+const ESTIMATE_BYTES: u64 = std::mem::size_of::<Option<CentreEstimate>>() as u64 + 120;
+/// One listed step of a result (`StepResidual`).
+const STEP_BYTES: u64 = std::mem::size_of::<super::StepResidual>() as u64;
 /// One tap of the separable cubic kernel (4 indices, 4 weights); splat's are smaller.
 const TAP_BYTES: u64 = 32;
 /// Frame 0's detection: an ink mask (1 byte) and component labels (4 bytes) per pixel, and
 /// room for the components and first estimates (measured: 5.06 bytes per pixel).
 const DETECT_BYTES_PER_PX: u64 = 6;
+/// Vertical fine shifts a horizontal scan's frames fall in (the image registration's jitter
+/// across the scan): each one a reconstruction's row-pass sum.
+const HORIZONTAL_SCAN_GROUPS: u64 = 3;
 
 impl ValidOptions {
     pub fn into_inner(self) -> ProcessOptions {
@@ -152,9 +158,11 @@ impl ValidOptions {
     /// default). The targets' windows come from `board` (its outer rims at this scale);
     /// without a board they are bounded by the frame, which overestimates a lot.
     ///
-    /// What dominates: a whole-frame reconstruction, k² x frame pixels x f32 plus its 16-bit
-    /// copy (6 k² w h bytes), and with it every frame's f32 plane; else every frame's window
-    /// around every target (4 s² bytes for a window of side s) and their reconstructions.
+    /// Processing streams (docs/reconstruction.md): beyond the listed steps (at most
+    /// `register::MAX_LISTED_STEPS`) nothing grows with `frames`. What dominates: a
+    /// whole-frame reconstruction, k² x frame pixels x f32 plus its 16-bit copy
+    /// (6 k² w h bytes) and its open row-pass sums (4 k w h each); else the targets'
+    /// reconstructions (4 k² s² bytes for a window of side s) and their row-pass sums.
     /// tests/pipeline_memory.rs holds it to the measured peak.
     pub fn peak_memory_bytes(
         &self,
@@ -165,39 +173,77 @@ impl ValidOptions {
         let (w, h, f) = (frame_size.0 as u64, frame_size.1 as u64, frames as u64);
         let sides = self.window_sides_px(frame_size, board);
         let reconstructs = self.combine != Combine::Mean;
-        // Held from push to the end of finish: per-frame estimates, crops, whole planes.
-        let mut held = f * (sides.len() as u64 * ESTIMATE_BYTES + 24);
-        if reconstructs {
-            held += f * sides.iter().map(|s| 4 * s * s).sum::<u64>();
-        }
-        if self.whole_frame {
-            held += f * 4 * w * h;
-        }
+        let listed = f.min(super::register::MAX_LISTED_STEPS as u64);
+        // Held from push to the end of finish: frame 0's estimates, the listed steps.
+        let held = sides.len() as u64 * ESTIMATE_BYTES + listed * STEP_BYTES;
         let (targets_peak, kept_png) = match reconstructs {
-            true => self.targets_finish_bytes(&sides, f),
+            true => self.targets_bytes(&sides, f),
             false => (0, 0),
         };
-        // Then the whole frame: the fine frame, its row pass and tap tables, then its copy.
-        let mut whole_peak = 0;
-        if self.whole_frame {
-            let k = self.k as u64;
-            let fine = 4 * k * k * w * h;
-            let building = 4 * k * w * h + TAP_BYTES * f * k * w;
-            whole_peak = kept_png + fine + building.max(fine / 2);
-        }
+        // Then the whole frame: the fine sum with the open row-pass sums, then its copy.
+        let whole_peak = match self.whole_frame {
+            true => self.whole_frame_bytes(frame_size, f, targets_peak, kept_png),
+            false => 0,
+        };
         let detect = DETECT_BYTES_PER_PX * w * h + if self.whole_frame { 4 * w * h } else { 0 };
         let model = (held + targets_peak.max(whole_peak)).max(detect);
         // 2% for what the model leaves out: the thread pool's jobs, small vectors.
         model + model / 50
     }
 
-    /// `finish`'s per-target reconstructions: (peak bytes, bytes of their 16-bit images).
-    /// Every target's f32 reconstruction is kept until all are made, then each is turned into
-    /// its 16-bit image in turn. While one is made (on each of rayon's threads): its row
-    /// pass, tap tables and the estimator's sample of the fine window.
-    fn targets_finish_bytes(&self, sides: &[u64], frames: u64) -> (u64, u64) {
+    /// The whole-frame reconstruction's peak, the targets' (`targets_peak`, their images
+    /// `kept_png`) included: its open row-pass sums (at most `WHOLE_FRAME_OPEN_GROUPS`, a
+    /// horizontal scan's fewer) are held from frame 0 while the targets finish; a scan with
+    /// vertical motion flushes sums into a fine sum (splat: and a fine plane of counts)
+    /// before the end; then the fine grid and its 16-bit copy.
+    fn whole_frame_bytes(&self, size: (u32, u32), f: u64, targets_peak: u64, kept_png: u64) -> u64 {
+        let (w, h, k) = (size.0 as u64, size.1 as u64, self.k as u64);
+        let fine = 4 * k * k * w * h;
+        let open = super::run::WHOLE_FRAME_OPEN_GROUPS as u64;
+        let splat = self.combine == Combine::Splat;
+        let (g, flushes) = match self.axis_dir[1] == 0.0 {
+            true => (f.min(HORIZONTAL_SCAN_GROUPS).min(open), false),
+            false => (f.min(open), f > open),
+        };
+        let sums = g * 4 * k * w * h + if splat { 4 * w * h + g * 4 * k * w } else { 0 };
+        let flushed = if flushes {
+            fine * (1 + splat as u64)
+        } else {
+            0
+        };
+        let pushing = sums + flushed + 4 * w * h;
+        let finishing = kept_png + sums + flushed.max(fine) + TAP_BYTES * k * h;
+        (targets_peak + sums + flushed)
+            .max(pushing)
+            .max(finishing)
+            .max(kept_png + fine + fine / 2)
+    }
+
+    /// Vertical fine shifts a target's frames fall in: below half a pixel (the window moves
+    /// by the whole pixels), so at most k + 2; a horizontal scan's jitter only a few.
+    fn target_groups(&self, frames: u64) -> u64 {
         let k = self.k as u64;
-        let fine: u64 = sides.iter().map(|s| 4 * k * k * s * s).sum();
+        let most = if self.axis_dir[1] == 0.0 {
+            HORIZONTAL_SCAN_GROUPS.min(k + 2)
+        } else {
+            k + 2
+        };
+        most.min(frames.max(1))
+    }
+
+    /// The targets' reconstructions: (peak bytes, bytes of their 16-bit images). Each
+    /// target keeps its row-pass sums (4 k s² bytes each; splat also frame 0's window) from
+    /// frame 0 on; `finish` makes each fine grid while its sums are still held, keeps every
+    /// fine grid until all are made, then turns each into its 16-bit image in turn. While
+    /// one is made (on each of rayon's threads): its column taps and the estimator's sample
+    /// of the fine window.
+    fn targets_bytes(&self, sides: &[u64], frames: u64) -> (u64, u64) {
+        let k = self.k as u64;
+        let g = self.target_groups(frames);
+        let splat = self.combine == Combine::Splat;
+        let sums = |s: u64| g * 4 * k * s * s + if splat { 4 * s * s + g * 4 * k * s } else { 0 };
+        let fine_of = |s: u64| 4 * k * k * s * s;
+        let fine: u64 = sides.iter().map(|&s| fine_of(s)).sum();
         let largest = sides.iter().copied().max().unwrap_or(0);
         // The fit samples the fine window every k/3 pixels, the paper's estimator every one.
         let stride = match self.estimator {
@@ -205,10 +251,19 @@ impl ValidOptions {
             Estimator::Paper => 1,
         };
         let sample = 4 * (k * largest).div_ceil(stride).pow(2);
-        let building = 4 * k * largest * largest + TAP_BYTES * frames * k * largest + sample;
+        let making = TAP_BYTES * k * largest + sample;
+        // Making target t: the fine grids of those before it, the sums of it and those after.
+        let mut peak = 0;
+        let (mut done, mut left) = (0u64, sides.iter().map(|&s| sums(s)).sum::<u64>());
+        for &s in sides {
+            peak = peak.max(done + fine_of(s) + left);
+            done += fine_of(s);
+            left -= sums(s);
+        }
         let threads = (rayon::current_num_threads() as u64).min(sides.len() as u64);
         let png_largest = 2 * k * k * largest * largest;
-        (fine + (threads * building).max(png_largest), fine / 2)
+        let peak = (peak + threads * making).max(fine + png_largest);
+        (peak, fine / 2)
     }
 
     /// Bytes of the 16-bit images one run hands back (`Finished::images`, kept images):
@@ -317,32 +372,49 @@ mod tests {
         let board = Board::paper();
         let (size, n) = ((1280, 720), 40);
         let wh: u64 = 1280 * 720;
-        // Whole frame: 6 k² w h (fine f32 + its 16-bit copy) = 553 MB, plus 40 planes of
-        // 3.7 MB = 147 MB: about 0.7 GB, the whole frame dominating.
+        // Whole frame: 6 k² w h (fine f32 + its 16-bit copy) = 553 MB, plus the targets'
+        // 16-bit images (8.4 MB): the whole frame dominating, whatever the frame count.
         let whole = opts(10, Combine::Interp, true).peak_memory_bytes(size, n, Some(&board));
-        let floor = 6 * 100 * wh + 40 * 4 * wh;
+        let floor = 6 * 100 * wh;
         assert!(
             whole >= floor && whole < floor + floor / 20,
             "{whole} vs {floor}"
         );
         // Per target only: 12 windows of 2 (17000/774 + 7) + 1 = 59 px at k = 10: their
-        // f32 reconstructions are 12 x 590² x 4 = 16.7 MB, the crops 6.7 MB, and one
-        // 16-bit copy or a reconstruction being made (on each thread) on top.
+        // f32 reconstructions are 12 x 590² x 4 = 16.7 MB, made while the last one's
+        // row-pass sums (3 groups of 59 x 590 x 4 = 139 kB) are held, with one being made
+        // (on each thread) on top, or one 16-bit copy (696 kB).
         let targets = opts(10, Combine::Interp, false).peak_memory_bytes(size, n, Some(&board));
         assert_eq!(
             opts(10, Combine::Interp, false).window_sides_px(size, Some(&board))[0],
             59
         );
-        let kept = 12 * 590 * 590 * 4 + 590 * 590 * 2 + 40 * 12 * 59 * 59 * 4;
-        // Making one: a row pass (139 kB), tap tables (755 kB), the fit's sample (155 kB),
-        // on as many threads as there are (at most one per target).
-        let making = 590 * 59 * 4 + 32 * 40 * 590 + 4 * 197 * 197;
+        let fine = 12 * 590 * 590 * 4;
+        // Making one: column taps (19 kB), the fit's sample (155 kB).
+        let making = 32 * 10 * 59 + 4 * 197 * 197;
         let threads = rayon::current_num_threads().min(12) as u64;
-        let want = kept - 590 * 590 * 2 + (threads * making).max(590 * 590 * 2);
+        let held = 12 * ESTIMATE_BYTES + 40 * STEP_BYTES;
+        let want = held + (fine + 3 * 59 * 590 * 4 + threads * making).max(fine + 590 * 590 * 2);
         let want = want + want / 50;
         assert!(
             targets >= want && targets < want + want / 50,
             "{targets} vs {want}"
+        );
+        // Flat in the frame count: 100 000 frames (the plan's limit) cost what 1000 do, and
+        // those only their listed steps more than 40.
+        let o = opts(10, Combine::Interp, false);
+        let at = |n| o.peak_memory_bytes(size, n, Some(&board));
+        assert_eq!(at(100_000), at(1000));
+        assert!(
+            at(1000) - at(40) <= 2 * 960 * STEP_BYTES,
+            "{} {}",
+            at(1000),
+            at(40)
+        );
+        let w = opts(10, Combine::Splat, true);
+        assert_eq!(
+            w.peak_memory_bytes(size, 100_000, None),
+            w.peak_memory_bytes(size, 1000, None)
         );
         // Mean: per-frame estimates only; frame 0's detection is the peak.
         let mean = opts(1, Combine::Mean, false).peak_memory_bytes(size, n, Some(&board));

@@ -12,7 +12,8 @@
 //!   resampled once along rows (a cubic weight set per sub-pixel phase, k phases), frames
 //!   with the same vertical shift are summed, and each such group is resampled once along
 //!   columns. [`interp_naive`] is the literal method, kept as the reference the tests hold
-//!   the fused one to.
+//!   the fused one to. The row passes are summed as frames arrive
+//!   ([`super::accumulate::Accumulator`]): no frame is kept.
 //! - [`splat`], direct shift-and-add: every camera pixel is added onto the k x k fine
 //!   pixels it covers at its shifted place, and each fine pixel is divided by how many
 //!   camera pixels landed on it. Separable the same way; [`splat_naive`] is the reference.
@@ -20,8 +21,7 @@
 //! Borders replicate (a sample left of column 0 reads column 0), as Matlab's and OpenCV's
 //! resize do, so every fine pixel of `interp` gets every frame.
 
-use rayon::prelude::*;
-use std::collections::BTreeMap;
+use super::accumulate::{Accumulator, Method};
 
 /// A read-only view of one channel of a frame (row-major, `width * height` samples).
 #[derive(Debug, Clone, Copy)]
@@ -42,7 +42,7 @@ impl<'a> View<'a> {
     }
 
     #[inline]
-    fn at(&self, x: usize, y: usize) -> f32 {
+    pub(crate) fn at(&self, x: usize, y: usize) -> f32 {
         self.data[y * self.width + x]
     }
 }
@@ -98,9 +98,9 @@ pub fn cubic_weights(t: f64) -> [f64; 4] {
 /// Where fine sample `f` (already shifted, on a fine axis of `n * k` samples) reads from the
 /// camera axis of `n` samples: four clamped indices and their cubic weights.
 #[derive(Clone, Copy)]
-struct Taps {
-    idx: [u32; 4],
-    w: [f32; 4],
+pub(crate) struct Taps {
+    pub(crate) idx: [u32; 4],
+    pub(crate) w: [f32; 4],
 }
 
 fn taps(f: i64, n: usize, k: usize) -> Taps {
@@ -121,7 +121,7 @@ fn taps(f: i64, n: usize, k: usize) -> Taps {
 
 /// The table of taps of one fine axis for the shift `s`. Only k phases exist, but a table
 /// per output sample keeps the inner loops free of divisions and clamps.
-fn tap_table(n: usize, k: usize, s: i64) -> Vec<Taps> {
+pub(crate) fn tap_table(n: usize, k: usize, s: i64) -> Vec<Taps> {
     (0..(n * k) as i64).map(|f| taps(f + s, n, k)).collect()
 }
 
@@ -136,75 +136,21 @@ fn check(frames: &[View], shifts: &[[i64; 2]], k: usize) -> (usize, usize) {
     (w, h)
 }
 
-/// Frames grouped by their vertical fine shift: the column pass is linear, so a group is
-/// summed after the row pass and resampled along columns once.
-fn groups_by_y(shifts: &[[i64; 2]]) -> BTreeMap<i64, Vec<usize>> {
-    let mut g: BTreeMap<i64, Vec<usize>> = BTreeMap::new();
-    for (i, s) in shifts.iter().enumerate() {
-        g.entry(s[1]).or_default().push(i);
-    }
-    g
+/// The paper's reconstruction, fused and separable. `shifts` are fine-grid shifts
+/// ([`fine_shift`]). The frames are added one by one to an [`Accumulator`], which is what
+/// the pipeline does as they arrive.
+pub fn interp(frames: &[View], shifts: &[[i64; 2]], k: usize) -> Fine {
+    batch(Method::Interp, frames, shifts, k)
 }
 
-/// The paper's reconstruction, fused and separable. `shifts` are fine-grid shifts
-/// ([`fine_shift`]).
-pub fn interp(frames: &[View], shifts: &[[i64; 2]], k: usize) -> Fine {
+/// All frames through one [`Accumulator`] that keeps every group (none flushed).
+fn batch(method: Method, frames: &[View], shifts: &[[i64; 2]], k: usize) -> Fine {
     let (w, h) = check(frames, shifts, k);
-    let (fw, fh) = (w * k, h * k);
-    let mut out = vec![0f32; fw * fh];
-    let mut rows = vec![0f32; h * fw];
-    let mut first_group = true;
-    for (sy, members) in groups_by_y(shifts) {
-        // Row pass: every frame of the group resampled along x, summed.
-        let tables: Vec<Vec<Taps>> = members
-            .iter()
-            .map(|&i| tap_table(w, k, shifts[i][0]))
-            .collect();
-        rows.par_chunks_mut(fw).enumerate().for_each(|(y, acc)| {
-            acc.fill(0.0);
-            for (m, &i) in members.iter().enumerate() {
-                let src = &frames[i].data[y * w..(y + 1) * w];
-                for (a, t) in acc.iter_mut().zip(&tables[m]) {
-                    *a += t.w[0] * src[t.idx[0] as usize]
-                        + t.w[1] * src[t.idx[1] as usize]
-                        + t.w[2] * src[t.idx[2] as usize]
-                        + t.w[3] * src[t.idx[3] as usize];
-                }
-            }
-        });
-        // Column pass of the group's sum, with the 1/N of the average folded into the
-        // weights; the first group writes, later ones add (no zero-fill or scaling pass).
-        let inv = 1.0 / frames.len() as f32;
-        let col: Vec<Taps> = tap_table(h, k, sy)
-            .into_iter()
-            .map(|t| Taps {
-                idx: t.idx,
-                w: t.w.map(|w| w * inv),
-            })
-            .collect();
-        out.par_chunks_mut(fw).enumerate().for_each(|(yy, dst)| {
-            let t = col[yy];
-            let r: [&[f32]; 4] = std::array::from_fn(|j| &rows[t.idx[j] as usize * fw..][..fw]);
-            let w = t.w;
-            let taps = dst.iter_mut().zip(r[0]).zip(r[1]).zip(r[2]).zip(r[3]);
-            if first_group {
-                for ((((o, a), b), c), d) in taps {
-                    *o = w[0] * a + w[1] * b + w[2] * c + w[3] * d;
-                }
-            } else {
-                for ((((o, a), b), c), d) in taps {
-                    *o += w[0] * a + w[1] * b + w[2] * c + w[3] * d;
-                }
-            }
-        });
-        first_group = false;
+    let mut acc = Accumulator::new(method, w, h, k, usize::MAX);
+    for (f, s) in frames.iter().zip(shifts) {
+        acc.add(*f, *s);
     }
-    Fine {
-        width: fw,
-        height: fh,
-        k,
-        data: out,
-    }
+    acc.finish()
 }
 
 /// The paper's method literally: build each upsampled frame (2-D cubic, 16 taps per fine
@@ -250,78 +196,7 @@ pub fn interp_naive(frames: &[View], shifts: &[[i64; 2]], k: usize) -> Fine {
 /// Direct shift-and-add, separable. A fine pixel no camera pixel landed on (only at the
 /// border, where shifted frames do not reach) takes frame 0's value.
 pub fn splat(frames: &[View], shifts: &[[i64; 2]], k: usize) -> Fine {
-    let (w, h) = check(frames, shifts, k);
-    let (fw, fh) = (w * k, h * k);
-    let mut out = vec![0f32; fw * fh];
-    let mut rows = vec![0f32; h * fw];
-    // Per group: how many frames reach each fine column, and which fine rows it reaches.
-    let mut weights: Vec<(Vec<f32>, Vec<bool>)> = Vec::new();
-    for (sy, members) in groups_by_y(shifts) {
-        // Camera column feeding fine column X under shift s: floor((X + s) / k), if inside.
-        let srcs: Vec<Vec<Option<u32>>> = members
-            .iter()
-            .map(|&i| {
-                (0..fw as i64)
-                    .map(|x| {
-                        let f = x + shifts[i][0];
-                        (0..fw as i64).contains(&f).then(|| (f / k as i64) as u32)
-                    })
-                    .collect()
-            })
-            .collect();
-        let mut count_x = vec![0f32; fw];
-        for s in &srcs {
-            for (c, v) in count_x.iter_mut().zip(s) {
-                *c += v.is_some() as u8 as f32;
-            }
-        }
-        rows.par_chunks_mut(fw).enumerate().for_each(|(y, acc)| {
-            acc.fill(0.0);
-            for (m, &i) in members.iter().enumerate() {
-                let src = &frames[i].data[y * w..(y + 1) * w];
-                for (a, s) in acc.iter_mut().zip(&srcs[m]) {
-                    if let Some(x) = s {
-                        *a += src[*x as usize];
-                    }
-                }
-            }
-        });
-        let reach_y: Vec<bool> = (0..fh as i64)
-            .map(|y| (0..fh as i64).contains(&(y + sy)))
-            .collect();
-        out.par_chunks_mut(fw).enumerate().for_each(|(yy, dst)| {
-            let f = yy as i64 + sy;
-            if !(0..fh as i64).contains(&f) {
-                return;
-            }
-            let r = &rows[(f / k as i64) as usize * fw..][..fw];
-            for (d, v) in dst.iter_mut().zip(r) {
-                *d += v;
-            }
-        });
-        weights.push((count_x, reach_y));
-    }
-    let first = frames[0];
-    out.par_chunks_mut(fw).enumerate().for_each(|(yy, dst)| {
-        for (xx, d) in dst.iter_mut().enumerate() {
-            let n: f32 = weights
-                .iter()
-                .filter(|(_, ry)| ry[yy])
-                .map(|(cx, _)| cx[xx])
-                .sum();
-            *d = if n > 0.0 {
-                *d / n
-            } else {
-                first.at(xx / k, yy / k)
-            };
-        }
-    });
-    Fine {
-        width: fw,
-        height: fh,
-        k,
-        data: out,
-    }
+    batch(Method::Splat, frames, shifts, k)
 }
 
 /// Shift-and-add literally: each camera pixel added onto its k x k fine footprint. Slow;

@@ -3,21 +3,32 @@
 //! Frame 0 is searched for targets ([`detect`]); later frames are not: each target is
 //! measured where the previous frame's displacement predicts it, on a small window of the
 //! measurement channel, which keeps a frame to a few milliseconds while the axis moves.
-//! When a reconstruction is asked for, each frame's window around every target is cut out
-//! as it is pushed (its displacement is known by then) and kept for `finish`; only the
-//! whole-frame reconstruction keeps whole planes.
+//! Everything a frame contributes is accumulated as it is pushed and the frame is then
+//! dropped, so memory does not grow with a run's length: each target's reconstruction
+//! window is cut (its displacement is known by then) and added to the target's
+//! reconstruction ([`Accumulator`]), or with `combine = mean` its offset to a running mean
+//! ([`OffsetMean`]); the whole-frame reconstruction accumulates likewise; the per-step
+//! residuals go to a bounded [`StepLog`]. What is kept per run: frame 0's estimates (the
+//! registration's reference) and the last frame's displacement (the next prediction).
 
+use super::accumulate::{Accumulator, Method};
 use super::detect::{self, Candidate, DetectConfig};
 use super::estimate::{estimate, CentreEstimate};
+use super::mean::OffsetMean;
 use super::options::WINDOW_MARGIN_PX;
 use super::plane::{Plane, Roi};
 use super::reconstruct::{self, Fine, View};
-use super::register;
+use super::register::{self, StepLog};
 use super::*;
 use crate::board::Board;
 use image::RgbImage;
 use rayon::prelude::*;
 use std::time::Instant;
+
+/// Vertical fine shifts whose row sums a whole-frame reconstruction keeps at once (each an
+/// H x kW plane); a fourth flushes the least recently used into the fine sum. A horizontal
+/// scan's frames share one to three (the image registration's vertical jitter).
+pub const WHOLE_FRAME_OPEN_GROUPS: usize = 3;
 
 /// What one pushed frame gave.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -41,6 +52,14 @@ pub struct Finished {
     pub images: Vec<NamedImage>,
 }
 
+/// How one target's frames are being combined.
+enum Combining {
+    /// `combine = mean`: the running mean of its per-frame offsets.
+    Mean(OffsetMean),
+    /// A reconstruction: its window and the frames accumulated in it.
+    Window(TargetWindow),
+}
+
 /// Push-based pipeline: `new`, `push` each frame with its position, `finish`.
 pub struct Pipeline {
     opts: ValidOptions,
@@ -50,15 +69,17 @@ pub struct Pipeline {
     channel: usize,
     targets: Vec<Candidate>,
     skipped: Vec<Skipped>,
-    /// `[target]`: the reconstruction window in frame 0 and every frame's crop of it
-    /// (moved by the frame's whole-pixel displacement), or why it cannot be reconstructed.
-    windows: Vec<Result<TargetWindow, String>>,
-    /// The measurement channel of every frame, for the whole-frame reconstruction only.
-    planes: Vec<Plane>,
-    positions_um: Vec<f64>,
-    /// `[frame][target]`: the per-frame estimate, in frame coordinates.
-    per_frame: Vec<Vec<Option<CentreEstimate>>>,
-    image_shifts_px: Vec<[f64; 2]>,
+    /// `[target]`: what its frames accumulate into, or why it cannot be measured.
+    combining: Vec<Result<Combining, String>>,
+    /// The whole-frame reconstruction being accumulated (when asked for and kept).
+    whole: Option<Accumulator>,
+    /// `[target]`: frame 0's estimate, in frame coordinates: the registration's reference.
+    first: Vec<Option<CentreEstimate>>,
+    frames: usize,
+    first_position_um: Option<f64>,
+    last_position_um: Option<f64>,
+    last_image_shift_px: [f64; 2],
+    steps: StepLog,
     /// Whether `finish` hands back the reconstructions as images.
     keep_images: bool,
 }
@@ -75,72 +96,112 @@ impl Pipeline {
             channel: 1,
             targets: Vec::new(),
             skipped: Vec::new(),
-            windows: Vec::new(),
-            planes: Vec::new(),
-            positions_um: Vec::new(),
-            per_frame: Vec::new(),
-            image_shifts_px: Vec::new(),
+            combining: Vec::new(),
+            whole: None,
+            first: Vec::new(),
+            frames: 0,
+            first_position_um: None,
+            last_position_um: None,
+            last_image_shift_px: [0.0; 2],
+            steps: StepLog::default(),
             keep_images: true,
         }
     }
 
     /// Whether `finish` hands back the reconstructions as 16-bit images (the default). A
-    /// caller that writes no images saves their conversion (tens of megapixels at k = 10).
+    /// caller that writes no images saves their conversion (tens of megapixels at k = 10),
+    /// and with `whole_frame` the whole-frame reconstruction itself. Set it before the
+    /// first frame.
     pub fn keep_images(&mut self, keep: bool) {
         self.keep_images = keep;
     }
 
     /// Frames pushed so far.
     pub fn frames(&self) -> usize {
-        self.positions_um.len()
+        self.frames
+    }
+
+    /// The reconstruction method of a combine mode other than mean.
+    fn method(&self) -> Method {
+        match self.opts.combine {
+            Combine::Splat => Method::Splat,
+            _ => Method::Interp,
+        }
     }
 
     /// The displacement a reconstruction uses for a frame: the image's, or the positions'.
     fn recon_shift_px(&self, position_um: f64, image_shift_px: [f64; 2]) -> [f64; 2] {
-        match (self.opts.registration, self.positions_um.first()) {
-            (Registration::Positions, Some(&p0)) => register::position_shift_px(
+        match self.opts.registration {
+            Registration::Positions => register::position_shift_px(
                 position_um,
-                p0,
+                self.first_position_um.unwrap_or(position_um),
                 self.opts.scale_um_per_px,
                 self.opts.axis_dir,
             ),
-            (Registration::Positions, None) => register::position_shift_px(
-                position_um,
-                position_um,
-                self.opts.scale_um_per_px,
-                self.opts.axis_dir,
-            ),
-            (Registration::Image, _) => image_shift_px,
+            Registration::Image => image_shift_px,
         }
     }
 
-    /// Cut this frame's reconstruction window of every target still reconstructable.
-    fn keep_windows(&mut self, frame: &RgbImage, shift_px: [f64; 2]) {
+    /// Add this frame's reconstruction window of every target still reconstructable to
+    /// the target's reconstruction; the crop is dropped at once.
+    fn add_windows(&mut self, frame: &RgbImage, shift_px: [f64; 2]) {
         let (w, h) = (frame.width() as usize, frame.height() as usize);
-        let ch = self.channel;
+        let (ch, k) = (self.channel, self.opts.k as usize);
         // The integer part of the displacement moves the window, the rest is resampled.
         let (cx, cy) = (shift_px[0].round(), shift_px[1].round());
-        self.windows.par_iter_mut().for_each(|win| {
-            let Ok(tw) = win else { return };
+        let fine = reconstruct::fine_shift([shift_px[0] - cx, shift_px[1] - cy], k);
+        self.combining.par_iter_mut().for_each(|c| {
+            let Ok(Combining::Window(tw)) = c else { return };
             let (rx, ry) = (tw.x0 + cx, tw.y0 + cy);
             let side = tw.side as usize;
             if rx < 0.0 || ry < 0.0 || rx as usize + side > w || ry as usize + side > h {
-                *win = Err(format!(
+                *c = Err(format!(
                     "its window ({rx}, {ry}, {side}x{side} px) leaves the frame during the scan"
                 ));
                 return;
             }
-            tw.crops.push(Plane::from_channel_roi(
-                frame,
-                ch,
-                Roi {
-                    x: rx as u32,
-                    y: ry as u32,
-                    w: tw.side,
-                    h: tw.side,
-                },
-            ));
+            let roi = Roi {
+                x: rx as u32,
+                y: ry as u32,
+                w: tw.side,
+                h: tw.side,
+            };
+            let crop = Plane::from_channel_roi(frame, ch, roi);
+            tw.acc
+                .add(View::new(&crop.data, crop.width, crop.height), fine);
         });
+    }
+
+    /// Frame 0: what each target's frames will accumulate into.
+    fn start_combining(&mut self, est: &[Option<CentreEstimate>]) {
+        let (method, k) = (self.method(), self.opts.k as usize);
+        let mean = self.opts.combine == Combine::Mean;
+        self.combining = self
+            .targets
+            .iter()
+            .zip(est)
+            .map(|(c, e)| {
+                let first = e.as_ref().ok_or("not measurable in frame 0")?;
+                if mean {
+                    return Ok(Combining::Mean(OffsetMean::default()));
+                }
+                let reach = first.outer_radius_px.max(c.outer_radii_px[1]) + WINDOW_MARGIN_PX;
+                let side = (2.0 * reach).ceil() as u32 + 1;
+                // Shifts under half a pixel: at most k + 2 vertical fine shifts, none flushed.
+                let s = side as usize;
+                Ok(Combining::Window(TargetWindow {
+                    x0: (first.outer_px[0] - reach).floor(),
+                    y0: (first.outer_px[1] - reach).floor(),
+                    side,
+                    acc: Accumulator::new(method, s, s, k, k + 2),
+                }))
+            })
+            .collect();
+        if self.opts.whole_frame && self.keep_images {
+            let (w, h) = self.size.expect("frame 0's size is known");
+            let (w, h) = (w as usize, h as usize);
+            self.whole = Some(Accumulator::new(method, w, h, k, WHOLE_FRAME_OPEN_GROUPS));
+        }
     }
 
     pub fn push(
@@ -162,8 +223,8 @@ impl Pipeline {
         if self.opts.whole_frame {
             return None;
         }
-        let mut shifts = vec![self.image_shifts_px.last().copied().unwrap_or([0.0; 2])];
-        if let Some(&p) = self.positions_um.last() {
+        let mut shifts = vec![self.last_image_shift_px];
+        if let Some(p) = self.last_position_um {
             shifts.push(self.recon_shift_px(p, shifts[0]));
         }
         let bottom = shifts
@@ -182,10 +243,10 @@ impl Pipeline {
             (y0 + side as f64).min(h)
         });
         let kept = recon_px.into_iter().flat_map(|d| {
-            self.windows
-                .iter()
-                .filter_map(|w| w.as_ref().ok())
-                .map(move |w| w.y0 + d[1].round() + w.side as f64)
+            self.combining.iter().filter_map(move |c| match c {
+                Ok(Combining::Window(w)) => Some(w.y0 + d[1].round() + w.side as f64),
+                _ => None,
+            })
         });
         measured.chain(kept).fold(0.0, f64::max)
     }
@@ -204,36 +265,39 @@ impl Pipeline {
         if partial && (self.size.is_none() || self.opts.whole_frame) {
             return Ok(None);
         }
-        let index = self.positions_um.len();
+        let index = self.frames;
         if !position_um.is_finite() {
             return Err(PipelineError::Other(format!(
                 "frame {index}: position {position_um} µm is not a number"
             )));
         }
         let got = frame.dimensions();
-        match self.size {
+        let detected = match self.size {
             None => {
                 let det = detect::detect(frame, &self.detect_cfg);
                 if det.targets.is_empty() {
                     return Err(PipelineError::NoTarget { index });
                 }
-                self.channel = detect::measurement_channel(frame, &det);
-                self.targets = det.targets;
-                self.skipped = det.skipped;
-                self.size = Some(got);
+                Some(det)
             }
             Some(want) if want != got => return Err(PipelineError::FrameSize { index, got, want }),
-            Some(_) => {}
+            Some(_) => None,
+        };
+        if let Some(det) = detected {
+            self.channel = detect::measurement_channel(frame, &det);
+            self.targets = det.targets;
+            self.skipped = det.skipped;
+            self.size = Some(got);
         }
         // Where the targets should be: the last frame's displacement, or the positions'.
-        let predicted = match (self.opts.registration, self.positions_um.first()) {
-            (Registration::Positions, Some(&p0)) => register::position_shift_px(
+        let predicted = match (self.opts.registration, self.first_position_um) {
+            (Registration::Positions, Some(p0)) => register::position_shift_px(
                 position_um,
                 p0,
                 self.opts.scale_um_per_px,
                 self.opts.axis_dir,
             ),
-            _ => self.image_shifts_px.last().copied().unwrap_or([0.0, 0.0]),
+            _ => self.last_image_shift_px,
         };
         if partial && self.rows_read(predicted, None) > valid_rows as f64 {
             return Ok(None);
@@ -250,7 +314,8 @@ impl Pipeline {
             }
             [0.0, 0.0]
         } else {
-            let pairs: Vec<([f64; 2], [f64; 2])> = self.per_frame[0]
+            let pairs: Vec<([f64; 2], [f64; 2])> = self
+                .first
                 .iter()
                 .zip(&est)
                 .filter_map(|(a, b)| Some((a.as_ref()?.outer_px, b.as_ref()?.outer_px)))
@@ -261,32 +326,18 @@ impl Pipeline {
         if partial && self.rows_read(predicted, Some(recon_px)) > valid_rows as f64 {
             return Ok(None);
         }
-        if index == 0 && self.opts.combine != Combine::Mean {
-            self.windows = self
-                .targets
-                .iter()
-                .zip(&est)
-                .map(|(c, e)| {
-                    let first = e.as_ref().ok_or("not measurable in frame 0")?;
-                    let reach = first.outer_radius_px.max(c.outer_radii_px[1]) + WINDOW_MARGIN_PX;
-                    Ok(TargetWindow {
-                        x0: (first.outer_px[0] - reach).floor(),
-                        y0: (first.outer_px[1] - reach).floor(),
-                        side: (2.0 * reach).ceil() as u32 + 1,
-                        crops: Vec::new(),
-                    })
-                })
-                .collect();
+        self.accumulate(frame, &est, recon_px);
+        let p0 = *self.first_position_um.get_or_insert(position_um);
+        let o = &self.opts;
+        let residual =
+            register::residual(index, position_um, p0, shift, o.scale_um_per_px, o.axis_dir);
+        self.steps.push(residual);
+        if index == 0 {
+            self.first = est;
         }
-        if self.opts.combine != Combine::Mean {
-            self.keep_windows(frame, recon_px);
-        }
-        if self.opts.whole_frame {
-            self.planes.push(Plane::from_channel(frame, self.channel));
-        }
-        self.positions_um.push(position_um);
-        self.per_frame.push(est);
-        self.image_shifts_px.push(shift);
+        self.frames += 1;
+        self.last_position_um = Some(position_um);
+        self.last_image_shift_px = shift;
         Ok(Some(FrameReport {
             index,
             targets_found: found,
@@ -295,40 +346,42 @@ impl Pipeline {
         }))
     }
 
-    pub fn finish(self) -> Result<Finished, PipelineError> {
-        let n = self.positions_um.len();
+    /// Add the frame to what its targets (and the whole frame) accumulate.
+    fn accumulate(&mut self, frame: &RgbImage, est: &[Option<CentreEstimate>], recon_px: [f64; 2]) {
+        if self.frames == 0 {
+            self.start_combining(est);
+        }
+        if self.opts.combine == Combine::Mean {
+            for (c, e) in self.combining.iter_mut().zip(est) {
+                if let (Ok(Combining::Mean(m)), Some(e)) = (c, e) {
+                    m.add(e);
+                }
+            }
+        } else {
+            self.add_windows(frame, recon_px);
+        }
+        if let Some(whole) = self.whole.as_mut() {
+            let plane = Plane::from_channel(frame, self.channel);
+            let fine = reconstruct::fine_shift(recon_px, self.opts.k as usize);
+            whole.add(View::new(&plane.data, plane.width, plane.height), fine);
+        }
+    }
+
+    pub fn finish(mut self) -> Result<Finished, PipelineError> {
+        let n = self.frames;
         let (width, height) = self.size.ok_or(PipelineError::NoFrames)?;
-        let opts = &self.opts;
-        let shifts_px: Vec<[f64; 2]> = match opts.registration {
-            Registration::Image => self.image_shifts_px.clone(),
-            Registration::Positions => self
-                .positions_um
-                .iter()
-                .map(|&p| {
-                    register::position_shift_px(
-                        p,
-                        self.positions_um[0],
-                        opts.scale_um_per_px,
-                        opts.axis_dir,
-                    )
-                })
-                .collect(),
-        };
-        let steps = register::residuals(
-            &self.positions_um,
-            &self.image_shifts_px,
-            opts.scale_um_per_px,
-            opts.axis_dir,
-        );
-        let k = match opts.combine {
+        let (steps, step_summary) = std::mem::take(&mut self.steps).finish();
+        let k = match self.opts.combine {
             Combine::Mean => 1,
-            _ => opts.k as usize,
+            _ => self.opts.k as usize,
         };
         let mut skipped = self.skipped.clone();
         let mut images = Vec::new();
-        let measured: Vec<Result<(ObjectResult, Option<Fine>), String>> = (0..self.targets.len())
+        let combining = std::mem::take(&mut self.combining);
+        let measured: Vec<Result<(ObjectResult, Option<Fine>), String>> = combining
             .into_par_iter()
-            .map(|t| self.measure_target(t, &shifts_px, k))
+            .enumerate()
+            .map(|(t, c)| self.measure_target(t, c?, k))
             .collect();
         let mut objects = Vec::new();
         for (t, m) in measured.into_iter().enumerate() {
@@ -357,7 +410,7 @@ impl Pipeline {
             )));
         }
         if let Some(board) = &self.board {
-            name_objects(&mut objects, board, opts.scale_um_per_px);
+            name_objects(&mut objects, board, self.opts.scale_um_per_px);
         }
         let mut named: Vec<NamedImage> = images
             .into_iter()
@@ -369,24 +422,10 @@ impl Pipeline {
                 image: f.to_png16(),
             })
             .collect();
-        if opts.whole_frame && self.keep_images {
-            let views: Vec<View> = self
-                .planes
-                .iter()
-                .map(|p| View::new(&p.data, p.width, p.height))
-                .collect();
-            let kk = opts.k as usize;
-            let fine_shifts: Vec<[i64; 2]> = shifts_px
-                .iter()
-                .map(|&d| reconstruct::fine_shift(d, kk))
-                .collect();
-            let fine = match opts.combine {
-                Combine::Splat => reconstruct::splat(&views, &fine_shifts, kk),
-                _ => reconstruct::interp(&views, &fine_shifts, kk),
-            };
+        if let Some(whole) = self.whole.take().filter(|_| self.keep_images) {
             named.push(NamedImage {
                 name: "whole-frame".into(),
-                image: fine.to_png16(),
+                image: whole.finish().to_png16(),
             });
         }
         Ok(Finished {
@@ -398,6 +437,7 @@ impl Pipeline {
                 objects,
                 skipped,
                 steps,
+                step_summary,
             },
             images: named,
         })
@@ -407,32 +447,24 @@ impl Pipeline {
     fn measure_target(
         &self,
         t: usize,
-        shifts_px: &[[f64; 2]],
+        combining: Combining,
         k: usize,
     ) -> Result<(ObjectResult, Option<Fine>), String> {
-        let opts = &self.opts;
-        let s = opts.scale_um_per_px;
-        let first = self.per_frame[0][t]
-            .as_ref()
-            .ok_or("not measurable in frame 0")?;
-        let (est, sigma_px, frames, fine) = match opts.combine {
-            Combine::Mean => {
-                let ests: Vec<&CentreEstimate> = self
-                    .per_frame
-                    .iter()
-                    .filter_map(|f| f[t].as_ref())
-                    .collect();
-                let (offset, sigma) = mean_offset(&ests);
+        let s = self.opts.scale_um_per_px;
+        let first = self.first[t].as_ref().ok_or("not measurable in frame 0")?;
+        let (est, sigma_px, frames, fine) = match combining {
+            Combining::Mean(m) => {
+                let (offset, sigma) = m.result();
                 let mut e = first.clone();
                 e.inner_px = [e.outer_px[0] + offset[0], e.outer_px[1] + offset[1]];
-                (e, sigma, ests.len(), None)
+                (e, sigma, m.frames(), None)
             }
-            Combine::Interp | Combine::Splat => {
-                let (e, fine) = self.reconstruct_target(t, shifts_px, k)?;
+            Combining::Window(tw) => {
+                let (e, fine) = self.reconstruct_target(t, tw, k)?;
                 let sigma = e
                     .offset_cov_px2
                     .map(|c| [c[0][0].max(0.0).sqrt(), c[1][1].max(0.0).sqrt()]);
-                (e, sigma, self.positions_um.len(), Some(fine))
+                (e, sigma, self.frames, Some(fine))
             }
         };
         let off = est.offset_px();
@@ -458,29 +490,13 @@ impl Pipeline {
     fn reconstruct_target(
         &self,
         t: usize,
-        shifts_px: &[[f64; 2]],
+        tw: TargetWindow,
         k: usize,
     ) -> Result<(CentreEstimate, Fine), String> {
-        let first = self.per_frame[0][t]
-            .as_ref()
-            .ok_or("not measurable in frame 0")?;
+        let first = self.first[t].as_ref().ok_or("not measurable in frame 0")?;
         let c = &self.targets[t];
-        let tw = self.windows[t].as_ref().map_err(String::clone)?;
         let (x0, y0) = (tw.x0, tw.y0);
-        // The crops were cut at the whole-pixel displacement; the rest is resampled.
-        let fine_shifts: Vec<[i64; 2]> = shifts_px
-            .iter()
-            .map(|d| reconstruct::fine_shift([d[0] - d[0].round(), d[1] - d[1].round()], k))
-            .collect();
-        let views: Vec<View> = tw
-            .crops
-            .iter()
-            .map(|p| View::new(&p.data, p.width, p.height))
-            .collect();
-        let fine = match self.opts.combine {
-            Combine::Splat => reconstruct::splat(&views, &fine_shifts, k),
-            _ => reconstruct::interp(&views, &fine_shifts, k),
-        };
+        let fine = tw.acc.finish();
         let (fine_w, fine_h) = (fine.width, fine.height);
         let plane = Plane {
             width: fine.width,
@@ -524,12 +540,13 @@ impl Pipeline {
     }
 }
 
-/// A target's reconstruction window: its place in frame 0 and each frame's crop of it.
+/// A target's reconstruction window: its place in frame 0 and the reconstruction its
+/// frames' crops (moved by each frame's whole-pixel displacement) accumulate into.
 struct TargetWindow {
     x0: f64,
     y0: f64,
     side: u32,
-    crops: Vec<Plane>,
+    acc: Accumulator,
 }
 
 /// The window a target is measured in (left, top, side) at its frame-0 place moved by
@@ -586,49 +603,13 @@ fn measure_in_frame(
 
 /// Mean of per-frame offsets: inverse-covariance weighted when every frame has a
 /// covariance, else plain with the standard error of the scatter. Returns (offset, sigma).
+/// The pipeline keeps the same as a running [`OffsetMean`].
 pub fn mean_offset(ests: &[&CentreEstimate]) -> ([f64; 2], Option<[f64; 2]>) {
-    let n = ests.len();
-    if n == 0 {
-        return ([f64::NAN; 2], None);
+    let mut m = OffsetMean::default();
+    for e in ests {
+        m.add(e);
     }
-    let covs: Option<Vec<nalgebra::Matrix2<f64>>> = ests
-        .iter()
-        .map(|e| {
-            e.offset_cov_px2
-                .map(|c| nalgebra::Matrix2::new(c[0][0], c[0][1], c[1][0], c[1][1]))
-        })
-        .collect();
-    if let Some(covs) = covs {
-        let mut info = nalgebra::Matrix2::zeros();
-        let mut acc = nalgebra::Vector2::zeros();
-        let mut ok = true;
-        for (e, c) in ests.iter().zip(&covs) {
-            match c.try_inverse() {
-                Some(w) => {
-                    let o = e.offset_px();
-                    info += w;
-                    acc += w * nalgebra::Vector2::new(o[0], o[1]);
-                }
-                None => ok = false,
-            }
-        }
-        if let (true, Some(cov)) = (ok, info.try_inverse()) {
-            let m = cov * acc;
-            return (
-                [m[0], m[1]],
-                Some([cov[(0, 0)].max(0.0).sqrt(), cov[(1, 1)].max(0.0).sqrt()]),
-            );
-        }
-    }
-    let offs: Vec<[f64; 2]> = ests.iter().map(|e| e.offset_px()).collect();
-    let mean = [0, 1].map(|a| offs.iter().map(|o| o[a]).sum::<f64>() / n as f64);
-    let sigma = (n > 1).then(|| {
-        [0, 1].map(|a| {
-            let var = offs.iter().map(|o| (o[a] - mean[a]).powi(2)).sum::<f64>() / (n - 1) as f64;
-            (var / n as f64).sqrt()
-        })
-    });
-    (mean, sigma)
+    m.result()
 }
 
 /// Name the measured targets after the board's, and give their nominal offsets.
