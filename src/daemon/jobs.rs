@@ -236,6 +236,11 @@ impl Jobs {
     }
 
     fn retire(&mut self, id: u64) {
+        // A finished job's status needs only its frame count: its planned positions (8 bytes
+        // a frame, up to 256 jobs kept) would let finished jobs hold hundreds of MB.
+        if let Some(rec) = self.table.get_mut(&id) {
+            rec.plan.runs = Vec::new();
+        }
         self.finished_order.push_back(id);
         while self.finished_order.len() > KEEP_FINISHED {
             if let Some(old) = self.finished_order.pop_front() {
@@ -255,5 +260,50 @@ impl Jobs {
             self.retire(id);
         }
         ids
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::acquisition::plan::RunPlan;
+    use crate::acquisition::CaseScan;
+    use crate::daemon::job_ids::JobIds;
+
+    fn plan(frames: u32) -> Plan {
+        Plan {
+            runs: vec![RunPlan {
+                run: 0,
+                case: CaseScan {
+                    name: "scan".into(),
+                    frames,
+                    step_um: 50.0,
+                    k: 1,
+                },
+                repeat: 0,
+                positions_um: (0..frames).map(|i| 50.0 * i as f64).collect(),
+                processing: None,
+            }],
+            total_frames: frames,
+        }
+    }
+
+    #[test]
+    fn a_finished_job_keeps_its_frame_count_but_not_its_positions() {
+        let mut jobs = Jobs::new(JobIds::in_memory(1));
+        let spec = JobSpec::default();
+        let (a, _) = jobs
+            .submit(spec.clone(), plan(1000), JobSource::Live, 0)
+            .unwrap();
+        let (b, _) = jobs.submit(spec, plan(7), JobSource::Live, 0).unwrap();
+        let running = jobs.start_next().unwrap();
+        assert_eq!(running.plan.runs[0].positions_um.len(), 1000);
+        jobs.finish(a, JobState::Finished, None);
+        assert!(jobs.cancel(b).unwrap());
+        for (id, frames) in [(a, 1000), (b, 7)] {
+            let rec = jobs.get(id).unwrap();
+            assert!(rec.plan.runs.is_empty(), "job {id} still holds its plan");
+            assert_eq!(rec.status().total_frames, frames);
+        }
     }
 }
