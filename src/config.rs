@@ -522,25 +522,7 @@ impl Config {
         if s.max_step_um <= 0.0 {
             return Err(self.invalid(&key("max_step_um"), "must be positive"));
         }
-        if let Some(v) = s.default_start_um {
-            if name != "axis" {
-                return Err(self.invalid(
-                    &key("default_start_um"),
-                    "only [axis] has a default scan start (piezo scans start at its soft_min_um)",
-                ));
-            }
-            if !(v.is_finite() && (s.soft_min_um..=s.soft_max_um).contains(&v)) {
-                return Err(self.invalid(
-                    &key("default_start_um"),
-                    format!(
-                        "{} is outside the soft limits [{}, {}]",
-                        um(v),
-                        um(s.soft_min_um),
-                        um(s.soft_max_um)
-                    ),
-                ));
-            }
-        }
+        self.validate_default_start(name, s)?;
         if s.feed_um_s <= 0.0 {
             return Err(self.invalid(&key("feed_um_s"), "must be positive"));
         }
@@ -555,6 +537,39 @@ impl Config {
                 format!("{:?} is not a GCS axis identifier", s.gcs_axis),
             ));
         }
+        self.validate_waits(name, s)
+    }
+
+    /// `[axis] default_start_um`: only the axis has one, inside its soft limits.
+    fn validate_default_start(&self, name: &str, s: &StageConfig) -> Result<(), ConfigError> {
+        use crate::rig::devices::short_um as um;
+        let key = |k: &str| format!("{name}.{k}");
+        let Some(v) = s.default_start_um else {
+            return Ok(());
+        };
+        if name != "axis" {
+            return Err(self.invalid(
+                &key("default_start_um"),
+                "only [axis] has a default scan start (piezo scans start at its soft_min_um)",
+            ));
+        }
+        if !(v.is_finite() && (s.soft_min_um..=s.soft_max_um).contains(&v)) {
+            return Err(self.invalid(
+                &key("default_start_um"),
+                format!(
+                    "{} is outside the soft limits [{}, {}]",
+                    um(v),
+                    um(s.soft_min_um),
+                    um(s.soft_max_um)
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The controller deadlines are positive; the settle time is bounded.
+    fn validate_waits(&self, name: &str, s: &StageConfig) -> Result<(), ConfigError> {
+        let key = |k: &str| format!("{name}.{k}");
         for (k, v) in [
             ("reply_timeout_ms", s.reply_timeout_ms),
             ("move_timeout_ms", s.move_timeout_ms),
