@@ -30,10 +30,12 @@ pub type SimCameraTable = toml::Table;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    #[error("{path}: cannot read: {source}")]
+    /// The io error is part of the message, not a `source`: printed with its chain
+    /// (`{:#}`) the cause would otherwise appear twice.
+    #[error("{path}: cannot read: {error}")]
     Read {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// Syntax errors, unknown keys and wrong types: toml's message names the key and line.
     #[error("{path}: {message}")]
@@ -384,9 +386,9 @@ impl Config {
     /// directory.
     pub fn load(path: impl AsRef<Path>) -> Result<Config, ConfigError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        let text = std::fs::read_to_string(path).map_err(|error| ConfigError::Read {
             path: path.to_path_buf(),
-            source,
+            error,
         })?;
         Config::from_toml_str(&text, path)
     }

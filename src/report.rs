@@ -2,6 +2,7 @@
 //! JSON) and plots like its Figures 4 and 5 (PNG, drawn with the `image` crate: lines and
 //! markers on a grid, no text; the docs say what the axes are).
 
+use crate::cli::text::wire_name;
 use crate::pipeline::stats::{StudyStats, TargetStats};
 use crate::pipeline::ProcessResult;
 use image::{Rgb, RgbImage};
@@ -12,14 +13,14 @@ pub fn result_text(r: &ProcessResult) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "{} frame(s) {}x{}, k = {}, estimator {:?}, combine {:?}, registration {:?}",
+        "{} frame(s) {}x{}, k = {}, estimator {}, combine {}, registration {}",
         r.frames,
         r.width,
         r.height,
         r.options.k,
-        r.options.estimator,
-        r.options.combine,
-        r.options.registration
+        wire_name(&r.options.estimator),
+        wire_name(&r.options.combine),
+        wire_name(&r.options.registration)
     );
     let _ = writeln!(
         s,

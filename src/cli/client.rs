@@ -74,7 +74,11 @@ impl Client {
                     return match (r.ok, r.result, r.error) {
                         (true, Some(v), _) => Ok(v),
                         (true, None, _) => Ok(serde_json::Value::Null),
-                        (false, _, Some(e)) => Err(anyhow!("rigd: {:?}: {}", e.code, e.message)),
+                        (false, _, Some(e)) => Err(anyhow!(
+                            "rigd: {}: {}",
+                            crate::cli::text::wire_name(&e.code),
+                            e.message
+                        )),
                         (false, _, None) => Err(anyhow!("rigd refused the request")),
                     };
                 }

@@ -9,6 +9,7 @@ use anyhow::Context;
 pub struct FetchArgs {
     #[command(flatten)]
     pub socket: SocketArg,
+    /// The job whose result to fetch (its id, as `submit` and `list` print it).
     pub job_id: u64,
     /// Write the result JSON here instead of printing it.
     #[arg(long, value_name = "FILE")]

@@ -32,12 +32,14 @@ pub enum HwCommand {
     /// Move by UM micrometres (relative), wait until settled.
     #[command(allow_negative_numbers = true)]
     MoveRel {
+        /// The distance to move, µm (negative: towards lower positions).
         #[arg(value_name = "UM")]
         delta_um: f64,
     },
     /// Move to UM micrometres (absolute), wait until settled.
     #[command(allow_negative_numbers = true)]
     MoveAbs {
+        /// The position to move to, µm.
         #[arg(value_name = "UM")]
         target_um: f64,
     },
@@ -47,6 +49,7 @@ pub enum HwCommand {
     Stop,
     /// Grab one fresh frame and write it as PNG.
     Grab {
+        /// Where to write the frame.
         #[arg(value_name = "OUT.png")]
         out: PathBuf,
     },
@@ -127,8 +130,9 @@ fn act_and_report(
     act(s.as_mut())?;
     let st = s.status()?;
     println!(
-        "{section}: {done}{:?} at {:.3} µm",
-        st.state, st.position_um
+        "{section}: {done}{} at {:.3} µm",
+        crate::cli::text::wire_name(&st.state),
+        st.position_um
     );
     Ok(())
 }
@@ -231,10 +235,10 @@ fn probe(cfg: &Config) -> anyhow::Result<()> {
                     let mut s = open_stage(name, c)?;
                     let st = s.status()?;
                     Ok(format!(
-                        "{} driver on {}: {:?} at {:.3} µm",
-                        format!("{:?}", c.driver).to_lowercase(),
+                        "{} driver on {}: {} at {:.3} µm",
+                        crate::cli::text::wire_name(&c.driver),
                         c.port.as_deref().unwrap_or("-"),
-                        st.state,
+                        crate::cli::text::wire_name(&st.state),
                         st.position_um
                     ))
                 })(),

@@ -12,6 +12,7 @@ pub mod replay;
 pub mod rig;
 pub mod status;
 pub mod submit;
+pub mod text;
 pub mod watch;
 
 use crate::daemon::rig_state::RigAction;

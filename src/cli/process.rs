@@ -18,6 +18,7 @@ pub struct ProcessArgs {
     /// Upsampling factor of the reconstruction (1 = none; at most 32).
     #[arg(long, default_value_t = 1, value_parser = parse_k)]
     pub k: u32,
+    /// How target centres are measured in each image.
     #[arg(long, value_enum, default_value = "fit")]
     pub estimator: Estimator,
     /// How frames are combined [default: interp when k > 1, else mean].
@@ -27,7 +28,7 @@ pub struct ProcessArgs {
     #[arg(long, value_enum, default_value = "image")]
     pub registration: Registration,
     /// Image displacement per unit of axis travel, "x,y" (the scene moves against the camera).
-    #[arg(long, value_parser = parse_dir, default_value = "-1,0")]
+    #[arg(long, value_parser = parse_dir, default_value = "-1,0", allow_hyphen_values = true)]
     pub axis_dir: [f64; 2],
     /// Use the first N frames only.
     #[arg(long)]

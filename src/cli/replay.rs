@@ -13,6 +13,7 @@ pub struct ReplayArgs {
     /// Processing to use instead of the recorded one.
     #[command(flatten)]
     pub processing: ProcessingArgs,
+    /// Return once queued (print the job id) instead of following the job.
     #[arg(long)]
     pub detach: bool,
 }

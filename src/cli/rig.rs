@@ -25,10 +25,10 @@ pub fn run(action: RigAction, a: RigArgs) -> anyhow::Result<()> {
     };
     let r: RigActionReply = serde_json::from_value(c.request(&req)?)?;
     println!(
-        "{} {}: {:?} at {:.3} µm; rig {}",
+        "{} {}: {} at {:.3} µm; rig {}",
         r.stage,
         r.request.name(),
-        r.state,
+        crate::cli::text::wire_name(&r.state),
         r.position_um,
         describe(&r.rig_state)
     );

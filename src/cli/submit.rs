@@ -12,31 +12,41 @@ pub struct SubmitArgs {
     /// Stage to step.
     #[arg(long, value_enum, default_value = "axis")]
     pub stage: StageKind,
-    /// Distance between frames (µm).
-    #[arg(long)]
+    /// Distance between frames (µm; negative steps backwards). Needed with --steps N > 1.
+    #[arg(long, value_name = "UM", allow_negative_numbers = true)]
     pub step_um: Option<f64>,
-    /// Number of frames.
-    #[arg(long)]
+    /// Number of frames of one scan (give it with --step-um, or give --study instead).
+    #[arg(long, value_name = "N")]
     pub steps: Option<u32>,
     /// Run these of the paper's cases instead of one scan (comma-separated: case1,case2,case3).
     #[arg(long, value_delimiter = ',', value_enum)]
     pub study: Vec<PaperCase>,
-    #[arg(long, default_value_t = 20)]
+    /// Wait after each move before the frame is grabbed, ms (on top of the stage's own
+    /// settle_ms).
+    #[arg(long, value_name = "MS", default_value_t = 20)]
     pub settle_ms: u64,
     #[command(flatten)]
     pub processing: ProcessingArgs,
-    #[arg(long, default_value_t = 1)]
+    /// How many times the scan (or each study case) is run; each repeat is processed on its
+    /// own, and with 2 or more the result gives each target's spread.
+    #[arg(long, value_name = "N", default_value_t = 1)]
     pub repeats: u32,
     /// Absolute start position (µm); default: the rig's.
-    #[arg(long)]
+    #[arg(long, value_name = "UM", allow_negative_numbers = true)]
     pub start_um: Option<f64>,
     /// Shift of each repeat's start (µm), for different sub-pixel phases.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(
+        long,
+        value_name = "UM",
+        default_value_t = 0.0,
+        allow_negative_numbers = true
+    )]
     pub repeat_shift_um: f64,
     /// Capture and record only.
     #[arg(long)]
     pub no_process: bool,
-    #[arg(long)]
+    /// A free-text label kept with the job and its session (shown by `list`).
+    #[arg(long, value_name = "TEXT")]
     pub label: Option<String>,
     /// Return once queued instead of following the job.
     #[arg(long)]
@@ -123,7 +133,27 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
     Ok(id)
 }
 
+impl SubmitArgs {
+    /// What the command line lacks for a job, named by its flags (before the daemon would
+    /// name the job's fields).
+    pub fn check(&self) -> anyhow::Result<()> {
+        if !self.study.is_empty() {
+            return Ok(());
+        }
+        match (self.steps, self.step_um) {
+            (None, _) => anyhow::bail!(
+                "say what to capture: --steps N --step-um UM (one scan of N frames), or                  --study case1,case2,case3 (the paper's cases)"
+            ),
+            (Some(n), None) if n > 1 => {
+                anyhow::bail!("--steps {n} needs --step-um UM (the distance between frames)")
+            }
+            _ => Ok(()),
+        }
+    }
+}
+
 pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
+    a.check()?;
     let req = Request::Submit { job: a.spec() };
     submit_and_follow(&a.socket, req, a.detach).map(|_| ())
 }
@@ -137,6 +167,44 @@ mod tests {
     struct Cli {
         #[command(flatten)]
         submit: SubmitArgs,
+    }
+
+    fn parse(args: &[&str]) -> Result<SubmitArgs, clap::Error> {
+        let argv = ["rigctl"].iter().chain(args).copied();
+        Cli::try_parse_from(argv).map(|c| c.submit)
+    }
+
+    #[test]
+    fn negative_numbers_need_no_equals_sign() {
+        let a = parse(&["--step-um", "-50", "--steps", "3", "--start-um", "-200"]).unwrap();
+        assert_eq!((a.step_um, a.start_um), (Some(-50.0), Some(-200.0)));
+        let a = parse(&[
+            "--steps",
+            "2",
+            "--step-um",
+            "5",
+            "--repeat-shift-um",
+            "-1.5",
+        ])
+        .unwrap();
+        assert_eq!(a.repeat_shift_um, -1.5);
+    }
+
+    #[test]
+    fn a_bare_submit_names_the_flags_it_needs() {
+        let e = parse(&[]).unwrap().check().unwrap_err().to_string();
+        assert!(
+            e.contains("--steps N --step-um UM") && e.contains("--study"),
+            "{e}"
+        );
+        assert!(!e.contains("`step_um`"), "{e}");
+        let e = parse(&["--steps", "4"]).unwrap().check().unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "--steps 4 needs --step-um UM (the distance between frames)"
+        );
+        parse(&["--steps", "1"]).unwrap().check().unwrap();
+        parse(&["--study", "case1"]).unwrap().check().unwrap();
     }
 
     fn spec(args: &[&str]) -> JobSpec {

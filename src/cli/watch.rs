@@ -7,6 +7,7 @@ use crate::daemon::protocol::Request;
 pub struct WatchArgs {
     #[command(flatten)]
     pub socket: SocketArg,
+    /// The job to follow (its id, as `submit` and `list` print it).
     pub job_id: u64,
 }
 

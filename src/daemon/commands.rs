@@ -12,6 +12,7 @@ use crate::daemon::protocol::{
 };
 use crate::daemon::replay::replay_job;
 use crate::daemon::session::{self, Session};
+use crate::daemon::timing::{rfc3339_unix, JobTiming};
 use crate::daemon::Shared;
 use std::sync::atomic::Ordering;
 
@@ -55,9 +56,13 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
             Ok(ReplyBody::DaemonStatus(DaemonStatus {
                 running: jobs
                     .running()
-                    .and_then(|id| jobs.get(id))
-                    .map(|r| r.status()),
+                    .and_then(|id| jobs.status(id, &shared.rig_info)),
                 queued: jobs.queued(),
+                queued_jobs: jobs
+                    .queued()
+                    .into_iter()
+                    .filter_map(|id| jobs.status(id, &shared.rig_info))
+                    .collect(),
                 shutting_down: shared.shutting_down.load(Ordering::SeqCst),
                 rig_state: shared.rig().state(jobs.running()),
             }))
@@ -168,7 +173,7 @@ fn announce(shared: &Shared, id: u64, ahead: usize, job: JobSpec, plan: &Plan) -
 
 fn list(shared: &Shared, limit: Option<u32>, before: Option<u64>) -> Result<ListReply, ProtoError> {
     // The statuses are copied out first: the disk is not read under the table's lock.
-    let jobs: Vec<JobStatus> = shared.jobs().all().map(|r| r.status()).collect();
+    let jobs: Vec<JobStatus> = shared.jobs().statuses(&shared.rig_info);
     listing::page(jobs, &shared.settings.data_root, limit, before)
 }
 
@@ -222,8 +227,8 @@ fn result(shared: &Shared, job_id: u64) -> Result<ResultReply, ProtoError> {
 
 /// A job's status: from the table, else from its session on disk.
 pub fn status(shared: &Shared, id: u64) -> Result<JobStatus, ProtoError> {
-    if let Some(r) = shared.jobs().get(id) {
-        return Ok(r.status());
+    if let Some(st) = shared.jobs().status(id, &shared.rig_info) {
+        return Ok(st);
     }
     let s = find_session(shared, id).ok_or_else(|| not_found(format!("no job {id}")))?;
     let state = match s.manifest.state {
@@ -240,7 +245,19 @@ pub fn status(shared: &Shared, id: u64) -> Result<JobStatus, ProtoError> {
         frames_done: s.steps.len() as u32,
         total_frames: s.manifest.plan.total_frames,
         reason: s.manifest.reason.clone(),
+        timing: session_timing(&s.manifest),
     })
+}
+
+/// A recorded job's start, end and run time, from its manifest.
+pub fn session_timing(m: &session::Manifest) -> JobTiming {
+    let ended = !matches!(m.state, session::SessionState::Running);
+    JobTiming {
+        started_at: rfc3339_unix(m.created_unix_s),
+        ended_at: ended.then(|| rfc3339_unix(m.updated_unix_s)).flatten(),
+        elapsed_s: ended.then(|| (m.updated_unix_s - m.created_unix_s).max(0.0)),
+        ..JobTiming::default()
+    }
 }
 
 fn find_session(shared: &Shared, id: u64) -> Option<Session> {

@@ -4,10 +4,13 @@
 use crate::acquisition::plan::Plan;
 use crate::acquisition::{JobSpec, Processing, StopFlag};
 use crate::daemon::job_ids::{JobIdError, JobIds};
+use crate::daemon::timing::{self, JobClock, JobTiming, Pending, RigPace};
+use crate::rig::RigInfo;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
 use std::sync::Arc;
+use std::time::{Instant, SystemTime};
 
 /// Finished jobs kept in memory; older ones are still listed from their sessions on disk.
 const KEEP_FINISHED: usize = 256;
@@ -53,6 +56,8 @@ pub struct JobRecord {
     pub stop: Arc<StopFlag>,
     /// What the job writes, estimated at submit (`acquisition::budget::disk_bytes`).
     pub disk_bytes: u64,
+    /// When it started and ended, its step intervals (`daemon::timing`).
+    pub clock: JobClock,
 }
 
 /// The public view of a job (status and list replies).
@@ -67,9 +72,14 @@ pub struct JobStatus {
     pub frames_done: u32,
     pub total_frames: u32,
     pub reason: Option<String>,
+    /// started_at, elapsed_s, eta_s & co. (`daemon::timing`).
+    #[serde(flatten)]
+    pub timing: JobTiming,
 }
 
 impl JobRecord {
+    /// Its status with the timing it knows alone (start, end, elapsed); the table's
+    /// [`Jobs::status`] adds the estimates, which need the queue.
     pub fn status(&self) -> JobStatus {
         JobStatus {
             job_id: self.id,
@@ -85,6 +95,7 @@ impl JobRecord {
             frames_done: self.frames_done,
             total_frames: self.plan.total_frames,
             reason: self.reason.clone(),
+            timing: timing::ended_or_running(&self.clock, Instant::now()),
         }
     }
 }
@@ -104,6 +115,8 @@ pub struct Jobs {
     queue: VecDeque<u64>,
     running: Option<u64>,
     finished_order: VecDeque<u64>,
+    /// The rig's recent step intervals, for the estimates of jobs not yet measured.
+    pace: RigPace,
 }
 
 impl Jobs {
@@ -115,6 +128,7 @@ impl Jobs {
             queue: VecDeque::new(),
             running: None,
             finished_order: VecDeque::new(),
+            pace: RigPace::default(),
         }
     }
 
@@ -144,6 +158,7 @@ impl Jobs {
                 reason: None,
                 stop: Arc::new(StopFlag::default()),
                 disk_bytes,
+                clock: JobClock::default(),
             },
         );
         let ahead = self.queue.len() + usize::from(self.running.is_some());
@@ -157,6 +172,7 @@ impl Jobs {
         self.running = Some(id);
         let rec = self.table.get_mut(&id)?;
         rec.state = JobState::Running;
+        rec.clock.start(Instant::now(), SystemTime::now());
         Some(rec.clone())
     }
 
@@ -235,11 +251,89 @@ impl Jobs {
         self.retire(id);
     }
 
+    /// Job `id` has `frames_done` frames on disk: count them, time the step.
+    pub fn step_recorded(&mut self, id: u64, frames_done: u32) {
+        let Some(rec) = self.table.get_mut(&id) else {
+            return;
+        };
+        rec.frames_done = frames_done;
+        let interval = rec.clock.step(Instant::now());
+        // A replay's pace is the disk's, not the rig's.
+        if let (Some(dt), JobSource::Live) = (interval, &rec.source) {
+            self.pace.record(dt, rec.spec.settle_ms as f64 / 1000.0);
+        }
+    }
+
+    /// Job `id`'s status, with its start and end estimated from the queue ahead of it.
+    pub fn status(&self, id: u64, rig: &RigInfo) -> Option<JobStatus> {
+        let rec = self.table.get(&id)?;
+        let mut st = rec.status();
+        if !rec.state.is_done() {
+            if let Some(t) = self.estimates(rig).remove(&id) {
+                st.timing = t;
+            }
+        }
+        Some(st)
+    }
+
+    /// Every job's status (in id order), estimates in.
+    pub fn statuses(&self, rig: &RigInfo) -> Vec<JobStatus> {
+        let mut est = self.estimates(rig);
+        self.table
+            .values()
+            .map(|r| {
+                let mut st = r.status();
+                if let Some(t) = est.remove(&r.id) {
+                    st.timing = t;
+                }
+                st
+            })
+            .collect()
+    }
+
+    /// The running and queued jobs' timings, by id.
+    fn estimates(&self, rig: &RigInfo) -> BTreeMap<u64, JobTiming> {
+        let pending = |id: &u64| {
+            let r = self.table.get(id)?;
+            let stage_ms = match r.spec.stage {
+                crate::acquisition::StageKind::Axis => rig.axis_settle_ms,
+                crate::acquisition::StageKind::Piezo => rig.piezo_settle_ms,
+            };
+            Some((
+                *id,
+                Pending {
+                    clock: &r.clock,
+                    frames_done: r.frames_done,
+                    total_frames: r.plan.total_frames,
+                    settle_s: r.spec.settle_ms as f64 / 1000.0,
+                    stage_settle_s: stage_ms.unwrap_or(0) as f64 / 1000.0,
+                },
+            ))
+        };
+        let running = self.running.as_ref().and_then(pending);
+        let (ids, queued): (Vec<u64>, Vec<Pending<'_>>) =
+            self.queue.iter().filter_map(pending).unzip();
+        let running_id = running.as_ref().map(|(id, _)| *id);
+        let (r, q) = timing::estimate(
+            &self.pace,
+            running.map(|(_, p)| p),
+            &queued,
+            Instant::now(),
+            SystemTime::now(),
+        );
+        let mut out: BTreeMap<u64, JobTiming> = ids.into_iter().zip(q).collect();
+        if let (Some(id), Some(r)) = (running_id, r) {
+            out.insert(id, r);
+        }
+        out
+    }
+
     fn retire(&mut self, id: u64) {
         // A finished job's status needs only its frame count: its planned positions (8 bytes
         // a frame, up to 256 jobs kept) would let finished jobs hold hundreds of MB.
         if let Some(rec) = self.table.get_mut(&id) {
             rec.plan.runs = Vec::new();
+            rec.clock.end(SystemTime::now());
         }
         self.finished_order.push_back(id);
         while self.finished_order.len() > KEEP_FINISHED {

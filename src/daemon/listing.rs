@@ -124,6 +124,7 @@ fn summary(s: &Session) -> SessionSummary {
         total_frames: m.plan.total_frames,
         replay_of: m.replay_of.clone(),
         label: m.job.label.clone(),
+        timing: crate::daemon::commands::session_timing(m),
     }
 }
 

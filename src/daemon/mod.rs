@@ -32,6 +32,7 @@ pub mod rig_state;
 pub mod server;
 pub mod session;
 pub mod strict_json;
+pub mod timing;
 pub mod worker;
 
 use crate::config::DaemonSettings;

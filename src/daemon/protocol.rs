@@ -126,7 +126,7 @@ pub enum ErrorCode {
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, thiserror::Error)]
-#[error("{code:?}: {message}")]
+#[error("{}: {message}", crate::cli::text::wire_name(code))]
 pub struct ProtoError {
     pub code: ErrorCode,
     pub message: String,
@@ -454,6 +454,9 @@ pub struct SubmitReply {
 pub struct DaemonStatus {
     pub running: Option<JobStatus>,
     pub queued: Vec<u64>,
+    /// The queued jobs' statuses in queue order, with their expected start and ETA.
+    #[serde(default)]
+    pub queued_jobs: Vec<JobStatus>,
     pub shutting_down: bool,
     #[serde(default)]
     pub rig_state: RigState,
@@ -480,6 +483,9 @@ pub struct SessionSummary {
     pub total_frames: u32,
     pub replay_of: Option<String>,
     pub label: Option<String>,
+    /// started_at, ended_at, elapsed_s (from the manifest's times).
+    #[serde(flatten)]
+    pub timing: crate::daemon::timing::JobTiming,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

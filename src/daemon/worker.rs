@@ -275,9 +275,7 @@ fn devices(rig: &mut Rig, stage: StageKind) -> Result<Devices<'_>, crate::hw::Hw
 fn step_recorded(shared: &Arc<Shared>, id: u64) -> crate::daemon::recorder::OnRecorded {
     let shared = shared.clone();
     Box::new(move |rec| {
-        if let Some(r) = shared.jobs().get_mut(id) {
-            r.frames_done = rec.index + 1;
-        }
+        shared.jobs().step_recorded(id, rec.index + 1);
         shared.events.emit(id, EventBody::step(rec));
     })
 }

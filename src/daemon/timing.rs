@@ -1,0 +1,329 @@
+//! When jobs start and end, and how long they will take: the `started_at`, `elapsed_s` and
+//! `eta_s` of `status` and `list` (docs/protocol.md, "Status").
+//!
+//! A frame's time is the interval between two recorded steps: move + settle + grab + the
+//! disk, as this rig does them. The running job's estimate is the median of its own last
+//! intervals (`measured`); a job that has not measured two yet uses the rig's recent steps
+//! from earlier jobs, less their settle, plus its own settle (`rig`); before any step on
+//! this daemon, a guess from the settings: the job's and the stage's settle plus
+//! [`MOVE_GRAB_GUESS_S`] (`settings`). Medians, so a pause or one slow frame does not
+//! swing the estimate.
+
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+use std::time::{Duration, Instant, SystemTime};
+
+/// Step intervals kept per job and for the rig (the median of these is the estimate).
+const KEEP: usize = 64;
+/// Move + grab of one frame before any was measured: a few hundred µm at a GRBL's feed and
+/// one frame at 30 fps, rounded up.
+pub const MOVE_GRAB_GUESS_S: f64 = 0.1;
+
+/// Where a job's per-frame time comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EtaBasis {
+    /// The job's own recorded steps (median interval).
+    Measured,
+    /// Earlier jobs' steps on this rig (median interval less their settle, plus this job's).
+    Rig,
+    /// No step recorded yet on this daemon: the settle times plus a fixed move + grab guess.
+    Settings,
+}
+
+/// The timing fields of a job's status; each absent when it does not apply (a queued job has
+/// no `started_at`, a finished one no `eta_s`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct JobTiming {
+    /// When it started running (RFC 3339, UTC).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub started_at: Option<String>,
+    /// When it ended (RFC 3339, UTC).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ended_at: Option<String>,
+    /// Seconds it has run (running) or ran (ended).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub elapsed_s: Option<f64>,
+    /// A queued job: when it is expected to start (RFC 3339, UTC), and in how many seconds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expected_start_at: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub starts_in_s: Option<f64>,
+    /// Running or queued: seconds from now until it is expected to end.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eta_s: Option<f64>,
+    /// The seconds per frame the estimate uses, and where they come from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame_s: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eta_basis: Option<EtaBasis>,
+}
+
+/// A time as RFC 3339 UTC, to the second.
+pub fn rfc3339(t: SystemTime) -> String {
+    let t = time::OffsetDateTime::from(t);
+    let t = t.replace_nanosecond(0).unwrap_or(t);
+    t.format(&time::format_description::well_known::Rfc3339)
+        .unwrap_or_default()
+}
+
+/// A time given in seconds since the epoch (as manifests record it).
+pub fn rfc3339_unix(unix_s: f64) -> Option<String> {
+    (unix_s.is_finite() && unix_s > 0.0)
+        .then(|| rfc3339(SystemTime::UNIX_EPOCH + Duration::from_secs_f64(unix_s)))
+}
+
+/// The median of `v` (None when empty).
+fn median(v: &VecDeque<f64>) -> Option<f64> {
+    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    if s.is_empty() {
+        return None;
+    }
+    s.sort_unstable_by(f64::total_cmp);
+    let n = s.len();
+    Some(match n % 2 {
+        1 => s[n / 2],
+        _ => (s[n / 2 - 1] + s[n / 2]) / 2.0,
+    })
+}
+
+fn push(v: &mut VecDeque<f64>, x: f64) {
+    if v.len() == KEEP {
+        v.pop_front();
+    }
+    v.push_back(x);
+}
+
+/// One job's clock: when it started and ended, its last step intervals.
+#[derive(Debug, Clone, Default)]
+pub struct JobClock {
+    started: Option<(SystemTime, Instant)>,
+    ended: Option<SystemTime>,
+    last_step: Option<Instant>,
+    intervals: VecDeque<f64>,
+}
+
+impl JobClock {
+    pub fn start(&mut self, now: Instant, wall: SystemTime) {
+        self.started = Some((wall, now));
+        self.last_step = Some(now);
+    }
+
+    pub fn end(&mut self, wall: SystemTime) {
+        self.ended.get_or_insert(wall);
+    }
+
+    /// A step was recorded at `now`: the interval since the one before (or the start).
+    pub fn step(&mut self, now: Instant) -> Option<f64> {
+        let dt = self.last_step.map(|t| now.duration_since(t).as_secs_f64());
+        self.last_step = Some(now);
+        if let Some(dt) = dt {
+            push(&mut self.intervals, dt);
+        }
+        dt
+    }
+
+    /// The job's own seconds per frame, once two intervals are measured (the first one holds
+    /// the move to the start and the session's creation).
+    pub fn measured_frame_s(&self) -> Option<f64> {
+        (self.intervals.len() >= 2)
+            .then(|| median(&self.intervals))
+            .flatten()
+    }
+
+    /// Seconds since the last step (or the start).
+    fn since_last_step(&self, now: Instant) -> f64 {
+        self.last_step
+            .map_or(0.0, |t| now.saturating_duration_since(t).as_secs_f64())
+    }
+}
+
+/// The rig's recent step intervals, less each job's own settle: the part of a frame that is
+/// the rig's (move, the stage's settle, grab, disk).
+#[derive(Debug, Clone, Default)]
+pub struct RigPace {
+    overheads: VecDeque<f64>,
+}
+
+impl RigPace {
+    pub fn record(&mut self, interval_s: f64, job_settle_s: f64) {
+        push(&mut self.overheads, (interval_s - job_settle_s).max(0.0));
+    }
+
+    /// Seconds per frame for a job that settles `settle_s`, and the basis; `stage_settle_s`
+    /// is the stage's own settle, used only before anything was measured.
+    pub fn frame_s(&self, settle_s: f64, stage_settle_s: f64) -> (f64, EtaBasis) {
+        match median(&self.overheads) {
+            Some(o) => (o + settle_s, EtaBasis::Rig),
+            None => (
+                settle_s + stage_settle_s + MOVE_GRAB_GUESS_S,
+                EtaBasis::Settings,
+            ),
+        }
+    }
+}
+
+/// What an estimate needs of one pending job.
+pub struct Pending<'a> {
+    pub clock: &'a JobClock,
+    pub frames_done: u32,
+    pub total_frames: u32,
+    /// Its settle and its stage's, seconds.
+    pub settle_s: f64,
+    pub stage_settle_s: f64,
+}
+
+/// Timings of the running job (if any) and the queued ones in queue order: each queued job
+/// starts when the one before it is expected to end.
+pub fn estimate(
+    pace: &RigPace,
+    running: Option<Pending<'_>>,
+    queued: &[Pending<'_>],
+    now: Instant,
+    wall: SystemTime,
+) -> (Option<JobTiming>, Vec<JobTiming>) {
+    let frame_s = |p: &Pending<'_>| match p.clock.measured_frame_s() {
+        Some(f) => (f, EtaBasis::Measured),
+        None => pace.frame_s(p.settle_s, p.stage_settle_s),
+    };
+    let mut t = 0.0;
+    let running = running.map(|p| {
+        let (f, basis) = frame_s(&p);
+        let left = p.total_frames.saturating_sub(p.frames_done) as f64;
+        t = (left * f - p.clock.since_last_step(now)).max(0.0);
+        JobTiming {
+            eta_s: Some(t),
+            frame_s: Some(f),
+            eta_basis: Some(basis),
+            ..ended_or_running(p.clock, now)
+        }
+    });
+    let queued = queued
+        .iter()
+        .map(|p| {
+            let (f, basis) = frame_s(p);
+            let starts_in = t;
+            t += p.total_frames as f64 * f;
+            JobTiming {
+                expected_start_at: Some(rfc3339(wall + Duration::from_secs_f64(starts_in))),
+                starts_in_s: Some(starts_in),
+                eta_s: Some(t),
+                frame_s: Some(f),
+                eta_basis: Some(basis),
+                ..JobTiming::default()
+            }
+        })
+        .collect();
+    (running, queued)
+}
+
+/// `started_at`, `ended_at` and `elapsed_s` of a job that has started.
+pub fn ended_or_running(c: &JobClock, now: Instant) -> JobTiming {
+    let Some((started_wall, started)) = c.started else {
+        return JobTiming::default();
+    };
+    let elapsed = match c.ended {
+        Some(end) => end
+            .duration_since(started_wall)
+            .unwrap_or_default()
+            .as_secs_f64(),
+        None => now.saturating_duration_since(started).as_secs_f64(),
+    };
+    JobTiming {
+        started_at: Some(rfc3339(started_wall)),
+        ended_at: c.ended.map(rfc3339),
+        elapsed_s: Some(elapsed),
+        ..JobTiming::default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn clock_with_steps(t0: Instant, steps_s: &[f64]) -> JobClock {
+        let mut c = JobClock::default();
+        c.start(
+            t0,
+            SystemTime::UNIX_EPOCH + Duration::from_secs(1_764_633_600),
+        );
+        let mut t = t0;
+        for &s in steps_s {
+            t += Duration::from_secs_f64(s);
+            c.step(t);
+        }
+        c
+    }
+
+    #[test]
+    fn times_are_rfc3339_utc_to_the_second() {
+        let t = SystemTime::UNIX_EPOCH + Duration::from_millis(1_764_633_600_750);
+        assert_eq!(rfc3339(t), "2025-12-02T00:00:00Z");
+        assert_eq!(rfc3339_unix(0.0), None);
+    }
+
+    #[test]
+    fn the_running_job_uses_its_median_interval_and_the_queue_follows_it() {
+        let t0 = Instant::now();
+        // 5 frames: the first interval (move to the start) is slow, one frame is slower.
+        let run = clock_with_steps(t0, &[3.0, 0.5, 0.5, 2.0, 0.5]);
+        let now = t0 + Duration::from_secs_f64(6.5 + 0.2);
+        let queued_clock = JobClock::default();
+        let wall = SystemTime::UNIX_EPOCH + Duration::from_secs(1_764_633_600);
+        let mut pace = RigPace::default();
+        pace.record(0.45, 0.02);
+        let (r, q) = estimate(
+            &pace,
+            Some(Pending {
+                clock: &run,
+                frames_done: 5,
+                total_frames: 25,
+                settle_s: 0.02,
+                stage_settle_s: 0.0,
+            }),
+            &[Pending {
+                clock: &queued_clock,
+                frames_done: 0,
+                total_frames: 10,
+                settle_s: 0.5,
+                stage_settle_s: 0.0,
+            }],
+            now,
+            wall,
+        );
+        let r = r.unwrap();
+        assert_eq!(r.eta_basis, Some(EtaBasis::Measured));
+        assert_eq!(r.frame_s, Some(0.5));
+        // 20 frames at 0.5 s, less the 0.2 s since the last one.
+        assert!((r.eta_s.unwrap() - 9.8).abs() < 1e-9, "{r:?}");
+        assert!((r.elapsed_s.unwrap() - 6.7).abs() < 1e-9);
+        // The queued job: the rig's overhead (0.43 s) plus its own 0.5 s settle a frame.
+        let q = &q[0];
+        assert_eq!(q.eta_basis, Some(EtaBasis::Rig));
+        assert!((q.frame_s.unwrap() - 0.93).abs() < 1e-9);
+        assert!((q.starts_in_s.unwrap() - 9.8).abs() < 1e-9);
+        assert!((q.eta_s.unwrap() - (9.8 + 9.3)).abs() < 1e-9);
+        assert_eq!(q.expected_start_at.as_deref(), Some("2025-12-02T00:00:09Z"));
+    }
+
+    #[test]
+    fn before_any_step_the_estimate_comes_from_the_settings() {
+        let c = JobClock::default();
+        let (_, q) = estimate(
+            &RigPace::default(),
+            None,
+            &[Pending {
+                clock: &c,
+                frames_done: 0,
+                total_frames: 20,
+                settle_s: 0.02,
+                stage_settle_s: 0.05,
+            }],
+            Instant::now(),
+            SystemTime::now(),
+        );
+        assert_eq!(q[0].eta_basis, Some(EtaBasis::Settings));
+        assert!((q[0].eta_s.unwrap() - 20.0 * (0.07 + MOVE_GRAB_GUESS_S)).abs() < 1e-9);
+        assert_eq!(q[0].starts_in_s, Some(0.0));
+    }
+}
