@@ -90,7 +90,7 @@ fn table1(s: &mut String, st: &StudyStats, names: &[&str]) {
             let v = cell(st, c, n)
                 .map(|t| t.measured_grid_px)
                 .unwrap_or(f64::NAN);
-            let _ = write!(s, " {v:>12.2}");
+            let _ = write!(s, " {:>12}", f(v, 2));
         }
         s.push('\n');
     }
@@ -112,7 +112,7 @@ fn table2(s: &mut String, st: &StudyStats, names: &[&str]) {
         let _ = write!(s, "{n:<7} {nominal_px:>9.2}");
         for c in 0..cases.len() {
             let v = cell(st, c, n).map(|t| t.pixel_ratio).unwrap_or(f64::NAN);
-            let _ = write!(s, " {v:>12.2}");
+            let _ = write!(s, " {:>12}", f(v, 2));
         }
         s.push('\n');
     }
@@ -140,23 +140,28 @@ fn table3(s: &mut String, st: &StudyStats, names: &[&str]) {
             let (sd, b) = cell(st, c, n)
                 .map(|t| (t.std_um, t.bias_um))
                 .unwrap_or((f64::NAN, f64::NAN));
-            let _ = write!(s, " {sd:>12.1} {b:>9.1}");
+            let _ = write!(s, " {:>12} {:>9}", f(sd, 1), f(b, 1));
         }
         s.push('\n');
     }
     let _ = write!(s, "{:<7}", "RMS");
     for c in cases {
-        let _ = write!(s, " {:>12.1} {:>9}", c.rms_std_um, "");
+        let _ = write!(s, " {:>12} {:>9}", f(c.rms_std_um, 1), "");
     }
     s.push('\n');
     if cases.len() > 1 && cases[0].rms_std_um > 0.0 {
         let _ = write!(s, "{:<7}", "gain");
         for c in cases {
             let gain = cases[0].rms_std_um / c.rms_std_um;
-            let _ = write!(s, " {gain:>11.2}x {:>9}", "");
+            let _ = write!(s, " {:>12} {:>9}", format!("{}x", f(gain, 2)), "");
         }
         s.push('\n');
     }
+}
+
+/// A table figure, or `—` when it is undefined (the spread of a single repeat).
+fn f(x: f64, digits: usize) -> String {
+    crate::cli::text::fixed(Some(x), digits)
 }
 
 fn short(name: &str) -> String {

@@ -36,7 +36,9 @@ pub struct CaseLine {
     pub frames: u32,
     pub step_um: f64,
     pub k: u32,
-    /// RMS over targets of the per-target standard deviation over repeats.
+    /// RMS over targets of the per-target standard deviation over repeats (null, NaN in
+    /// memory, with a single repeat).
+    #[serde(deserialize_with = "crate::pipeline::stats::nan_if_null")]
     pub rms_std_um: f64,
     /// rms_std_um of the single-frame case over this case's.
     pub improvement: Option<f64>,
@@ -113,12 +115,12 @@ pub fn tables(s: &StudySummary) -> String {
     );
     for c in &s.cases {
         out.push_str(&format!(
-            "  {:<6} {:>3} frames at {:>5} µm, k = {:>2}: RMS std {:>7.1} µm  {}\n",
+            "  {:<6} {:>3} frames at {:>5} µm, k = {:>2}: RMS std {:>7} µm  {}\n",
             c.name,
             c.frames,
             c.step_um,
             c.k,
-            c.rms_std_um,
+            crate::cli::text::fixed(Some(c.rms_std_um), 1),
             c.improvement
                 .map(|x| format!("{x:.2}x"))
                 .unwrap_or_else(|| "-".into())
@@ -163,6 +165,26 @@ mod tests {
             }),
             error: None,
         }
+    }
+
+    #[test]
+    fn one_repeat_reads_back_with_its_spread_undefined_and_prints_a_dash() {
+        // `rigctl demo --repeats 1` and `rigctl fetch N --tables` of a one-repeat job read
+        // result.json back: the std of one sample is null there.
+        let s = summarize(
+            &[run("case1", 1, 0, 1.0), run("case2", 10, 0, 2.0)],
+            &["A"],
+            774.0,
+        );
+        let json = serde_json::to_string(&s).unwrap();
+        assert!(json.contains(r#""std_um":null"#), "{json}");
+        let back: StudySummary = serde_json::from_str(&json).unwrap();
+        let t = &back.stats.cases[1].targets[0];
+        assert!(t.std_um.is_nan() && back.cases[1].rms_std_um.is_nan());
+        assert_eq!(t.mean_um, 2.0);
+        let text = tables(&back);
+        assert!(!text.contains("NaN"), "{text}");
+        assert!(text.contains("RMS std       — µm"), "{text}");
     }
 
     #[test]

@@ -62,7 +62,10 @@ fn run(a: Args) -> anyhow::Result<()> {
     // The config is read once: its [daemon] settings under the command line's, and its rig.
     let cfg = a.config.as_ref().map(Config::load).transpose()?;
     let file = cfg.as_ref().map(|c| c.daemon.clone()).unwrap_or_default();
-    let settings: DaemonSettings = file.overridden(a.socket.clone(), a.data_root.clone());
+    let mut settings: DaemonSettings = file.overridden(a.socket.clone(), a.data_root.clone());
+    // Reported to clients (hello, paths of sessions): absolute, whatever the daemon's cwd.
+    settings.data_root = std::path::absolute(&settings.data_root)
+        .with_context(|| format!("data root {}", settings.data_root.display()))?;
     // Everything this daemon will own is claimed before the first byte to a controller and
     // before recovery touches a session: a second instance stops here, having changed nothing.
     let owner = Ownership::claim(&settings, &devices(&a, cfg.as_ref()), "rigd")?;

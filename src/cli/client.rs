@@ -6,6 +6,9 @@ use std::collections::VecDeque;
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use crate::cli::text;
 
 /// `--socket PATH`, taken by every subcommand that talks to the daemon.
 #[derive(clap::Args, Debug, Clone)]
@@ -123,18 +126,71 @@ impl Ended {
 /// Follow job `id` until it ends, with a progress bar and ETA on stderr (unless `quiet`).
 /// The client must already be subscribed (to this job or to all).
 pub fn follow(c: &mut Client, id: u64, total: u32, quiet: bool) -> anyhow::Result<Ended> {
+    follow_from(c, id, total, quiet, Pace::default(), 0)
+}
+
+/// The job's pace on this client's clock: frames per second since the job started, so
+/// frames done before a client attached do not count as instant.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Pace {
+    started: Option<Instant>,
+}
+
+impl Pace {
+    /// A job that has run `elapsed_s` (its status' `elapsed_s`) as of `now`.
+    pub fn running_for(elapsed_s: f64, now: Instant) -> Pace {
+        let back = Duration::from_secs_f64(elapsed_s.max(0.0));
+        Pace {
+            started: Some(now.checked_sub(back).unwrap_or(now)),
+        }
+    }
+
+    /// Frames per second and seconds left, once the job has started and done a frame.
+    pub fn rate_eta(&self, done: u32, total: u32, now: Instant) -> Option<(f64, f64)> {
+        let dt = now.saturating_duration_since(self.started?).as_secs_f64();
+        if done == 0 || dt <= 0.0 {
+            return None;
+        }
+        let rate = done as f64 / dt;
+        Some((rate, total.saturating_sub(done) as f64 / rate))
+    }
+
+    /// "3.5 frames/s, 12 s left", or what is known before the first frame.
+    pub fn describe(&self, done: u32, total: u32, now: Instant) -> String {
+        match (self.started, self.rate_eta(done, total, now)) {
+            (None, _) => "queued".into(),
+            (Some(_), None) => "started".into(),
+            (Some(_), Some((r, eta))) => {
+                format!("{}, {} left", text::rate(r), text::duration(eta))
+            }
+        }
+    }
+}
+
+/// [`follow`] a job that may have started already: `pace` from its status, `done` frames
+/// on disk when the client attached.
+pub fn follow_from(
+    c: &mut Client,
+    id: u64,
+    total: u32,
+    quiet: bool,
+    mut pace: Pace,
+    done: u32,
+) -> anyhow::Result<Ended> {
     let bar = if quiet {
         indicatif::ProgressBar::hidden()
     } else {
         let b = indicatif::ProgressBar::new(total as u64);
         b.set_style(
             indicatif::ProgressStyle::with_template(
-                "{prefix} [{bar:40}] {pos}/{len} frames {per_sec} ETA {eta} {msg}",
+                "{prefix} [{bar:40}] {pos}/{len} frames  {msg}",
             )
             .expect("valid template")
             .progress_chars("=> "),
         );
         b.set_prefix(format!("job {id}"));
+        b.set_position(done as u64);
+        b.set_message(pace.describe(done, total, Instant::now()));
         b
     };
     loop {
@@ -143,15 +199,20 @@ pub fn follow(c: &mut Client, id: u64, total: u32, quiet: bool) -> anyhow::Resul
             continue;
         }
         match &e.body {
-            EventBody::Started { session, .. } => bar.set_message(session.clone()),
+            EventBody::Started { session: s, .. } => {
+                pace = Pace::running_for(0.0, Instant::now());
+                bar.set_message(format!("started: session {s}"));
+            }
             EventBody::Step {
                 index,
                 case,
                 repeat,
                 ..
             } => {
-                bar.set_position(*index as u64 + 1);
-                bar.set_message(format!("{case} r{repeat}"));
+                let done = index + 1;
+                bar.set_position(done as u64);
+                let p = pace.describe(done, total, Instant::now());
+                bar.set_message(format!("{p}  ({case}, repeat {repeat})"));
             }
             EventBody::Result {
                 run,
@@ -170,8 +231,8 @@ pub fn follow(c: &mut Client, id: u64, total: u32, quiet: bool) -> anyhow::Resul
 /// Print how a job ended; an error if it did not finish.
 pub fn report_end(id: u64, end: &Ended) -> anyhow::Result<()> {
     match &end.body {
-        EventBody::Finished { session } => {
-            eprintln!("job {id} finished: session {session}");
+        EventBody::Finished { .. } => {
+            eprintln!("job {id} finished");
             Ok(())
         }
         EventBody::Failed {

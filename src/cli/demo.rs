@@ -3,7 +3,8 @@
 //! Starts a simulated rig and a daemon in-process on a temporary socket, submits the study
 //! (20 repeats of case 1: one raw frame; case 2: 10 frames at 100 µm, k = 5; case 3: 20
 //! frames at 50 µm, k = 10; each repeat from a different sub-pixel start), prints Tables 1-3
-//! and writes the session and the report.
+//! and writes the session and the report. The frames (~1 GB) and reconstructions are
+//! removed afterwards unless `--keep`: a demo user wants the tables, not the pixels.
 
 use crate::acquisition::study::{tables, StudySummary};
 use crate::acquisition::{JobSpec, PaperCase};
@@ -24,10 +25,14 @@ pub struct DemoArgs {
     #[arg(long, value_name = "PATH")]
     pub socket: Option<PathBuf>,
     /// Where the session and the report are written.
-    #[arg(long, default_value = "rigd-demo")]
+    #[arg(long, value_name = "DIR", default_value = "rigd-demo")]
     pub data_root: PathBuf,
+    /// Keep the whole session (its ~1 GB of frames and the reconstructions, replayable);
+    /// without it only the report, result.json, manifest and steps.csv are kept.
+    #[arg(long)]
+    pub keep: bool,
     /// Repeats of each case (the paper: 20).
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, value_name = "N", default_value_t = 20)]
     pub repeats: u32,
     /// Print the report as JSON.
     #[arg(long)]
@@ -46,8 +51,10 @@ pub fn paper_study(repeats: u32, scale_um_per_px: f64) -> JobSpec {
     }
 }
 
-pub fn run(a: DemoArgs) -> anyhow::Result<()> {
+pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
     let t0 = Instant::now();
+    a.data_root = std::path::absolute(&a.data_root)
+        .with_context(|| format!("data root {}", a.data_root.display()))?;
     let socket = a.socket.clone().unwrap_or_else(|| {
         std::env::temp_dir().join(format!("rigd-demo-{}.sock", std::process::id()))
     });
@@ -102,16 +109,42 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     let text = tables(&study);
     std::fs::write(dir.join("report.json"), serde_json::to_vec_pretty(&report)?)?;
     std::fs::write(dir.join("report.txt"), &text)?;
+    if !a.keep {
+        drop_bulk(&dir)?;
+    }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         println!("{text}");
         println!(
-            "The paper: 281.5 µm (case 1), 96.6 µm (case 2), 69.9 µm (case 3).\nSession and report: {} ({runtime_s:.1} s)",
-            dir.display()
+            "The paper: 281.5 µm (case 1), 96.6 µm (case 2), 69.9 µm (case 3).\nReport: {} ({runtime_s:.1} s)",
+            dir.join("report.txt").display()
         );
+        match a.keep {
+            true => println!(
+                "Session kept whole (frames and reconstructions): {}",
+                dir.display()
+            ),
+            false => println!(
+                "Frames and reconstructions removed (--keep keeps them); report, result.json, \
+                 manifest and steps.csv are in {}",
+                dir.display()
+            ),
+        }
         if failed > 0 {
             println!("{failed} runs could not be processed (see result.json)");
+        }
+    }
+    Ok(())
+}
+
+/// The session's bulk: its frames and reconstructions (about 1 GB for the paper's study).
+/// The rest (manifest, steps.csv, result.json, the report) stays.
+fn drop_bulk(dir: &std::path::Path) -> anyhow::Result<()> {
+    for sub in ["frames", "images"] {
+        let p = dir.join(sub);
+        if p.is_dir() {
+            std::fs::remove_dir_all(&p).with_context(|| format!("removing {}", p.display()))?;
         }
     }
     Ok(())

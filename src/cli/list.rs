@@ -1,20 +1,23 @@
 //! `rigctl list`: jobs of this daemon run and the sessions on disk, newest first (every
-//! page of the daemon's paged `list`).
+//! page of the daemon's paged `list`), as aligned tables; `--json` for machines.
 
-use crate::cli::client::SocketArg;
-use crate::daemon::protocol::{Request, LIST_MAX};
+use crate::cli::client::{Client, SocketArg};
+use crate::cli::text::{duration, short_time, wire_name, Table};
+use crate::daemon::jobs::JobStatus;
+use crate::daemon::protocol::{ListReply, Request, SessionSummary, LIST_MAX};
+use crate::daemon::timing::EtaBasis;
 
 #[derive(clap::Args, Debug)]
 pub struct ListArgs {
     #[command(flatten)]
     pub socket: SocketArg,
-    /// Print the reply as JSON.
+    /// Print the reply as JSON (every page in one object: jobs, sessions).
     #[arg(long)]
     pub json: bool,
 }
 
 /// Every page of `list`, newest first: the jobs and the sessions of all pages together.
-fn fetch_all(c: &mut crate::cli::client::Client) -> anyhow::Result<serde_json::Value> {
+pub fn fetch_all(c: &mut Client) -> anyhow::Result<(Vec<JobStatus>, Vec<SessionSummary>)> {
     let (mut jobs, mut sessions) = (Vec::new(), Vec::new());
     let mut before = None;
     loop {
@@ -22,49 +25,114 @@ fn fetch_all(c: &mut crate::cli::client::Client) -> anyhow::Result<serde_json::V
             limit: Some(LIST_MAX),
             before,
         })?;
-        let page = |key: &str| r[key].as_array().cloned().unwrap_or_default();
-        jobs.extend(page("jobs"));
-        sessions.extend(page("sessions"));
-        match r["next_before"].as_u64() {
+        let page: ListReply = serde_json::from_value(r)?;
+        jobs.extend(page.jobs);
+        sessions.extend(page.sessions);
+        match page.next_before {
             // Ids fall page after page; one that does not is a daemon bug, not a loop.
             Some(b) if before.is_none_or(|p| b < p) => before = Some(b),
             _ => break,
         }
     }
-    Ok(serde_json::json!({"jobs": jobs, "sessions": sessions}))
+    Ok((jobs, sessions))
+}
+
+/// The jobs as a table: state, frames, when each started (or is expected to), how long it
+/// has run and how long it has left.
+pub fn jobs_table(jobs: &[JobStatus]) -> Table {
+    let mut t = Table::new(&[
+        ">job",
+        "state",
+        ">frames",
+        "started (UTC)",
+        ">elapsed",
+        ">ETA",
+        "ETA from",
+        "session / label",
+    ]);
+    for j in jobs {
+        let tm = &j.timing;
+        let started = match (&tm.started_at, &tm.expected_start_at) {
+            (Some(s), _) => short_time(s),
+            (None, Some(s)) => format!("~{}", short_time(s)),
+            (None, None) => "—".into(),
+        };
+        let basis = tm.eta_basis.map(|b| match b {
+            EtaBasis::Measured => "this job",
+            EtaBasis::Rig => "rig's steps",
+            EtaBasis::Settings => "settings",
+        });
+        let what = match (&j.session, &j.label) {
+            (Some(s), Some(l)) => format!("{s} ({l})"),
+            (Some(s), None) => s.clone(),
+            (None, Some(l)) => l.clone(),
+            (None, None) => "—".into(),
+        };
+        t.row(vec![
+            j.job_id.to_string(),
+            wire_name(&j.state),
+            format!("{}/{}", j.frames_done, j.total_frames),
+            started,
+            tm.elapsed_s.map_or("—".into(), duration),
+            tm.eta_s.map_or("—".into(), duration),
+            basis.unwrap_or("—").into(),
+            what,
+        ]);
+    }
+    t
+}
+
+/// The sessions on disk as a table.
+pub fn sessions_table(sessions: &[SessionSummary]) -> Table {
+    let mut t = Table::new(&[
+        "session",
+        ">job",
+        "state",
+        ">frames",
+        "started (UTC)",
+        ">took",
+        "reason / label",
+    ]);
+    for s in sessions {
+        let note = match (&s.reason, &s.label) {
+            (Some(r), _) => r.clone(),
+            (None, Some(l)) => l.clone(),
+            (None, None) => String::new(),
+        };
+        t.row(vec![
+            s.name.clone(),
+            s.job_id.to_string(),
+            wire_name(&s.state),
+            format!("{}/{}", s.frames_captured, s.total_frames),
+            s.timing
+                .started_at
+                .as_deref()
+                .map_or("—".into(), short_time),
+            s.timing.elapsed_s.map_or("—".into(), duration),
+            note,
+        ]);
+    }
+    t
 }
 
 pub fn run(a: ListArgs) -> anyhow::Result<()> {
     let mut c = a.socket.connect()?;
-    let r = fetch_all(&mut c)?;
+    let (jobs, sessions) = fetch_all(&mut c)?;
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&r)?);
+        let v = serde_json::json!({"jobs": jobs, "sessions": sessions});
+        println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
     }
-    println!("{:<6} {:<10} {:>13}  session", "job", "state", "frames");
-    for j in r["jobs"].as_array().into_iter().flatten() {
-        println!(
-            "{:<6} {:<10} {:>6}/{:<6}  {}",
-            j["job_id"],
-            j["state"].as_str().unwrap_or("?"),
-            j["frames_done"],
-            j["total_frames"],
-            j["session"].as_str().unwrap_or("-")
-        );
+    match jobs.is_empty() {
+        true => println!("No jobs since this daemon started."),
+        false => print!("Jobs of this daemon run:\n{}", jobs_table(&jobs).render()),
     }
-    println!(
-        "\n{:<34} {:<11} {:>13}  reason",
-        "session", "state", "frames"
-    );
-    for s in r["sessions"].as_array().into_iter().flatten() {
-        println!(
-            "{:<34} {:<11} {:>6}/{:<6}  {}",
-            s["name"].as_str().unwrap_or("?"),
-            s["state"].as_str().unwrap_or("?"),
-            s["frames_captured"],
-            s["total_frames"],
-            s["reason"].as_str().unwrap_or("")
-        );
+    match sessions.is_empty() {
+        true => println!("\nNo sessions on disk."),
+        false => print!(
+            "\nSessions on disk:\n{}",
+            sessions_table(&sessions).render()
+        ),
     }
     Ok(())
 }

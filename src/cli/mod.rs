@@ -9,6 +9,7 @@ pub mod hw;
 pub mod list;
 pub mod process;
 pub mod replay;
+pub mod results;
 pub mod rig;
 pub mod status;
 pub mod submit;

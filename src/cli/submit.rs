@@ -1,7 +1,9 @@
 //! `rigctl submit`: queue a capture job and follow it with a progress bar.
 
+use crate::acquisition::study::JobResult;
 use crate::acquisition::{JobRegistration, JobSpec, PaperCase, Processing, StageKind};
-use crate::cli::client::{follow, report_end, SocketArg};
+use crate::cli::client::{follow, report_end, Client, SocketArg};
+use crate::cli::results::results_table;
 use crate::daemon::protocol::Request;
 use crate::pipeline::{Combine, Estimator};
 
@@ -130,7 +132,26 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
     }
     let end = follow(&mut c, id, total, false)?;
     report_end(id, &end)?;
+    print_results(&mut c, id)?;
     Ok(id)
+}
+
+/// A finished job's measurements as a table, and its session's absolute path.
+pub fn print_results(c: &mut Client, id: u64) -> anyhow::Result<()> {
+    let r = c.request(&Request::Result { job_id: id })?;
+    let hello = c.request(&Request::Hello {})?;
+    let data_root = std::path::PathBuf::from(hello["data_root"].as_str().unwrap_or_default());
+    let session = r["session"].as_str().unwrap_or_default();
+    let result: Option<JobResult> = match r["result"].is_null() {
+        true => None,
+        false => Some(serde_json::from_value(r["result"].clone())?),
+    };
+    match result.map(|r| results_table(&r)) {
+        Some(t) if !t.is_empty() => print!("{}", t.render()),
+        _ => println!("(no measurements: the job was not processed)"),
+    }
+    println!("session: {}", data_root.join(session).display());
+    Ok(())
 }
 
 impl SubmitArgs {

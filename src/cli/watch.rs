@@ -1,7 +1,8 @@
 //! `rigctl watch JOB`: follow a job's progress until it ends.
 
-use crate::cli::client::{follow, report_end, SocketArg};
+use crate::cli::client::{follow_from, report_end, Pace, SocketArg};
 use crate::daemon::protocol::Request;
+use std::time::Instant;
 
 #[derive(clap::Args, Debug)]
 pub struct WatchArgs {
@@ -29,6 +30,13 @@ pub fn run(a: WatchArgs) -> anyhow::Result<()> {
         return Ok(());
     }
     let total = st["total_frames"].as_u64().unwrap_or_default() as u32;
-    let end = follow(&mut c, a.job_id, total, false)?;
-    report_end(a.job_id, &end)
+    let done = st["frames_done"].as_u64().unwrap_or_default() as u32;
+    // Frames done before we attached took the job's elapsed time, not none.
+    let pace = match st["elapsed_s"].as_f64() {
+        Some(e) => Pace::running_for(e, Instant::now()),
+        None => Pace::default(),
+    };
+    let end = follow_from(&mut c, a.job_id, total, false, pace, done)?;
+    report_end(a.job_id, &end)?;
+    crate::cli::submit::print_results(&mut c, a.job_id)
 }

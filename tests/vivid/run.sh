@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs rigd's V4L2 camera tests against the kernel's virtual video driver (vivid) in a VM.
 #
-# Installs qemu and busybox with apt-get when missing, downloads (not installs) Debian's
+# Installs qemu, busybox and libclang-dev (for the v4l crate's bindgen) with apt-get when
+# missing, downloads (not installs) Debian's
 # current kernel image package, takes vmlinuz and the modules vivid needs, builds the camera
 # tests statically linked with the `v4l2` feature, packs both with tests/vivid/init into an
 # initramfs and boots it under qemu (KVM when /dev/kvm is usable, else TCG). Prints one line
@@ -40,6 +41,13 @@ command -v cpio >/dev/null || need+=(cpio)
 command -v depmod >/dev/null || need+=(kmod)
 command -v zstd >/dev/null || need+=(zstd)
 command -v xz >/dev/null || need+=(xz-utils)
+# The v4l crate's bindings are made by bindgen, which loads libclang.
+have_libclang() {
+    [ -n "${LIBCLANG_PATH:-}" ] && ls "$LIBCLANG_PATH"/libclang*.so* >/dev/null 2>&1 && return
+    ldconfig -p 2>/dev/null | grep -q 'libclang[-.0-9]*\.so' && return
+    ls /usr/lib/llvm-*/lib/libclang*.so* /usr/lib/x86_64-linux-gnu/libclang*.so* >/dev/null 2>&1
+}
+have_libclang || need+=(libclang-dev)
 if [ ${#need[@]} -gt 0 ]; then
     apt_update
     say "installing ${need[*]}"

@@ -21,19 +21,26 @@ pub struct CaseRuns {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TargetStats {
     pub name: String,
+    #[serde(deserialize_with = "nan_if_null")]
     pub nominal_um: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub nominal_px: f64,
     /// Runs in which the target was measured.
     pub n: usize,
     /// Mean offset along the nominal direction.
+    #[serde(deserialize_with = "nan_if_null")]
     pub mean_um: f64,
     /// The same in pixels of the measurement grid (camera px x k), Table 1.
+    #[serde(deserialize_with = "nan_if_null")]
     pub measured_grid_px: f64,
     /// nominal camera px / measured grid px, Table 2.
+    #[serde(deserialize_with = "nan_if_null")]
     pub pixel_ratio: f64,
     /// Standard deviation over runs (n - 1), Table 3.
+    #[serde(deserialize_with = "nan_if_null")]
     pub std_um: f64,
     /// Mean minus nominal.
+    #[serde(deserialize_with = "nan_if_null")]
     pub bias_um: f64,
     /// Offsets per run (µm along the nominal direction), Figure 4.
     pub per_run_um: Vec<f64>,
@@ -47,6 +54,7 @@ pub struct CaseStats {
     pub k: u32,
     pub targets: Vec<TargetStats>,
     /// sqrt(mean(std²)) over targets, Table 3's RMS row.
+    #[serde(deserialize_with = "nan_if_null")]
     pub rms_std_um: f64,
 }
 
@@ -54,6 +62,12 @@ pub struct CaseStats {
 pub struct StudyStats {
     pub scale_um_per_px: f64,
     pub cases: Vec<CaseStats>,
+}
+
+/// A figure that may be undefined: NaN in memory, `null` in JSON (serde_json writes a NaN
+/// as null), read back as NaN. The standard deviation of one repeat is such a figure.
+pub fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
 /// Offset of `o` along `nominal`'s direction (its x or y for the paper's board).
