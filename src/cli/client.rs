@@ -260,3 +260,23 @@ pub fn report_end(id: u64, end: &Ended) -> anyhow::Result<()> {
         _ => Ok(()),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_done_before_attaching_took_the_jobs_elapsed_time() {
+        // Attached to a job that has run 10 s and done 20 of 40 frames: 2 frames/s, not
+        // 20 frames in no time.
+        let now = Instant::now() + Duration::from_secs(100);
+        let pace = Pace::running_for(10.0, now);
+        let (rate, eta) = pace.rate_eta(20, 40, now).unwrap();
+        assert!((rate - 2.0).abs() < 1e-9 && (eta - 10.0).abs() < 1e-9);
+        assert_eq!(pace.describe(20, 40, now), "2.0 frames/s, 10 s left");
+        let later = now + Duration::from_secs(5);
+        assert_eq!(pace.describe(30, 40, later), "2.0 frames/s, 5 s left");
+        assert_eq!(Pace::default().describe(0, 40, now), "queued");
+        assert_eq!(Pace::running_for(0.0, now).describe(0, 40, now), "started");
+    }
+}

@@ -163,7 +163,8 @@ impl SubmitArgs {
         }
         match (self.steps, self.step_um) {
             (None, _) => anyhow::bail!(
-                "say what to capture: --steps N --step-um UM (one scan of N frames), or                  --study case1,case2,case3 (the paper's cases)"
+                "say what to capture: --steps N --step-um UM (one scan of N frames), or \
+                 --study case1,case2,case3 (the paper's cases)"
             ),
             (Some(n), None) if n > 1 => {
                 anyhow::bail!("--steps {n} needs --step-um UM (the distance between frames)")
@@ -219,6 +220,7 @@ mod tests {
             "{e}"
         );
         assert!(!e.contains("`step_um`"), "{e}");
+        assert!(!e.contains("  "), "{e}");
         let e = parse(&["--steps", "4"]).unwrap().check().unwrap_err();
         assert_eq!(
             e.to_string(),

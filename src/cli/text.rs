@@ -42,7 +42,13 @@ pub fn pair(v: [f64; 2]) -> String {
 /// deviation of one repeat) or missing.
 pub fn fixed(x: Option<f64>, digits: usize) -> String {
     match x {
-        Some(x) if x.is_finite() => format!("{x:.digits$}"),
+        // Rounded to zero prints without a sign: `0.0`, not `-0.0`.
+        Some(x) if x.is_finite() => format!("{x:.digits$}")
+            .trim_start_matches('-')
+            .chars()
+            .all(|c| c == '0' || c == '.')
+            .then(|| format!("{:.digits$}", 0.0))
+            .unwrap_or_else(|| format!("{x:.digits$}")),
         _ => "—".into(),
     }
 }
@@ -164,6 +170,8 @@ mod tests {
         assert_eq!(fixed(Some(f64::NAN), 1), "—");
         assert_eq!(fixed(None, 1), "—");
         assert_eq!(fixed(Some(1.26), 1), "1.3");
+        assert_eq!(fixed(Some(-0.04), 1), "0.0");
+        assert_eq!(fixed(Some(-0.06), 1), "-0.1");
     }
 
     #[test]
