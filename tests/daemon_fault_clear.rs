@@ -314,12 +314,12 @@ fn rigctl_clears_faults_by_name() {
     let (ok, out, err) = rigctl(&sock, &["reconnect"]);
     assert!(ok, "{out}{err}");
     assert!(
-        out.starts_with("axis reconnect: Idle at ") && out.trim_end().ends_with("rig ready"),
+        out.starts_with("axis reconnect: idle at ") && out.trim_end().ends_with("rig ready"),
         "{out}"
     );
     let (ok, out, err) = rigctl(&sock, &["home", "--stage", "piezo"]);
     assert!(ok, "{out}{err}");
-    assert!(out.starts_with("piezo home: Idle at "), "{out}");
+    assert!(out.starts_with("piezo home: idle at "), "{out}");
     let (ok, out, err) = rigctl(&sock, &["unlock", "--stage", "axis"]);
     assert!(ok && out.contains("rig ready"), "{out}{err}");
 }

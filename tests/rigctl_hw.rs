@@ -104,7 +104,7 @@ fn move_and_position_against_the_grbl_emulator() {
     assert!((axis.position_at(Instant::now()) - 500.0).abs() < 1e-6);
     let (ok, stdout, _) = rigctl(&cfg, &["position"]);
     assert!(ok);
-    assert!(stdout.contains("Idle at 500.000 µm"), "{stdout}");
+    assert!(stdout.contains("idle at 500.000 µm"), "{stdout}");
     // Beyond the soft limits: refused before anything moves.
     let (ok, _, stderr) = rigctl(&cfg, &["move-abs", "-100"]);
     assert!(!ok);
