@@ -80,7 +80,10 @@ mod tests {
     use super::*;
     use crate::pipeline::{ObjectResult, ProcessOptions, ProcessResult};
 
-    fn run(case: &str, offsets: &[(&str, [f64; 2], Option<[f64; 2]>)]) -> RunResult {
+    /// A target's name, offset and the fit's uncertainty.
+    type Found<'a> = (&'a str, [f64; 2], Option<[f64; 2]>);
+
+    fn run(case: &str, offsets: &[Found<'_>]) -> RunResult {
         RunResult {
             run: 0,
             case: case.into(),

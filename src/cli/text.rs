@@ -42,13 +42,14 @@ pub fn pair(v: [f64; 2]) -> String {
 /// deviation of one repeat) or missing.
 pub fn fixed(x: Option<f64>, digits: usize) -> String {
     match x {
-        // Rounded to zero prints without a sign: `0.0`, not `-0.0`.
-        Some(x) if x.is_finite() => format!("{x:.digits$}")
-            .trim_start_matches('-')
-            .chars()
-            .all(|c| c == '0' || c == '.')
-            .then(|| format!("{:.digits$}", 0.0))
-            .unwrap_or_else(|| format!("{x:.digits$}")),
+        Some(x) if x.is_finite() => {
+            let s = format!("{x:.digits$}");
+            // Rounded to zero prints without a sign: `0.0`, not `-0.0`.
+            match s.trim_start_matches('-').chars().all(|c| c == '0' || c == '.') {
+                true => s.trim_start_matches('-').to_string(),
+                false => s,
+            }
+        }
         _ => "—".into(),
     }
 }
