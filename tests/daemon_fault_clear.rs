@@ -102,7 +102,7 @@ fn a_latched_alarm_is_a_fault_until_unlock_clears_it() {
         .unwrap_err()
         .to_string();
     assert!(
-        e.contains("Rejected") && e.contains("the rig is in fault"),
+        e.contains("rigd: rejected:") && e.contains("the rig is in fault"),
         "{e}"
     );
     assert!(e.contains("`unlock` (rigctl unlock --stage axis)"), "{e}");
@@ -152,7 +152,7 @@ fn a_lost_port_is_a_fault_until_reconnect_brings_it_back() {
         .request(&Request::Unlock { stage: None })
         .unwrap_err()
         .to_string();
-    assert!(e.contains("Hardware") && e.contains("unlock failed"), "{e}");
+    assert!(e.contains("rigd: hardware:") && e.contains("unlock failed"), "{e}");
     assert_eq!(rig_state(&mut c).0["state"], "fault");
     // The sim's port comes back on reconnect (as if plugged in again).
     let r = c.request(&Request::Reconnect { stage: None }).unwrap();
@@ -206,7 +206,7 @@ fn rig_requests_are_refused_while_a_job_runs() {
     ] {
         let e = c.request(&req).unwrap_err().to_string();
         assert!(
-            e.contains("Busy") && e.contains(&format!("job {id} is running")),
+            e.contains("rigd: busy:") && e.contains(&format!("job {id} is running")),
             "{e}"
         );
     }
