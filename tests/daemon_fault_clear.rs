@@ -152,7 +152,10 @@ fn a_lost_port_is_a_fault_until_reconnect_brings_it_back() {
         .request(&Request::Unlock { stage: None })
         .unwrap_err()
         .to_string();
-    assert!(e.contains("rigd: hardware:") && e.contains("unlock failed"), "{e}");
+    assert!(
+        e.contains("rigd: hardware:") && e.contains("unlock failed"),
+        "{e}"
+    );
     assert_eq!(rig_state(&mut c).0["state"], "fault");
     // The sim's port comes back on reconnect (as if plugged in again).
     let r = c.request(&Request::Reconnect { stage: None }).unwrap();

@@ -250,7 +250,7 @@ impl Engine<'_> {
                 return Err(StepEnd::Hw(HwError::NotSettled {
                     device: stage.name().into(),
                     timeout_ms: self.settings.move_timeout.as_millis() as u64,
-                    state: format!("still {:?} at {:.1} µm", st.state, st.position_um),
+                    state: format!("still {} at {:.1} µm", st.state, st.position_um),
                 }));
             }
             std::thread::sleep(self.settings.move_poll);

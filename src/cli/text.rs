@@ -45,7 +45,11 @@ pub fn fixed(x: Option<f64>, digits: usize) -> String {
         Some(x) if x.is_finite() => {
             let s = format!("{x:.digits$}");
             // Rounded to zero prints without a sign: `0.0`, not `-0.0`.
-            match s.trim_start_matches('-').chars().all(|c| c == '0' || c == '.') {
+            match s
+                .trim_start_matches('-')
+                .chars()
+                .all(|c| c == '0' || c == '.')
+            {
                 true => s.trim_start_matches('-').to_string(),
                 false => s,
             }

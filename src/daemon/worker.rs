@@ -363,7 +363,9 @@ fn end(shared: &Shared, id: u64, session: Option<String>, outcome: Outcome) {
             },
         ),
     };
-    tracing::info!(job = id, state = ?state, reason = ?reason, "job ended");
+    // Logged as people read them: `state=failed reason=…`, no `Some(..)`.
+    let (state_name, why) = (crate::cli::text::wire_name(&state), reason.as_deref());
+    tracing::info!(job = id, state = %state_name, reason = why.unwrap_or("-"), "job ended");
     shared.jobs().finish(id, state, reason);
     shared.events.emit(id, body);
 }

@@ -492,7 +492,9 @@ impl GrblStage {
         match self.opts.on_alarm {
             OnAlarm::Fail => Err(self.alarm_error(lock.alarm)),
             OnAlarm::Unlock => {
-                tracing::warn!(device = %self.name, ?lock, "unlocking per on_alarm = \"unlock\"");
+                let alarm = lock.alarm.map_or("none".into(), |a| a.to_string());
+                tracing::warn!(device = %self.name, alarm = %alarm, needs_reset = lock.needs_reset,
+                    "unlocking per on_alarm = \"unlock\"");
                 if lock.needs_reset {
                     self.soft_reset()?;
                 }
@@ -539,7 +541,7 @@ impl GrblStage {
     fn still_moving(&mut self, dl: Deadline) -> HwError {
         self.target_um = None;
         let state = match self.query(self.reply_deadline()) {
-            Ok(r) => format!("still {:?} at {:.1} µm", r.state, r.position_um),
+            Ok(r) => format!("still {} at {:.1} µm", r.state, r.position_um),
             Err(e) => return e,
         };
         HwError::NotSettled {
@@ -662,7 +664,7 @@ impl Stage for GrblStage {
                         return Err(HwError::NotSettled {
                             device: s.name.clone(),
                             timeout_ms: dl.budget.as_millis() as u64,
-                            state: format!("still {:?} at {:.1} µm", r.state, r.position_um),
+                            state: format!("still {} at {:.1} µm", r.state, r.position_um),
                         })
                     }
                     _ => std::thread::sleep(POLL),

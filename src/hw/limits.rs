@@ -38,7 +38,10 @@ impl TravelLimits {
     /// Config sanity: finite, ordered, positive step.
     pub fn validate(&self) -> Result<(), String> {
         if !(self.min_um.is_finite() && self.max_um.is_finite() && self.max_step_um.is_finite()) {
-            return Err(format!("travel limits must be finite numbers: {self:?}"));
+            return Err(format!(
+                "travel limits must be finite numbers: min {} µm, max {} µm, max step {} µm",
+                self.min_um, self.max_um, self.max_step_um
+            ));
         }
         if self.min_um >= self.max_um {
             return Err(format!(

@@ -78,6 +78,19 @@ pub enum MotionState {
     Alarm,
 }
 
+impl std::fmt::Display for MotionState {
+    /// Its wire name (`idle`, `moving`, ...), as messages show it.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            MotionState::Idle => "idle",
+            MotionState::Moving => "moving",
+            MotionState::Holding => "holding",
+            MotionState::Homing => "homing",
+            MotionState::Alarm => "alarm",
+        })
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StageStatus {
     pub state: MotionState,
