@@ -131,6 +131,24 @@ pub enum GrblState {
     Sleep,
 }
 
+impl std::fmt::Display for GrblState {
+    /// As GRBL itself spells it in `<State|…>`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            GrblState::Idle => "Idle",
+            GrblState::Run => "Run",
+            GrblState::Hold { complete: true } => "Hold:0",
+            GrblState::Hold { complete: false } => "Hold:1",
+            GrblState::Jog => "Jog",
+            GrblState::Alarm => "Alarm",
+            GrblState::Door => "Door",
+            GrblState::Check => "Check",
+            GrblState::Home => "Home",
+            GrblState::Sleep => "Sleep",
+        })
+    }
+}
+
 /// One `?` status report.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GrblReport {
