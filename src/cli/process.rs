@@ -80,6 +80,7 @@ impl ProcessArgs {
             }),
             registration: self.registration,
             axis_dir: self.axis_dir,
+            piezo_dir: None,
             whole_frame: self.whole_frame,
         }
         .validate()

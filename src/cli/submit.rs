@@ -25,6 +25,8 @@ pub struct SubmitArgs {
     pub settle_ms: u64,
     #[command(flatten)]
     pub processing: ProcessingArgs,
+    #[command(flatten)]
+    pub plan: crate::cli::plan_args::PlanArgs,
     #[arg(long, default_value_t = 1)]
     pub repeats: u32,
     /// Absolute start position (µm); default: the rig's.
@@ -92,6 +94,8 @@ impl SubmitArgs {
             registration: p.registration,
             whole_frame: p.whole_frame,
             repeats: self.repeats,
+            plan: self.plan.plan(),
+            interval_s: self.plan.interval_s,
             start_um: self.start_um,
             repeat_shift_um: self.repeat_shift_um,
             process: !self.no_process,
