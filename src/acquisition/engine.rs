@@ -125,7 +125,10 @@ impl Engine<'_> {
                 if let Some(cause) = self.stop.cause() {
                     return self.stopped(dev, cause, None);
                 }
-                let piezo = run.piezo_um.as_ref().map(|p| (p[i], piezo_at != Some(p[i])));
+                let piezo = run
+                    .piezo_um
+                    .as_ref()
+                    .map(|p| (p[i], piezo_at != Some(p[i])));
                 piezo_at = piezo.map(|p| p.0);
                 let rec = match self.step(dev, run, index, (commanded_um, piezo), total) {
                     Ok(r) => r,

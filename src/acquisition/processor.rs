@@ -104,7 +104,11 @@ impl StepSink for Processor {
         let t = Instant::now();
         // The piezo registers by its commanded position (closed loop, nanometres; the
         // interferometer reads the axis only).
-        match p.push_at(&rec.frame.image, rec.registration_um, rec.piezo_commanded_um) {
+        match p.push_at(
+            &rec.frame.image,
+            rec.registration_um,
+            rec.piezo_commanded_um,
+        ) {
             Ok(r) => (self.emit)(ProcessorEvent::Frame {
                 index: rec.index,
                 process_ms: ms(t.elapsed()),

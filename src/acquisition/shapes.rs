@@ -118,7 +118,9 @@ fn line(l: &Line, field: &str, rig: &RigInfo) -> Result<Vec<f64>, PlanError> {
         .ok_or_else(|| rejected(format!("`{field}.stage`: this rig has no {}", l.stage)))?;
     let start = match l.start_um {
         Some(s) if !s.is_finite() => {
-            return Err(rejected(format!("`{field}.start_um` must be a finite number")))
+            return Err(rejected(format!(
+                "`{field}.start_um` must be a finite number"
+            )))
         }
         Some(s) => s,
         None => match l.stage {
@@ -126,9 +128,7 @@ fn line(l: &Line, field: &str, rig: &RigInfo) -> Result<Vec<f64>, PlanError> {
             StageKind::Piezo => limits[0],
         },
     };
-    Ok((0..l.steps)
-        .map(|i| start + i as f64 * l.step_um)
-        .collect())
+    Ok((0..l.steps).map(|i| start + i as f64 * l.step_um).collect())
 }
 
 fn grid(g: &Grid, rig: &RigInfo) -> Result<Frames, PlanError> {
@@ -259,7 +259,10 @@ fn check_runs(
         for r in runs {
             let positions = match which {
                 0 => &r.positions_um,
-                _ => r.piezo_um.as_ref().expect("a run that moves the piezo has its positions"),
+                _ => r
+                    .piezo_um
+                    .as_ref()
+                    .expect("a run that moves the piezo has its positions"),
             };
             for (i, &p) in positions.iter().enumerate() {
                 let repeat = match r.repeat {
@@ -292,4 +295,216 @@ fn check_runs(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::acquisition::plan::plan;
+    use crate::acquisition::Processing;
+    use std::path::Path;
+
+    fn rig() -> RigInfo {
+        RigInfo {
+            mode: crate::rig::RigMode::Sim,
+            axis_limits_um: [0.0, 10_000.0],
+            piezo_limits_um: Some([0.0, 1_400.0]),
+            axis_max_step_um: Some(1_000.0),
+            piezo_max_step_um: Some(500.0),
+            axis_settle_ms: None,
+            piezo_settle_ms: None,
+            default_start_um: 1000.0,
+            scale_um_per_px: 774.0,
+            axis_dir: [-1.0, 0.0],
+            piezo_dir: Some([0.0, -1.0]),
+            frame_size: (64, 48),
+            interferometer: false,
+            board: None,
+            config: serde_json::Value::Null,
+            job_defaults: Processing::default(),
+            grab_timeout_ms: 5000,
+        }
+    }
+
+    fn job(plan_json: &str) -> JobSpec {
+        let p: ScanPlan = serde_json::from_str(plan_json).unwrap();
+        JobSpec {
+            plan: Some(p),
+            ..JobSpec::default()
+        }
+    }
+
+    fn refusal(spec: &JobSpec) -> String {
+        plan(spec, &rig(), Path::new("/tmp"), 0).unwrap_err().0
+    }
+
+    const GRID: &str = r#"{"grid": {"inner": {"stage": "axis", "step_um": 50, "steps": 3},
+        "outer": {"stage": "piezo", "step_um": 155, "steps": 2, "start_um": 100}}}"#;
+
+    #[test]
+    fn a_grid_steps_the_inner_line_fastest_and_a_snake_turns_back() {
+        let p = plan(&job(GRID), &rig(), Path::new("/tmp"), 0).unwrap();
+        assert_eq!((p.runs.len(), p.total_frames), (1, 6));
+        let r = &p.runs[0];
+        assert_eq!(
+            r.positions_um,
+            [1000.0, 1050.0, 1100.0, 1000.0, 1050.0, 1100.0]
+        );
+        assert_eq!(
+            r.piezo_um.as_deref(),
+            Some(&[100.0, 100.0, 100.0, 255.0, 255.0, 255.0][..])
+        );
+        assert_eq!((r.case.name.as_str(), r.case.frames), ("grid", 6));
+        // Processing registers by both directions.
+        let o = r.processing.as_ref().unwrap();
+        assert_eq!((o.axis_dir, o.piezo_dir), ([-1.0, 0.0], Some([0.0, -1.0])));
+        let snake = job(&GRID.replace("}}}", "}, \"snake\": true}}"));
+        let r = &plan(&snake, &rig(), Path::new("/tmp"), 0).unwrap().runs[0];
+        assert_eq!(
+            r.positions_um,
+            [1000.0, 1050.0, 1100.0, 1100.0, 1050.0, 1000.0]
+        );
+        // The piezo inside: the job's stage is still the axis.
+        let swapped = job(
+            r#"{"grid": {"inner": {"stage": "piezo", "step_um": 10, "steps": 2},
+                "outer": {"stage": "axis", "step_um": 100, "steps": 2}}}"#,
+        );
+        let r = &plan(&swapped, &rig(), Path::new("/tmp"), 0).unwrap().runs[0];
+        assert_eq!(r.positions_um, [1000.0, 1000.0, 1100.0, 1100.0]);
+        assert_eq!(r.piezo_um.as_deref(), Some(&[0.0, 10.0, 0.0, 10.0][..]));
+        assert_eq!(swapped.stages(), (StageKind::Axis, true));
+    }
+
+    #[test]
+    fn repeats_are_runs_shifted_on_the_axis() {
+        let spec = JobSpec {
+            repeats: 3,
+            repeat_shift_um: 38.7,
+            interval_s: Some(60.0),
+            ..job(GRID)
+        };
+        let p = plan(&spec, &rig(), Path::new("/tmp"), 0).unwrap();
+        assert_eq!((p.runs.len(), p.total_frames), (3, 18));
+        assert_eq!(p.runs[2].positions_um[0], 1000.0 + 2.0 * 38.7);
+        assert_eq!(p.runs[2].piezo_um, p.runs[0].piezo_um);
+        assert_eq!(p.runs[2].repeat, 2);
+    }
+
+    #[test]
+    fn max_step_counts_row_returns_snake_turns_and_list_jumps() {
+        // Rows of 1200 µm: the return to a row's start is longer than the axis's 1000 µm.
+        let long = job(&GRID.replace("\"steps\": 3", "\"steps\": 25"));
+        assert_eq!(
+            refusal(&long),
+            "`plan.grid.inner` (the return to a row's start; `snake` avoids it): the axis's \
+             move from 2200 µm to 1000 µm is longer than its max_step_um (1000 µm)"
+        );
+        let snake = job(&GRID
+            .replace("\"steps\": 3", "\"steps\": 25")
+            .replace("}}}", "}, \"snake\": true}}"));
+        assert!(plan(&snake, &rig(), Path::new("/tmp"), 0).is_ok());
+        let outer = job(&GRID.replace("155", "600"));
+        assert!(
+            refusal(&outer)
+                .starts_with("`plan.grid.outer.step_um`: the piezo's move from 100 µm to 700 µm"),
+            "{}",
+            refusal(&outer)
+        );
+        let list = job(
+            r#"{"list": [{"axis_um": 1000, "piezo_um": 0}, {"axis_um": 1500},
+                {"piezo_um": 600}]}"#,
+        );
+        assert!(
+            refusal(&list).starts_with("`plan.list[2]`: the piezo's move from 0 µm to 600 µm"),
+            "{}",
+            refusal(&list)
+        );
+        // A repeat's return to its start counts too.
+        let back = JobSpec {
+            repeats: 2,
+            ..job(r#"{"line": {"stage": "axis", "step_um": 600, "steps": 3}}"#)
+        };
+        assert!(
+            refusal(&back).starts_with("`repeats` (the return to the first frame"),
+            "{}",
+            refusal(&back)
+        );
+    }
+
+    #[test]
+    fn soft_limits_and_shapes_are_refused_naming_the_field() {
+        let far = job(&GRID.replace("\"start_um\": 100", "\"start_um\": 1300"));
+        assert_eq!(
+            refusal(&far),
+            "`plan.grid.outer`: position 1455 µm leaves the piezo soft limits [0, 1400] µm"
+        );
+        for (plan_json, says) in [
+            (
+                r#"{"grid": {"inner": {"stage": "axis", "step_um": 50, "steps": 0},
+                    "outer": {"stage": "piezo", "step_um": 155, "steps": 2}}}"#,
+                "`plan.grid.inner.steps` must be at least 1",
+            ),
+            (
+                r#"{"grid": {"inner": {"stage": "axis", "step_um": 0, "steps": 3},
+                    "outer": {"stage": "piezo", "step_um": 155, "steps": 2}}}"#,
+                "`plan.grid.inner.step_um` must be a non-zero finite number for 3 frames, got 0",
+            ),
+            (
+                r#"{"grid": {"inner": {"stage": "piezo", "step_um": 5, "steps": 3},
+                    "outer": {"stage": "piezo", "step_um": 155, "steps": 2}}}"#,
+                "`plan.grid.outer.stage` must be the other stage",
+            ),
+            (r#"{"list": []}"#, "`plan.list` has no point"),
+            (r#"{"list": [{}, {}]}"#, "`plan.list` gives no position"),
+            (
+                r#"{"list": [{"axis_um": 20000}]}"#,
+                "`plan.list[0].axis_um`: position 20000 µm leaves the axis soft limits",
+            ),
+        ] {
+            let e = refusal(&job(plan_json));
+            assert!(e.starts_with(says), "{plan_json}: {e}");
+        }
+        let both = JobSpec {
+            steps: Some(3),
+            ..job(GRID)
+        };
+        assert!(refusal(&both).starts_with("give either `plan` or `steps`, not both"));
+        let never = JobSpec {
+            interval_s: Some(0.0),
+            ..job(GRID)
+        };
+        assert!(refusal(&never).starts_with("`interval_s` must be more than 0"));
+        let no_piezo = RigInfo {
+            piezo_limits_um: None,
+            ..rig()
+        };
+        let e = plan(&job(GRID), &no_piezo, Path::new("/tmp"), 0)
+            .unwrap_err()
+            .0;
+        assert_eq!(e, "`plan.grid.outer.stage`: this rig has no piezo");
+    }
+
+    #[test]
+    fn a_list_carries_a_stage_left_out_forward() {
+        let p = plan(
+            &job(r#"{"list": [{"piezo_um": 5}, {"axis_um": 1200}, {"axis_um": 1300, "piezo_um": 7}]}"#),
+            &rig(),
+            Path::new("/tmp"),
+            0,
+        )
+        .unwrap();
+        let r = &p.runs[0];
+        assert_eq!(r.positions_um, [1200.0, 1200.0, 1300.0]);
+        assert_eq!(r.piezo_um.as_deref(), Some(&[5.0, 5.0, 7.0][..]));
+        // Piezo only: the piezo is the job's stage, along its own direction.
+        let only = job(r#"{"list": [{"piezo_um": 5}, {"piezo_um": 9}]}"#);
+        assert_eq!(only.stages(), (StageKind::Piezo, false));
+        let p = plan(&only, &rig(), Path::new("/tmp"), 0).unwrap();
+        assert_eq!(
+            (p.runs[0].positions_um.clone(), p.runs[0].piezo_um.clone()),
+            (vec![5.0, 9.0], None)
+        );
+        let o = p.runs[0].processing.as_ref().unwrap();
+        assert_eq!((o.axis_dir, o.piezo_dir), ([0.0, -1.0], None));
+    }
 }

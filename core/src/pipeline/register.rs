@@ -181,7 +181,10 @@ mod tests {
             piezo_dir: [0.0, -1.0],
         };
         let s = d.shift_px([1050.0, 30.0], [1000.0, 10.0]);
-        assert!((s[0] + 0.5).abs() < 1e-12 && (s[1] + 0.2).abs() < 1e-12, "{s:?}");
+        assert!(
+            (s[0] + 0.5).abs() < 1e-12 && (s[1] + 0.2).abs() < 1e-12,
+            "{s:?}"
+        );
         let r = residual_at(3, ([1050.0, 30.0], [1000.0, 10.0]), [-0.5, -0.1], &d, true);
         assert_eq!(r.piezo_um, Some(30.0));
         assert!((r.residual_um[1] - 10.0).abs() < 1e-9 && r.residual_um[0].abs() < 1e-9);

@@ -296,7 +296,11 @@ impl Pipeline {
             return Ok(None);
         }
         let index = self.frames;
-        if let Some(p) = [Some(position_um), piezo_um].into_iter().flatten().find(|p| !p.is_finite()) {
+        if let Some(p) = [Some(position_um), piezo_um]
+            .into_iter()
+            .flatten()
+            .find(|p| !p.is_finite())
+        {
             return Err(PipelineError::Other(format!(
                 "frame {index}: position {p} µm is not a number"
             )));
