@@ -283,7 +283,7 @@ fn print(rows: &[Row], repeats: usize) {
     }
 }
 
-fn row<'a>(rows: &'a [Row], est: Estimator, comb: Combine, grid: bool) -> &'a Row {
+fn row(rows: &[Row], est: Estimator, comb: Combine, grid: bool) -> &Row {
     rows.iter()
         .find(|r| r.estimator == est && r.combine == comb && r.plan.starts_with("grid") == grid)
         .unwrap()

@@ -26,7 +26,7 @@ pub struct SubmitArgs {
     #[command(flatten)]
     pub processing: ProcessingArgs,
     #[command(flatten)]
-    pub plan: crate::cli::plan_args::PlanArgs,
+    pub plan: Box<crate::cli::plan_args::PlanArgs>,
     #[arg(long, default_value_t = 1)]
     pub repeats: u32,
     /// Absolute start position (µm); default: the rig's.
