@@ -136,6 +136,34 @@ fn a_snake_grid_over_the_axis_and_the_piezo_runs_and_registers_in_2d() {
     }
     assert_eq!(result["runs"].as_array().unwrap().len(), 2);
 
+    // `rigctl process` reads the piezo's column too: the positions registration predicts
+    // the y shifts the image shows.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args([
+            "process",
+            "--registration",
+            "positions",
+            "--piezo-dir",
+            "0,-1",
+            "--json",
+        ])
+        .arg(d.data.join(name))
+        .args(["--frames", "6"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let last = &r["steps"][5];
+    assert_eq!(last["piezo_um"], 254.8);
+    let predicted = last["position_shift_px"][1].as_f64().unwrap();
+    assert!((predicted + 0.2).abs() < 1e-9, "{last}");
+    let rms = &r["step_summary"]["rms_residual_um"];
+    assert!(rms[1].as_f64().unwrap() < 10.0, "{rms}");
+
     // A replay registers by the recorded positions, both stages.
     let (_, events) = run_request(
         &mut d.subscribed(),
