@@ -85,6 +85,51 @@ fn read_plan(path: &str) -> Result<ScanPlan, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        plan: PlanArgs,
+    }
+
+    fn parse(args: &[&str]) -> Result<PlanArgs, String> {
+        let argv = ["rigctl"].iter().chain(args).copied();
+        Cli::try_parse_from(argv)
+            .map(|c| c.plan)
+            .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn grid_flags_and_plan_files_make_the_plan() {
+        let a = parse(&[
+            "--grid-inner",
+            "axis:50:20",
+            "--grid-outer",
+            "piezo:155:4",
+            "--snake",
+        ])
+        .unwrap();
+        let Some(ScanPlan::Grid(g)) = a.plan() else {
+            panic!("{:?}", a.plan())
+        };
+        assert!(g.snake && g.inner.steps == 20 && g.outer.stage == StageKind::Piezo);
+        let e = parse(&["--grid-inner", "axis:50:20"]).unwrap_err();
+        assert!(e.contains("--grid-outer"), "{e}");
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("plan.json");
+        std::fs::write(&f, r#"{"list": [{"axis_um": 1000}, {"piezo_um": 3}]}"#).unwrap();
+        let a = parse(&["--plan", f.to_str().unwrap(), "--interval-s", "60"]).unwrap();
+        assert!(matches!(a.plan(), Some(ScanPlan::List(p)) if p.len() == 2));
+        assert_eq!(a.interval_s, Some(60.0));
+        std::fs::write(&f, r#"{"gird": {}}"#).unwrap();
+        let e = parse(&["--plan", f.to_str().unwrap()]).unwrap_err();
+        assert!(
+            e.contains("plan.json") && e.contains("unknown variant `gird`"),
+            "{e}"
+        );
+        assert!(parse(&[]).unwrap().plan().is_none());
+    }
 
     #[test]
     fn a_line_is_stage_step_steps_and_an_optional_start() {
