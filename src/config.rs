@@ -274,6 +274,10 @@ pub struct PipelineConfig {
     pub scale_um_per_px: f64,
     /// Image displacement per unit of axis travel, [x, y] in image axes.
     pub axis_dir: [f64; 2],
+    /// Image displacement per unit of piezo travel (absent: the axis's), for scans that
+    /// move the piezo besides the axis (a 2-D grid, a list).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub piezo_dir: Option<[f64; 2]>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub k: Option<u32>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -291,6 +295,7 @@ impl Default for PipelineConfig {
         PipelineConfig {
             scale_um_per_px: 774.0,
             axis_dir: [-1.0, 0.0],
+            piezo_dir: None,
             k: None,
             estimator: None,
             combine: None,
@@ -467,15 +472,9 @@ impl Config {
             }
         }
         let p = &self.pipeline;
-        let [dx, dy] = p.axis_dir;
-        if !(dx.is_finite() && dy.is_finite()) || dx.hypot(dy) == 0.0 {
-            return Err(self.invalid(
-                "pipeline.axis_dir",
-                format!(
-                    "must be a finite, non-zero [x, y] (image displacement per unit of axis \
-                     travel), got [{dx}, {dy}]"
-                ),
-            ));
+        self.validate_dir("pipeline.axis_dir", p.axis_dir, "axis")?;
+        if let Some(d) = p.piezo_dir {
+            self.validate_dir("pipeline.piezo_dir", d, "piezo")?;
         }
         if !(p.scale_um_per_px.is_finite() && p.scale_um_per_px > 0.0) {
             return Err(self.invalid("pipeline.scale_um_per_px", "must be a positive number"));
@@ -487,6 +486,20 @@ impl Config {
             return Err(self.invalid("pipeline.k", msg));
         }
         Ok(())
+    }
+
+    /// An image direction: finite and non-zero.
+    fn validate_dir(&self, key: &str, [dx, dy]: [f64; 2], stage: &str) -> Result<(), ConfigError> {
+        if dx.is_finite() && dy.is_finite() && dx.hypot(dy) != 0.0 {
+            return Ok(());
+        }
+        Err(self.invalid(
+            key,
+            format!(
+                "must be a finite, non-zero [x, y] (image displacement per unit of {stage} \
+                 travel), got [{dx}, {dy}]"
+            ),
+        ))
     }
 
     fn validate_stage(&self, name: &str, s: &StageConfig) -> Result<(), ConfigError> {

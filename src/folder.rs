@@ -42,6 +42,9 @@ pub enum FolderError {
 pub struct Folder {
     pub frames: Vec<PathBuf>,
     pub positions_um: Vec<f64>,
+    /// The piezo's commanded positions, when `steps.csv` has a `piezo_commanded_um` column
+    /// with a value in every row (a session of a plan that moved the piezo besides the axis).
+    pub piezo_um: Option<Vec<f64>>,
 }
 
 /// List and check a folder; `limit` keeps the first N frames only. Frames are read later,
@@ -81,10 +84,66 @@ pub fn open(dir: &Path, limit: Option<usize>) -> Result<Folder, FolderError> {
     }
     let mut positions_um = positions_um;
     positions_um.truncate(frames.len());
+    let mut piezo_um = read_piezo(&steps)?;
+    if let Some(p) = piezo_um.as_mut() {
+        p.truncate(frames.len());
+    }
     Ok(Folder {
         frames,
         positions_um,
+        piezo_um,
     })
+}
+
+/// The `piezo_commanded_um` column of `steps.csv` (read after [`read_steps`] checked the
+/// file): `None` without the column or with it empty in every row (a one-stage scan).
+pub fn read_piezo(path: &Path) -> Result<Option<Vec<f64>>, FolderError> {
+    let open_err = |e: csv::Error| FolderError::Io {
+        path: path.to_path_buf(),
+        message: format!("cannot read: {e}"),
+    };
+    let mut rdr = csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .from_path(path)
+        .map_err(open_err)?;
+    let headers = rdr.headers().map_err(open_err)?;
+    let Some(col) = headers.iter().position(|h| h == "piezo_commanded_um") else {
+        return Ok(None);
+    };
+    let mut cells = Vec::new();
+    for rec in rdr.records() {
+        let rec = rec.map_err(open_err)?;
+        let line = rec.position().map(|p| p.line()).unwrap_or(0);
+        let v = rec.get(col).unwrap_or("");
+        let parsed = match v {
+            "" => None,
+            _ => Some(
+                v.parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite())
+                    .ok_or_else(|| FolderError::StepsRow {
+                        path: path.to_path_buf(),
+                        line,
+                        message: format!("piezo_commanded_um `{v}` is not a number"),
+                    })?,
+            ),
+        };
+        cells.push((line, parsed));
+    }
+    if cells.iter().all(|(_, v)| v.is_none()) {
+        return Ok(None);
+    }
+    cells
+        .into_iter()
+        .map(|(line, v)| {
+            v.ok_or_else(|| FolderError::StepsRow {
+                path: path.to_path_buf(),
+                line,
+                message: "piezo_commanded_um is empty, and other rows have one".into(),
+            })
+        })
+        .collect::<Result<Vec<f64>, _>>()
+        .map(Some)
 }
 
 /// Read `steps.csv`: `index,position_um[,...]`, indices 0, 1, 2... in order.

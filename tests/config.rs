@@ -283,3 +283,30 @@ fn axis_dir_and_default_start_are_read_and_checked() {
         "{e}"
     );
 }
+
+#[test]
+fn piezo_dir_is_read_and_checked_and_reaches_the_rig() {
+    let cfg = parse(&format!("{AXIS}[pipeline]\npiezo_dir = [0.0, -1.0]\n")).unwrap();
+    assert_eq!(cfg.pipeline.piezo_dir, Some([0.0, -1.0]));
+    assert_eq!(parse(AXIS).unwrap().pipeline.piezo_dir, None);
+    let e = err(&format!("{AXIS}[pipeline]\npiezo_dir = [0.0, 0.0]\n"));
+    assert!(
+        e.starts_with("/etc/rigd/test.toml: key `pipeline.piezo_dir`")
+            && e.contains("per unit of piezo travel"),
+        "{e}"
+    );
+    // An all-sim rig: its piezo moves against the configured direction.
+    let sim = "[axis]\ndriver = \"sim\"\nsoft_min_um = 0.0\nsoft_max_um = 100000.0\nmax_step_um = 100000.0\n\
+               [piezo]\ndriver = \"sim\"\nsoft_min_um = 0.0\nsoft_max_um = 100.0\nmax_step_um = 100.0\n\
+               [camera]\ndriver = \"sim\"\nwidth = 64\nheight = 48\n\
+               [pipeline]\npiezo_dir = [0.0, -1.0]\n";
+    let cfg = parse(sim).unwrap();
+    let hw = rigd::rig::sim::open_sim_rig(&cfg).unwrap();
+    assert_eq!(hw.rig.config().piezo_dir, [0.0, 1.0]);
+    let rig = rigd::rig::from_config(&cfg).unwrap();
+    assert_eq!(rig.info.piezo_dir, Some([0.0, -1.0]));
+    assert_eq!(
+        rig.info.dir(rigd::acquisition::StageKind::Piezo),
+        [0.0, -1.0]
+    );
+}

@@ -30,6 +30,7 @@ fn plan(positions_um: &[f64]) -> Plan {
             },
             repeat: 0,
             positions_um: positions_um.to_vec(),
+            piezo_um: None,
             processing: None,
         }],
         total_frames: positions_um.len() as u32,
@@ -58,7 +59,11 @@ fn run(
         settings,
         stop: flag,
     };
-    let mut dev = Devices { stage, camera };
+    let mut dev = Devices {
+        stage,
+        camera,
+        piezo: None,
+    };
     let out = engine.run(&mut dev, sink);
     stage.done();
     camera.done();
@@ -441,6 +446,7 @@ fn a_panic_on_a_sink_thread_fails_the_job_with_its_message() {
     let mut dev = Devices {
         stage: &mut stage,
         camera: &mut camera,
+        piezo: None,
     };
     let out = engine.run(&mut dev, &mut sink);
     let reason = out.reason().unwrap();

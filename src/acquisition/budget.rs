@@ -131,6 +131,7 @@ mod tests {
             default_start_um: 1000.0,
             scale_um_per_px: 774.0,
             axis_dir: [-1.0, 0.0],
+            piezo_dir: None,
             frame_size,
             interferometer: false,
             board: Some(crate::board::Board::paper()),

@@ -46,8 +46,11 @@ impl StopFlag {
 
 /// The devices one job drives.
 pub struct Devices<'a> {
+    /// The stage of the plan's `positions_um`.
     pub stage: &'a mut dyn Stage,
     pub camera: &'a mut dyn Camera,
+    /// The piezo, for a plan that moves it besides the axis (`RunPlan::piezo_um`).
+    pub piezo: Option<&'a mut dyn Stage>,
 }
 
 /// How the engine steps.
@@ -60,6 +63,8 @@ pub struct EngineSettings {
     pub move_timeout: Duration,
     /// Between status polls of a moving stage: how late a cancel stops it, at most.
     pub move_poll: Duration,
+    /// Each repeat starts this long after the previous one started (`interval_s`).
+    pub repeat_interval: Option<Duration>,
 }
 
 impl Default for EngineSettings {
@@ -69,6 +74,7 @@ impl Default for EngineSettings {
             grab_timeout: Duration::from_secs(5),
             move_timeout: Duration::from_secs(30),
             move_poll: Duration::from_millis(2),
+            repeat_interval: None,
         }
     }
 }
@@ -108,16 +114,27 @@ impl Engine<'_> {
     fn capture(&self, dev: &mut Devices<'_>, sink: &mut dyn StepSink) -> Outcome {
         let total = self.plan.total_frames;
         let mut index = 0u32;
+        let mut repeat_started: Option<(u32, Instant)> = None;
+        // The piezo is moved only when its target changes (once a row in a grid).
+        let mut piezo_at: Option<f64> = None;
         for run in &self.plan.runs {
-            for &commanded_um in &run.positions_um {
+            if let Err(cause) = self.wait_for_repeat(run.repeat, &mut repeat_started) {
+                return self.stopped(dev, cause, None);
+            }
+            for (i, &commanded_um) in run.positions_um.iter().enumerate() {
                 if let Some(cause) = self.stop.cause() {
                     return self.stopped(dev, cause, None);
                 }
-                let rec = match self.step(dev, run, index, commanded_um, total) {
+                let piezo = run
+                    .piezo_um
+                    .as_ref()
+                    .map(|p| (p[i], piezo_at != Some(p[i])));
+                piezo_at = piezo.map(|p| p.0);
+                let rec = match self.step(dev, run, index, (commanded_um, piezo), total) {
                     Ok(r) => r,
                     Err(StepEnd::Stopped(s)) => return self.stopped(dev, s.cause, s.during),
                     Err(StepEnd::Hw(source)) => {
-                        let stopped = stop_stage(dev.stage);
+                        let stopped = stop_devices(dev);
                         return Outcome::Failed(JobError::Hardware { source, stopped });
                     }
                 };
@@ -143,7 +160,7 @@ impl Engine<'_> {
         cause: StopCause,
         during: Option<(Phase, f64)>,
     ) -> Outcome {
-        let stopped = stop_stage(dev.stage);
+        let stopped = stop_devices(dev);
         Outcome::Cancelled(Stop {
             cause,
             during,
@@ -152,21 +169,62 @@ impl Engine<'_> {
     }
 
     fn failed(&self, dev: &mut Devices<'_>, e: JobError) -> Outcome {
-        Outcome::Failed(e.with_stopped(stop_stage(dev.stage)))
+        Outcome::Failed(e.with_stopped(stop_devices(dev)))
     }
 
-    /// Move, settle, grab one fresh frame, read the interferometer at its time.
+    /// Before a run of a new repeat: wait until `interval` after the previous repeat
+    /// started (in short sleeps: a stop ends the wait). `Err`: stopped while waiting.
+    fn wait_for_repeat(
+        &self,
+        repeat: u32,
+        started: &mut Option<(u32, Instant)>,
+    ) -> Result<(), StopCause> {
+        let due = match *started {
+            Some((r, _)) if r == repeat => return Ok(()),
+            Some((_, t)) => self.settings.repeat_interval.map(|i| t + i),
+            None => None,
+        };
+        while let Some(left) = due.map(|d| d.saturating_duration_since(Instant::now())) {
+            if let Some(cause) = self.stop.cause() {
+                return Err(cause);
+            }
+            if left.is_zero() {
+                break;
+            }
+            std::thread::sleep(left.min(Duration::from_millis(20)));
+        }
+        *started = Some((repeat, Instant::now()));
+        Ok(())
+    }
+
+    /// Move (the stage, and the piezo to `piezo`'s target if it is to move: both settled
+    /// before the grab), settle, grab one fresh frame.
     fn step(
         &self,
         dev: &mut Devices<'_>,
         run: &RunPlan,
         index: u32,
-        commanded_um: f64,
+        (commanded_um, piezo): (f64, Option<(f64, bool)>),
         total_frames: u32,
     ) -> Result<StepRecord, StepEnd> {
         let t0 = Instant::now();
+        let piezo_stage = match (piezo, dev.piezo.as_deref_mut()) {
+            (Some(_), None) => return Err(StepEnd::Hw(no_piezo())),
+            (Some((target, true)), Some(p)) => {
+                p.move_abs(target)?;
+                Some((target, Some(p)))
+            }
+            (Some((target, false)), Some(_)) => Some((target, None)),
+            (None, _) => None,
+        };
         dev.stage.move_abs(commanded_um)?;
         let axis_um = self.finish_move(dev.stage, commanded_um)?;
+        let (piezo_commanded_um, piezo_um) = match piezo_stage {
+            Some((target, Some(p))) => (Some(target), Some(self.finish_move(p, target)?)),
+            // Not moved since the previous frame: where it settled then.
+            Some((target, None)) => (Some(target), Some(self.last_piezo_um(dev, target))),
+            None => (None, None),
+        };
         let t1 = Instant::now();
         self.settle(commanded_um)?;
         let t2 = Instant::now();
@@ -191,6 +249,8 @@ impl Engine<'_> {
             axis_um,
             interferometer_um: None,
             registration_um: commanded_um,
+            piezo_commanded_um,
+            piezo_um,
             samples: Vec::new(),
             log_source: None,
             frame,
@@ -201,6 +261,15 @@ impl Engine<'_> {
             },
             total_frames,
         })
+    }
+
+    /// The piezo's position when it was not moved for this frame: its status (the target,
+    /// if the status cannot be read: the step does not fail on a stage it did not move).
+    fn last_piezo_um(&self, dev: &mut Devices<'_>, target_um: f64) -> f64 {
+        dev.piezo
+            .as_deref_mut()
+            .and_then(|p| p.status().ok())
+            .map_or(target_um, |s| s.position_um)
     }
 
     /// Wait out the settle time in short sleeps, so a stop is not held up by it.
@@ -280,6 +349,23 @@ fn alarm(stage: &mut dyn Stage, at_um: f64, target_um: f64) -> StepEnd {
             message: format!("alarm at {at_um:.1} µm during the move to {target_um} µm"),
         },
     })
+}
+
+fn no_piezo() -> HwError {
+    HwError::Other {
+        device: "piezo".into(),
+        message: "the plan moves the piezo, and this rig has none".into(),
+    }
+}
+
+/// Stop the job's stages (the piezo too, if it has one) and say where the stage was left.
+fn stop_devices(dev: &mut Devices<'_>) -> Option<StoppedAt> {
+    if let Some(p) = dev.piezo.as_deref_mut() {
+        if let Err(e) = p.stop() {
+            tracing::warn!(stage = p.name(), "stopping after the job: {e}");
+        }
+    }
+    stop_stage(dev.stage)
 }
 
 /// Stop the stage and say where it was left.

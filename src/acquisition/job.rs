@@ -111,8 +111,66 @@ fn default_true() -> bool {
     true
 }
 
-/// A capture job. Either a single scan (`step_um`, `steps`, `k`) or a study of the paper's
-/// cases (`study`), repeated `repeats` times.
+/// One stage stepped: `steps` frames `step_um` apart from `start_um` (default: the axis's
+/// scan start, the piezo's lower soft limit).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Line {
+    #[serde(default)]
+    pub stage: StageKind,
+    pub step_um: f64,
+    pub steps: u32,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_um: Option<f64>,
+}
+
+/// A 2-D grid over the axis and the piezo: for each of the outer line's positions, every
+/// position of the inner line (with `snake`, every other row backwards, so no row ends
+/// with a return to its start).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Grid {
+    pub inner: Line,
+    pub outer: Line,
+    #[serde(default)]
+    pub snake: bool,
+}
+
+/// One frame of a `list` plan. A stage left out stays where the previous point put it
+/// (before the first point that gives it: at its first given position).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct ListPoint {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub axis_um: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub piezo_um: Option<f64>,
+}
+
+/// Where a job's frames are taken (docs/protocol.md, "Plans"): a line on one stage, a
+/// grid over the axis and the piezo, or a list of positions. Without one, a job's
+/// `step_um`/`steps` (or `study`) are a line on its `stage`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum ScanPlan {
+    Line(Line),
+    Grid(Grid),
+    List(Vec<ListPoint>),
+}
+
+impl ScanPlan {
+    /// The name of the plan's runs (`line`, `grid`, `list`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            ScanPlan::Line(_) => "line",
+            ScanPlan::Grid(_) => "grid",
+            ScanPlan::List(_) => "list",
+        }
+    }
+}
+
+/// A capture job. Either a single scan (`step_um`, `steps`, `k`), a study of the paper's
+/// cases (`study`) or a `plan` (line, grid, list), repeated `repeats` times.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct JobSpec {
@@ -145,6 +203,13 @@ pub struct JobSpec {
     pub whole_frame: Option<bool>,
     #[serde(default = "default_one")]
     pub repeats: u32,
+    /// Where the frames are taken, instead of `step_um`/`steps`/`study`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plan: Option<ScanPlan>,
+    /// Each repeat starts this long after the previous one started (a stability run); a
+    /// repeat that takes longer is followed at once.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub interval_s: Option<f64>,
     /// Absolute start of the first scan; default: where the stage is.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub start_um: Option<f64>,
@@ -172,6 +237,8 @@ impl Default for JobSpec {
             registration: None,
             whole_frame: None,
             repeats: 1,
+            plan: None,
+            interval_s: None,
             start_um: None,
             repeat_shift_um: 0.0,
             process: true,
@@ -198,6 +265,23 @@ pub struct Processing {
 }
 
 impl JobSpec {
+    /// The stage the job's positions are on (a grid's, or a list's with axis positions:
+    /// the axis), and whether it moves the piezo besides (a grid, a list of both).
+    pub fn stages(&self) -> (StageKind, bool) {
+        match &self.plan {
+            None => (self.stage, false),
+            Some(ScanPlan::Line(l)) => (l.stage, false),
+            Some(ScanPlan::Grid(_)) => (StageKind::Axis, true),
+            Some(ScanPlan::List(points)) => {
+                let piezo = points.iter().any(|p| p.piezo_um.is_some());
+                match points.iter().any(|p| p.axis_um.is_some()) {
+                    true => (StageKind::Axis, piezo),
+                    false => (StageKind::Piezo, false),
+                }
+            }
+        }
+    }
+
     /// This job with every processing field it leaves out filled in: from the rig's
     /// `[pipeline]` defaults `d` where the config sets them, else the protocol's own. A
     /// study's cases keep their own k, and without a configured `combine` each case combines

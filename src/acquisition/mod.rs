@@ -3,7 +3,8 @@
 //!
 //! - `job`: the domain's job (stage, scans, processing choices) and its defaults;
 //! - `plan`: a job checked against the rig and the disk and expanded into runs, each with
-//!   its complete, validated processing options; every reason to refuse a job lives here;
+//!   its complete, validated processing options; every reason to refuse a job lives here
+//!   (`shapes`: a job's `plan`, a line, a 2-D grid or a list, checked and expanded);
 //! - `engine`: move, settle, grab, one `StepRecord` per step; `interferometer`: the
 //!   position log read behind it, filling in each record's reading;
 //! - `sink`: the engine's consumers (`StepSink`), and `Threaded` to keep them off the
@@ -20,11 +21,15 @@ pub mod outcome;
 pub mod plan;
 pub mod processor;
 pub mod record;
+pub mod shapes;
 pub mod sink;
 pub mod study;
 
 pub use engine::{Devices, Engine, EngineSettings, StopFlag};
-pub use job::{CaseScan, JobRegistration, JobSpec, PaperCase, Processing, StageKind};
+pub use job::{
+    CaseScan, Grid, JobRegistration, JobSpec, Line, ListPoint, PaperCase, Processing, ScanPlan,
+    StageKind,
+};
 pub use outcome::{EndDetail, JobError, Outcome, Stop, StopCause, StoppedAt};
 pub use plan::{Plan, PlanError, RunPlan};
 pub use record::{StepRecord, StepTimings};

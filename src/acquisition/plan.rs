@@ -14,6 +14,8 @@ use std::path::Path;
 
 /// Most frames one job may ask for.
 pub const MAX_FRAMES: u32 = 100_000;
+/// Longest `interval_s` between repeats' starts: a week.
+pub const MAX_INTERVAL_S: f64 = 7.0 * 86_400.0;
 /// Longest settle a step may ask for: longer is a typo, not a rig (a minute).
 pub const MAX_SETTLE_MS: u64 = 60_000;
 
@@ -38,8 +40,12 @@ pub struct RunPlan {
     pub run: u32,
     pub case: CaseScan,
     pub repeat: u32,
-    /// Commanded position of every frame.
+    /// Commanded position of every frame on the job's stage (`JobSpec::stages`).
     pub positions_um: Vec<f64>,
+    /// A plan that moves the piezo besides the axis (a grid, a list of both): the piezo's
+    /// commanded position of every frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub piezo_um: Option<Vec<f64>>,
     /// The complete processing options of this run, validated by the pipeline at submit
     /// (`None`: the job does not process; absent from sessions recorded before rigd 0.2).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -53,15 +59,18 @@ pub struct Plan {
 }
 
 /// The processing options of one scan of `spec` (resolved: see `JobSpec::with_defaults`),
-/// checked by the pipeline.
+/// checked by the pipeline. The image moves along the job's stage's direction and, in a
+/// plan that moves the piezo besides, along the piezo's too.
 pub fn run_options(spec: &JobSpec, k: u32, rig: &RigInfo) -> Result<ValidOptions, PlanError> {
+    let (stage, moves_piezo) = spec.stages();
     ProcessOptions {
         scale_um_per_px: rig.scale_um_per_px,
         k,
         estimator: spec.estimator.unwrap_or_default(),
         combine: spec.combine.unwrap_or(combine_for(k)),
         registration: spec.registration.unwrap_or_default().pipeline(),
-        axis_dir: rig.axis_dir,
+        axis_dir: rig.dir(stage),
+        piezo_dir: moves_piezo.then(|| rig.dir(StageKind::Piezo)),
         whole_frame: spec.whole_frame.unwrap_or(false),
     }
     .validate()
@@ -154,6 +163,13 @@ pub fn plan(
     committed_bytes: u64,
 ) -> Result<Plan, PlanError> {
     check_job(spec, rig)?;
+    if let Some(shape) = &spec.plan {
+        let runs = super::shapes::runs(spec, shape, rig)?;
+        let total_frames = runs.iter().map(|r| r.positions_um.len() as u32).sum();
+        let plan = Plan { runs, total_frames };
+        check_disk(&plan, rig, data_root, committed_bytes)?;
+        return Ok(plan);
+    }
     let cases = cases(spec)?;
     let bounds = rig
         .bounds(spec.stage)
@@ -188,6 +204,7 @@ pub fn plan(
                 case: c.clone(),
                 repeat,
                 positions_um,
+                piezo_um: None,
                 processing,
             });
         }
@@ -232,7 +249,12 @@ fn check_job(spec: &JobSpec, rig: &RigInfo) -> Result<(), PlanError> {
             return Err(rejected(format!("`{name}` must be a finite number")));
         }
     }
-    Ok(())
+    match spec.interval_s {
+        Some(s) if !(s > 0.0 && s <= MAX_INTERVAL_S) => Err(rejected(format!(
+            "`interval_s` must be more than 0 and at most {MAX_INTERVAL_S} s (a week), got {s}"
+        ))),
+        _ => Ok(()),
+    }
 }
 
 fn check_case(c: &CaseScan) -> Result<(), PlanError> {
@@ -337,6 +359,9 @@ impl Plan {
         for r in &mut plan.runs {
             let n = r.positions_um.len().min(left);
             r.positions_um.truncate(n);
+            if let Some(p) = r.piezo_um.as_mut() {
+                p.truncate(n);
+            }
             r.case.frames = n as u32;
             left -= n;
             if let Some(k) = ov.k {
@@ -376,6 +401,7 @@ mod tests {
             default_start_um: 1000.0,
             scale_um_per_px: 774.0,
             axis_dir: [-1.0, 0.0],
+            piezo_dir: None,
             frame_size: (64, 48),
             interferometer: false,
             board: None,

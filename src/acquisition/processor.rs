@@ -102,7 +102,13 @@ impl StepSink for Processor {
             return Ok(());
         };
         let t = Instant::now();
-        match p.push(&rec.frame.image, rec.registration_um) {
+        // The piezo registers by its commanded position (closed loop, nanometres; the
+        // interferometer reads the axis only).
+        match p.push_at(
+            &rec.frame.image,
+            rec.registration_um,
+            rec.piezo_commanded_um,
+        ) {
             Ok(r) => (self.emit)(ProcessorEvent::Frame {
                 index: rec.index,
                 process_ms: ms(t.elapsed()),

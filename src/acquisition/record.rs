@@ -34,6 +34,10 @@ pub struct StepRecord {
     /// The position the pipeline registers this frame by when the job registers by
     /// positions: the commanded one, or the interferometer's reading.
     pub registration_um: f64,
+    /// A plan that moves the piezo besides the axis: the piezo's commanded position and
+    /// where it reported itself settled (the fields above are the axis's).
+    pub piezo_commanded_um: Option<f64>,
+    pub piezo_um: Option<f64>,
     /// Interferometer samples read since the previous step (oldest first).
     pub samples: Vec<LogSample>,
     /// The log's source facts as of this step (its clock estimate moves as it grows).

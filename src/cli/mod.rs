@@ -7,6 +7,7 @@ pub mod demo;
 pub mod fetch;
 pub mod hw;
 pub mod list;
+pub mod plan_args;
 pub mod process;
 pub mod replay;
 pub mod results;

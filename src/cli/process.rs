@@ -30,6 +30,10 @@ pub struct ProcessArgs {
     /// Image displacement per unit of axis travel, "x,y" (the scene moves against the camera).
     #[arg(long, value_parser = parse_dir, default_value = "-1,0", allow_hyphen_values = true)]
     pub axis_dir: [f64; 2],
+    /// The same per unit of piezo travel, for a folder whose steps.csv has the piezo's
+    /// positions (a 2-D plan's session) [default: the axis's].
+    #[arg(long, value_parser = parse_dir)]
+    pub piezo_dir: Option<[f64; 2]>,
     /// Use the first N frames only.
     #[arg(long)]
     pub frames: Option<usize>,
@@ -81,6 +85,7 @@ impl ProcessArgs {
             }),
             registration: self.registration,
             axis_dir: self.axis_dir,
+            piezo_dir: self.piezo_dir,
             whole_frame: self.whole_frame,
         }
         .validate()
@@ -135,15 +140,17 @@ pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
         }
         let mut again = folder::FrameReader::default();
         for (i, (path, &pos)) in dir.frames.iter().zip(&dir.positions_um).enumerate() {
+            let piezo = dir.piezo_um.as_ref().map(|p| p[i]);
             let (frame, rows) = queues[i % workers]
                 .recv()
                 .context("a frame decoder stopped")??;
             let ctx = || path.display().to_string();
-            let (frame, rep) = match pipeline.push_rows(&frame, rows, pos).with_context(ctx)? {
+            let pushed = pipeline.push_rows_at(&frame, rows, pos, piezo);
+            let (frame, rep) = match pushed.with_context(ctx)? {
                 Some(rep) => (frame, rep),
                 None => {
                     let whole = again.read(path, Some(frame))?;
-                    let rep = pipeline.push(&whole, pos).with_context(ctx)?;
+                    let rep = pipeline.push_at(&whole, pos, piezo).with_context(ctx)?;
                     (whole, rep)
                 }
             };

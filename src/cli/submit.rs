@@ -29,6 +29,8 @@ pub struct SubmitArgs {
     pub settle_ms: u64,
     #[command(flatten)]
     pub processing: ProcessingArgs,
+    #[command(flatten)]
+    pub plan: Box<crate::cli::plan_args::PlanArgs>,
     /// How many times the scan (or each study case) is run; each repeat is processed on its
     /// own, and with 2 or more the result gives each target's spread.
     #[arg(long, value_name = "N", default_value_t = 1)]
@@ -104,6 +106,8 @@ impl SubmitArgs {
             registration: p.registration,
             whole_frame: p.whole_frame,
             repeats: self.repeats,
+            plan: self.plan.plan(),
+            interval_s: self.plan.interval_s,
             start_um: self.start_um,
             repeat_shift_um: self.repeat_shift_um,
             process: !self.no_process,
@@ -158,13 +162,14 @@ impl SubmitArgs {
     /// What the command line lacks for a job, named by its flags (before the daemon would
     /// name the job's fields).
     pub fn check(&self) -> anyhow::Result<()> {
-        if !self.study.is_empty() {
+        if !self.study.is_empty() || self.plan.plan().is_some() {
             return Ok(());
         }
         match (self.steps, self.step_um) {
             (None, _) => anyhow::bail!(
-                "say what to capture: --steps N --step-um UM (one scan of N frames), or \
-                 --study case1,case2,case3 (the paper's cases)"
+                "say what to capture: --steps N --step-um UM (one scan of N frames), \
+                 --study case1,case2,case3 (the paper's cases), or a plan (--line, \
+                 --grid-inner/--grid-outer, --plan FILE.json)"
             ),
             (Some(n), None) if n > 1 => {
                 anyhow::bail!("--steps {n} needs --step-um UM (the distance between frames)")

@@ -376,6 +376,7 @@ mod tests {
                 },
                 repeat: 0,
                 positions_um: (0..frames).map(|i| 50.0 * i as f64).collect(),
+                piezo_um: None,
                 processing: None,
             }],
             total_frames: frames,

@@ -342,6 +342,12 @@ pub enum EventBody {
         interferometer_um: Option<f64>,
         timings: StepTimings,
         total_frames: u32,
+        /// A plan that moves the piezo besides the axis: its commanded and settled
+        /// positions (`commanded_um`/`axis_um` are then the axis's).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        piezo_commanded_um: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        piezo_um: Option<f64>,
     },
     /// A frame was processed (runs behind the capture).
     Processed {
@@ -412,6 +418,8 @@ impl EventBody {
             interferometer_um: rec.interferometer_um,
             timings: rec.timings,
             total_frames: rec.total_frames,
+            piezo_commanded_um: rec.piezo_commanded_um,
+            piezo_um: rec.piezo_um,
         }
     }
 }
@@ -724,6 +732,8 @@ mod tests {
                     grab_ms: 0.3,
                 },
                 total_frames: 1,
+                piezo_commanded_um: None,
+                piezo_um: None,
             },
         });
         let back: ServerLine = serde_json::from_slice(&encode(&ev)).unwrap();

@@ -56,6 +56,8 @@ fn row(rec: &StepRecord) -> StepRow {
         move_ms: rec.timings.move_ms,
         settle_ms: rec.timings.settle_ms,
         grab_ms: rec.timings.grab_ms,
+        piezo_commanded_um: rec.piezo_commanded_um,
+        piezo_um: rec.piezo_um,
     }
 }
 

@@ -36,9 +36,11 @@ pub const INTERFEROMETER_HEADER: &str = "t_unix_s,position_um,sample\n";
 
 pub use crate::acquisition::processor::Image16;
 
-/// Columns of `steps.csv`, the `rigctl process` contract (`index,position_um`) first.
+/// Columns of `steps.csv`, the `rigctl process` contract (`index,position_um`) first; the
+/// piezo's last (empty unless the plan moves it besides the axis), so readers of the
+/// earlier columns keep working.
 pub const STEPS_HEADER: &str = "index,position_um,run,case,repeat,axis_um,interferometer_um,\
-t_unix_s,sequence,move_ms,settle_ms,grab_ms\n";
+t_unix_s,sequence,move_ms,settle_ms,grab_ms,piezo_commanded_um,piezo_um\n";
 
 #[derive(Debug, thiserror::Error)]
 pub enum SessionError {
@@ -126,6 +128,12 @@ pub struct StepRow {
     pub move_ms: f64,
     pub settle_ms: f64,
     pub grab_ms: f64,
+    /// A plan that moves the piezo besides the axis: its commanded position and where it
+    /// settled (absent from sessions recorded before 2-D plans).
+    #[serde(default)]
+    pub piezo_commanded_um: Option<f64>,
+    #[serde(default)]
+    pub piezo_um: Option<f64>,
 }
 
 pub fn unix_s(t: SystemTime) -> f64 {

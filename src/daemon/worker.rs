@@ -156,7 +156,7 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
     if matches!(job.source, JobSource::Live)
         && matches!(outcome, Outcome::Failed(JobError::Hardware { .. }))
     {
-        if let Some(f) = probe(rig, job.spec.stage) {
+        if let Some(f) = probe(rig, job.spec.stages().0) {
             tracing::warn!(device = %f.device, reason = %f.reason, "the rig is in fault");
             shared.rig().fault = Some(f);
         }
@@ -201,11 +201,12 @@ fn capture(
         settings: EngineSettings {
             settle: Duration::from_millis(job.spec.settle_ms),
             grab_timeout: Duration::from_millis(rig.info.grab_timeout_ms),
+            repeat_interval: job.spec.interval_s.map(Duration::from_secs_f64),
             ..EngineSettings::default()
         },
         stop: &job.stop,
     };
-    let outcome = match devices(rig, job.spec.stage) {
+    let outcome = match devices(rig, job.spec.stages()) {
         Ok(mut dev) => engine.run(&mut dev, &mut sink),
         Err(e) => {
             let _ = sink.finish();
@@ -252,7 +253,22 @@ fn job_sink(
     ReadLog::new(rig.log.take(), registration, recorder)
 }
 
-fn devices(rig: &mut Rig, stage: StageKind) -> Result<Devices<'_>, crate::hw::HwError> {
+/// The job's stage, and the piezo when its plan moves it besides the axis.
+fn devices(
+    rig: &mut Rig,
+    (stage, moves_piezo): (StageKind, bool),
+) -> Result<Devices<'_>, crate::hw::HwError> {
+    if moves_piezo {
+        let piezo = rig.piezo.as_deref_mut().ok_or(crate::hw::HwError::Other {
+            device: "piezo".into(),
+            message: "this rig has no piezo".into(),
+        })?;
+        return Ok(Devices {
+            stage: rig.axis.as_mut(),
+            camera: rig.camera.as_mut(),
+            piezo: Some(piezo),
+        });
+    }
     let stage: &mut dyn crate::hw::Stage = match stage {
         StageKind::Axis => rig.axis.as_mut(),
         StageKind::Piezo => match rig.piezo.as_deref_mut() {
@@ -268,6 +284,7 @@ fn devices(rig: &mut Rig, stage: StageKind) -> Result<Devices<'_>, crate::hw::Hw
     Ok(Devices {
         stage,
         camera: rig.camera.as_mut(),
+        piezo: None,
     })
 }
 

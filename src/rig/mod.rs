@@ -86,6 +86,10 @@ pub struct RigInfo {
     pub scale_um_per_px: f64,
     /// Image displacement per unit of axis travel (the camera rides the axis).
     pub axis_dir: [f64; 2],
+    /// Image displacement per unit of piezo travel (`[pipeline] piezo_dir`; None: the
+    /// axis's, as in sessions recorded before it was kept).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub piezo_dir: Option<[f64; 2]>,
     pub frame_size: (u32, u32),
     /// Whether the rig has an interferometer log (`registration: interferometer` needs one).
     #[serde(default)]
@@ -115,6 +119,14 @@ impl RigInfo {
         match stage {
             StageKind::Axis => Some(self.axis_limits_um),
             StageKind::Piezo => self.piezo_limits_um,
+        }
+    }
+
+    /// Image displacement per unit of `stage`'s travel.
+    pub fn dir(&self, stage: StageKind) -> [f64; 2] {
+        match stage {
+            StageKind::Axis => self.axis_dir,
+            StageKind::Piezo => self.piezo_dir.unwrap_or(self.axis_dir),
         }
     }
 

@@ -88,6 +88,7 @@ pub fn from_config(cfg: &Config) -> Result<Rig, HwError> {
         scale_um_per_px: cfg.pipeline.scale_um_per_px,
         // How the mount turns axis travel into image motion ([pipeline] axis_dir).
         axis_dir: cfg.pipeline.axis_dir,
+        piezo_dir: cfg.pipeline.piezo_dir,
         // What the camera delivers (a V4L2 driver may adjust the configured size).
         frame_size: devices.camera.size(),
         // An all-sim rig runs the sim's XL-80; otherwise `[xl80]` names the log.

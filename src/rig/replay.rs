@@ -20,16 +20,20 @@ pub fn replay(session: &Session) -> Result<Rig, SessionError> {
     info.mode = RigMode::Replay;
     // The recorded readings stand in for the interferometer.
     info.interferometer = true;
-    let stage = || -> Box<dyn Stage> {
+    let stage = |follows: bool| -> Box<dyn Stage> {
         Box::new(ReplayStage {
             rows: session.steps.clone().into(),
             position_um: 0.0,
+            follows,
         })
     };
+    // A plan that moved the piezo besides the axis moved it only when its target changed:
+    // its replay goes where it is told (the job registers the piezo by its commands).
+    let piezo_follows = session.manifest.job.stages().1;
     Ok(Rig {
         info,
-        axis: stage(),
-        piezo: Some(stage()),
+        axis: stage(false),
+        piezo: Some(stage(piezo_follows)),
         camera: Box::new(ReplayCamera {
             dir: session.dir.clone(),
             rows: rows.clone(),
@@ -43,6 +47,8 @@ pub fn replay(session: &Session) -> Result<Rig, SessionError> {
 struct ReplayStage {
     rows: VecDeque<StepRow>,
     position_um: f64,
+    /// Goes where it is told instead (the piezo of a 2-D plan).
+    follows: bool,
 }
 
 impl Stage for ReplayStage {
@@ -53,6 +59,10 @@ impl Stage for ReplayStage {
         self.move_abs(self.position_um + delta_um)
     }
     fn move_abs(&mut self, target_um: f64) -> Result<(), HwError> {
+        if self.follows {
+            self.position_um = target_um;
+            return Ok(());
+        }
         let row = self.rows.pop_front().ok_or_else(|| HwError::Other {
             device: "replay-stage".into(),
             message: format!("no recorded step left for a move to {target_um} µm"),

@@ -110,6 +110,9 @@ pub struct Skipped {
 pub struct StepResidual {
     pub index: usize,
     pub position_um: f64,
+    /// The piezo's position, in a run that moves it besides its stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub piezo_um: Option<f64>,
     pub image_shift_px: [f64; 2],
     pub position_shift_px: [f64; 2],
     /// image minus position, micrometres on the board.

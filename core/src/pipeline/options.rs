@@ -35,6 +35,10 @@ pub struct ProcessOptions {
     /// Image displacement (px per px of axis travel) of the scene when the axis moves +1:
     /// the camera rides the axis, so the scene moves the other way.
     pub axis_dir: [f64; 2],
+    /// The same for the piezo when a run moves it besides its stage (a 2-D grid or a list
+    /// of axis and piezo positions); absent for a run on one stage.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub piezo_dir: Option<[f64; 2]>,
     /// Also reconstruct the whole frame (not only per-target ROIs) and keep it.
     pub whole_frame: bool,
 }
@@ -48,6 +52,7 @@ impl Default for ProcessOptions {
             combine: Combine::default(),
             registration: Registration::default(),
             axis_dir: [-1.0, 0.0],
+            piezo_dir: None,
             whole_frame: false,
         }
     }
@@ -63,6 +68,8 @@ pub enum OptionError {
     Scale { got: f64 },
     #[error("`axis_dir` must be a finite non-zero vector, got {got:?}")]
     AxisDir { got: [f64; 2] },
+    #[error("`piezo_dir` must be a finite non-zero vector, got {got:?}")]
+    PiezoDir { got: [f64; 2] },
 }
 
 impl OptionError {
@@ -72,6 +79,7 @@ impl OptionError {
             OptionError::K { .. } => "k",
             OptionError::Scale { .. } => "scale_um_per_px",
             OptionError::AxisDir { .. } => "axis_dir",
+            OptionError::PiezoDir { .. } => "piezo_dir",
         }
     }
 }
@@ -92,12 +100,24 @@ impl ProcessOptions {
         if !K_RANGE.contains(&self.k) {
             return Err(OptionError::K { got: self.k });
         }
-        let [ax, ay] = self.axis_dir;
-        if !(ax.is_finite() && ay.is_finite()) || ax.hypot(ay) == 0.0 {
+        if !usable_dir(self.axis_dir) {
             return Err(OptionError::AxisDir { got: self.axis_dir });
+        }
+        if let Some(d) = self.piezo_dir.filter(|&d| !usable_dir(d)) {
+            return Err(OptionError::PiezoDir { got: d });
         }
         Ok(())
     }
+
+    /// Whether the run's frames move vertically in the image (their vertical fine shifts
+    /// then take any of k values, not the few of a horizontal line's jitter).
+    pub fn moves_vertically(&self) -> bool {
+        self.axis_dir[1] != 0.0 || self.piezo_dir.is_some_and(|d| d[1] != 0.0)
+    }
+}
+
+fn usable_dir([x, y]: [f64; 2]) -> bool {
+    x.is_finite() && y.is_finite() && x.hypot(y) != 0.0
 }
 
 /// Options the pipeline accepts: the only way to build one is [`ProcessOptions::validate`]
@@ -201,7 +221,7 @@ impl ValidOptions {
         let fine = 4 * k * k * w * h;
         let open = super::run::WHOLE_FRAME_OPEN_GROUPS as u64;
         let splat = self.combine == Combine::Splat;
-        let (g, flushes) = match self.axis_dir[1] == 0.0 {
+        let (g, flushes) = match !self.moves_vertically() {
             true => (f.min(HORIZONTAL_SCAN_GROUPS).min(open), false),
             false => (f.min(open), f > open),
         };
@@ -223,7 +243,7 @@ impl ValidOptions {
     /// by the whole pixels), so at most k + 2; a horizontal scan's jitter only a few.
     fn target_groups(&self, frames: u64) -> u64 {
         let k = self.k as u64;
-        let most = if self.axis_dir[1] == 0.0 {
+        let most = if !self.moves_vertically() {
             HORIZONTAL_SCAN_GROUPS.min(k + 2)
         } else {
             k + 2

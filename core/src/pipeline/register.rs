@@ -5,6 +5,8 @@
 //! - From positions, commanded steps or interferometer readings alike:
 //!   `(position - position_0) / scale * axis_dir`. The camera rides the axis, so with the
 //!   default `axis_dir = [-1, 0]` a +x move of the axis moves the scene -x in the image.
+//!   A run that moves the piezo too (a 2-D grid, a list) adds
+//!   `(piezo - piezo_0) / scale * piezo_dir` ([`Dirs`]).
 //!
 //! Per step the two are compared ([`residuals`]): the image-minus-positions residual in µm
 //! shows a stale frame, a missed step or a scale error at a glance.
@@ -23,6 +25,31 @@ pub fn position_shift_px(
 ) -> [f64; 2] {
     let t = (position_um - first_position_um) / scale_um_per_px;
     [t * axis_dir[0], t * axis_dir[1]]
+}
+
+/// How a run's positions move the image: px per px of travel of its stage and, in a run
+/// that moves the piezo too, of the piezo.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Dirs {
+    pub scale_um_per_px: f64,
+    pub axis_dir: [f64; 2],
+    pub piezo_dir: [f64; 2],
+}
+
+/// Where a frame was taken: its stage's position and the piezo's (0 when the run moves one
+/// stage only).
+pub type At = [f64; 2];
+
+impl Dirs {
+    /// Displacement in px the positions predict for a frame at `at` (stage, piezo).
+    pub fn shift_px(&self, at: At, first: At) -> [f64; 2] {
+        let a = (at[0] - first[0]) / self.scale_um_per_px;
+        let p = (at[1] - first[1]) / self.scale_um_per_px;
+        [
+            a * self.axis_dir[0] + p * self.piezo_dir[0],
+            a * self.axis_dir[1] + p * self.piezo_dir[1],
+        ]
+    }
 }
 
 /// Mean displacement of the targets measured in both frames: `pairs` holds
@@ -52,11 +79,36 @@ pub fn residual(
     StepResidual {
         index,
         position_um,
+        piezo_um: None,
         image_shift_px,
         position_shift_px: pos,
         residual_um: [
             (image_shift_px[0] - pos[0]) * scale_um_per_px,
             (image_shift_px[1] - pos[1]) * scale_um_per_px,
+        ],
+    }
+}
+
+/// [`residual`] of a frame taken at `at` (stage, piezo) in a run that starts at `first`;
+/// `piezo`: whether the run moves the piezo (its position is then listed).
+pub fn residual_at(
+    index: usize,
+    (at, first): (At, At),
+    image_shift_px: [f64; 2],
+    dirs: &Dirs,
+    piezo: bool,
+) -> StepResidual {
+    let pos = dirs.shift_px(at, first);
+    let s = dirs.scale_um_per_px;
+    StepResidual {
+        index,
+        position_um: at[0],
+        piezo_um: piezo.then_some(at[1]),
+        image_shift_px,
+        position_shift_px: pos,
+        residual_um: [
+            (image_shift_px[0] - pos[0]) * s,
+            (image_shift_px[1] - pos[1]) * s,
         ],
     }
 }
@@ -119,6 +171,23 @@ mod tests {
     fn camera_moving_plus_x_moves_the_scene_minus_x() {
         let s = position_shift_px(1774.0, 1000.0, 774.0, [-1.0, 0.0]);
         assert!((s[0] + 1.0).abs() < 1e-12 && s[1] == 0.0);
+    }
+
+    #[test]
+    fn a_piezo_move_adds_its_own_direction() {
+        let d = Dirs {
+            scale_um_per_px: 100.0,
+            axis_dir: [-1.0, 0.0],
+            piezo_dir: [0.0, -1.0],
+        };
+        let s = d.shift_px([1050.0, 30.0], [1000.0, 10.0]);
+        assert!(
+            (s[0] + 0.5).abs() < 1e-12 && (s[1] + 0.2).abs() < 1e-12,
+            "{s:?}"
+        );
+        let r = residual_at(3, ([1050.0, 30.0], [1000.0, 10.0]), [-0.5, -0.1], &d, true);
+        assert_eq!(r.piezo_um, Some(30.0));
+        assert!((r.residual_um[1] - 10.0).abs() < 1e-9 && r.residual_um[0].abs() < 1e-9);
     }
 
     #[test]

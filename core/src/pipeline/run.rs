@@ -18,7 +18,7 @@ use super::mean::OffsetMean;
 use super::options::WINDOW_MARGIN_PX;
 use super::plane::{Plane, Roi};
 use super::reconstruct::{self, Fine, View};
-use super::register::{self, StepLog};
+use super::register::{self, At, Dirs, StepLog};
 use super::*;
 use crate::board::Board;
 use image::RgbImage;
@@ -76,8 +76,9 @@ pub struct Pipeline {
     /// `[target]`: frame 0's estimate, in frame coordinates: the registration's reference.
     first: Vec<Option<CentreEstimate>>,
     frames: usize,
-    first_position_um: Option<f64>,
-    last_position_um: Option<f64>,
+    /// Frame 0's and the last frame's positions (stage, piezo).
+    first_position_um: Option<At>,
+    last_position_um: Option<At>,
     last_image_shift_px: [f64; 2],
     steps: StepLog,
     /// Whether `finish` hands back the reconstructions as images.
@@ -129,15 +130,22 @@ impl Pipeline {
         }
     }
 
+    /// How the positions move the image (a run on one stage has no piezo move: its
+    /// direction does not matter).
+    fn dirs(&self) -> Dirs {
+        Dirs {
+            scale_um_per_px: self.opts.scale_um_per_px,
+            axis_dir: self.opts.axis_dir,
+            piezo_dir: self.opts.piezo_dir.unwrap_or(self.opts.axis_dir),
+        }
+    }
+
     /// The displacement a reconstruction uses for a frame: the image's, or the positions'.
-    fn recon_shift_px(&self, position_um: f64, image_shift_px: [f64; 2]) -> [f64; 2] {
+    fn recon_shift_px(&self, at: At, image_shift_px: [f64; 2]) -> [f64; 2] {
         match self.opts.registration {
-            Registration::Positions => register::position_shift_px(
-                position_um,
-                self.first_position_um.unwrap_or(position_um),
-                self.opts.scale_um_per_px,
-                self.opts.axis_dir,
-            ),
+            Registration::Positions => self
+                .dirs()
+                .shift_px(at, self.first_position_um.unwrap_or(at)),
             Registration::Image => image_shift_px,
         }
     }
@@ -209,8 +217,19 @@ impl Pipeline {
         frame: &RgbImage,
         position_um: f64,
     ) -> Result<FrameReport, PipelineError> {
+        self.push_at(frame, position_um, None)
+    }
+
+    /// [`Pipeline::push`] for a run that moves the piezo besides its stage (`piezo_um`, in
+    /// the direction of the options' `piezo_dir`): a 2-D grid or a list of positions.
+    pub fn push_at(
+        &mut self,
+        frame: &RgbImage,
+        position_um: f64,
+        piezo_um: Option<f64>,
+    ) -> Result<FrameReport, PipelineError> {
         let rows = frame.height();
-        self.push_rows(frame, rows, position_um)
+        self.push_rows_at(frame, rows, position_um, piezo_um)
             .map(|r| r.expect("a whole frame has every row"))
     }
 
@@ -260,17 +279,33 @@ impl Pipeline {
         valid_rows: u32,
         position_um: f64,
     ) -> Result<Option<FrameReport>, PipelineError> {
+        self.push_rows_at(frame, valid_rows, position_um, None)
+    }
+
+    /// [`Pipeline::push_rows`] with the piezo's position ([`Pipeline::push_at`]).
+    pub fn push_rows_at(
+        &mut self,
+        frame: &RgbImage,
+        valid_rows: u32,
+        position_um: f64,
+        piezo_um: Option<f64>,
+    ) -> Result<Option<FrameReport>, PipelineError> {
         let t0 = Instant::now();
         let partial = valid_rows < frame.height();
         if partial && (self.size.is_none() || self.opts.whole_frame) {
             return Ok(None);
         }
         let index = self.frames;
-        if !position_um.is_finite() {
+        if let Some(p) = [Some(position_um), piezo_um]
+            .into_iter()
+            .flatten()
+            .find(|p| !p.is_finite())
+        {
             return Err(PipelineError::Other(format!(
-                "frame {index}: position {position_um} µm is not a number"
+                "frame {index}: position {p} µm is not a number"
             )));
         }
+        let at: At = [position_um, piezo_um.unwrap_or(0.0)];
         let got = frame.dimensions();
         let detected = match self.size {
             None => {
@@ -291,12 +326,7 @@ impl Pipeline {
         }
         // Where the targets should be: the last frame's displacement, or the positions'.
         let predicted = match (self.opts.registration, self.first_position_um) {
-            (Registration::Positions, Some(p0)) => register::position_shift_px(
-                position_um,
-                p0,
-                self.opts.scale_um_per_px,
-                self.opts.axis_dir,
-            ),
+            (Registration::Positions, Some(p0)) => self.dirs().shift_px(at, p0),
             _ => self.last_image_shift_px,
         };
         if partial && self.rows_read(predicted, None) > valid_rows as f64 {
@@ -322,21 +352,20 @@ impl Pipeline {
                 .collect();
             register::image_shift_px(&pairs).ok_or(PipelineError::NoTarget { index })?
         };
-        let recon_px = self.recon_shift_px(position_um, shift);
+        let recon_px = self.recon_shift_px(at, shift);
         if partial && self.rows_read(predicted, Some(recon_px)) > valid_rows as f64 {
             return Ok(None);
         }
         self.accumulate(frame, &est, recon_px);
-        let p0 = *self.first_position_um.get_or_insert(position_um);
-        let o = &self.opts;
-        let residual =
-            register::residual(index, position_um, p0, shift, o.scale_um_per_px, o.axis_dir);
+        let p0 = *self.first_position_um.get_or_insert(at);
+        let piezo = piezo_um.is_some();
+        let residual = register::residual_at(index, (at, p0), shift, &self.dirs(), piezo);
         self.steps.push(residual);
         if index == 0 {
             self.first = est;
         }
         self.frames += 1;
-        self.last_position_um = Some(position_um);
+        self.last_position_um = Some(at);
         self.last_image_shift_px = shift;
         Ok(Some(FrameReport {
             index,

@@ -73,6 +73,10 @@ pub fn open_sim_rig(cfg: &Config) -> Result<SimHardware, HwError> {
     if let Some(p) = cfg.piezo.as_ref().and_then(|p| p.sim.clone()) {
         rc.piezo = p;
     }
+    // The line of sight moves against the image ([pipeline] piezo_dir is the image's).
+    if let Some([x, y]) = cfg.pipeline.piezo_dir {
+        rc.piezo_dir = [-x, -y];
+    }
     if let Some(c) = &cfg.camera {
         match &c.sim {
             Some(m) => rc.camera = m.clone(),

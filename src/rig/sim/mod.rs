@@ -82,6 +82,9 @@ pub struct SimSettings {
     /// Soft travel limits the drivers enforce.
     pub axis_limits_um: [f64; 2],
     pub piezo_limits_um: [f64; 2],
+    /// Line-of-sight travel (board µm along x, y) per µm of piezo travel: across the
+    /// axis's (+y) by default, so a grid over the axis and the piezo moves the image in 2-D.
+    pub piezo_dir: [f64; 2],
     pub faults: Vec<Fault>,
 }
 
@@ -111,6 +114,7 @@ impl Default for SimSettings {
             board_file: None,
             axis_limits_um: [0.0, 250_000.0],
             piezo_limits_um: [0.0, 1_400.0],
+            piezo_dir: [0.0, 1.0],
             faults: Vec::new(),
         }
     }
@@ -146,6 +150,7 @@ pub fn simulated_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError>
         camera: s.camera.clone(),
         axis: s.axis.clone(),
         piezo: s.piezo.clone(),
+        piezo_dir: s.piezo_dir,
         ..SimRigConfig::default()
     };
     let board = rc.board().map_err(|e| sim_error("sim-rig", e))?;
@@ -251,6 +256,7 @@ fn sim_info(s: &SimSettings, rc: &SimRigConfig, board: crate::board::Board) -> R
         scale_um_per_px: s.camera.scale_um_per_px,
         // The camera rides the axis: the board moves the other way in the image.
         axis_dir: [-rc.axis_dir[0], -rc.axis_dir[1]],
+        piezo_dir: Some([-rc.piezo_dir[0], -rc.piezo_dir[1]]),
         frame_size: (s.camera.width, s.camera.height),
         interferometer: true,
         config: serde_json::json!({
