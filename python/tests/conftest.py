@@ -54,6 +54,11 @@ def daemon() -> Iterator[Daemon]:
             _wait_for(d)
             with d.client() as c:
                 d.capabilities = c.capabilities()
+            # A daemon from before `hello` capabilities (another branch's build, say):
+            # $RIGD_TEST_CAPABILITIES names the request kinds to test anyway.
+            assumed = os.environ.get("RIGD_TEST_CAPABILITIES")
+            if d.capabilities is None and assumed:
+                d.capabilities = {k.strip() for k in assumed.split(",") if k.strip()}
             yield d
         finally:
             proc.send_signal(signal.SIGTERM)

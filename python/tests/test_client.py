@@ -25,11 +25,13 @@ def test_events_come_in_order(finished_job: FinishedJob) -> None:
     assert [s.index for s in steps] == [0, 1, 2, 3]
     start = steps[0].commanded_um
     assert [s.commanded_um for s in steps] == [start + 50.0 * i for i in range(4)]
-    # Each frame is processed after it is on disk.
-    for ev in finished_job.events:
-        if isinstance(ev, rigd.Processed):
-            assert kinds.index("step") <= finished_job.events.index(ev)
-            assert ev.targets_found == 12
+    # Each frame is processed, after its step event (it is on disk by then).
+    at = {(ev.kind, getattr(ev, "index", None)): n for n, ev in enumerate(finished_job.events)}
+    processed = [ev for ev in finished_job.events if isinstance(ev, rigd.Processed)]
+    assert sorted(p.index for p in processed) == [0, 1, 2, 3]
+    for p in processed:
+        assert at[("step", p.index)] < at[("processed", p.index)]
+        assert p.targets_found == 12
     started = finished_job.events[1]
     assert isinstance(started, rigd.Started) and started.total_frames == 4
     assert isinstance(finished_job.events[-1], rigd.Finished)

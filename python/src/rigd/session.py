@@ -153,7 +153,7 @@ class Session:
         rows = steps.loc[idx]
         w, h = self.frame_size
         um = {"units": "um"}
-        per_frame = {
+        per_frame: dict[str, Any] = {
             "position_um": ("frame", rows["position_um"].to_numpy(float), um | {"long_name": "commanded position"}),
             "axis_um": ("frame", rows["axis_um"].to_numpy(float), um | {"long_name": "axis position (controller)"}),
             "interferometer_um": ("frame", rows["interferometer_um"].to_numpy(float), um | {"long_name": "interferometer reading"}),
@@ -163,6 +163,9 @@ class Session:
             "case": ("frame", rows["case"].to_numpy(str)),
             "repeat": ("frame", rows["repeat"].to_numpy(int)),
         }  # fmt: skip
+        for col in ("piezo_commanded_um", "piezo_um"):  # a plan that moves the piezo
+            if col in rows.columns:
+                per_frame[col] = ("frame", rows[col].to_numpy(float), um)
         coords: dict[str, Any] = {
             "frame": ("frame", np.asarray(idx, dtype=int)),
             "y": ("y", np.arange(h)),
