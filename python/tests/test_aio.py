@@ -65,3 +65,26 @@ def test_async_errors_carry_the_wire_code(daemon: Daemon) -> None:
             assert (await c.hello())["protocol"] == 1
 
     arun(main())
+
+
+def test_async_events_of_a_job_from_its_submit(daemon: Daemon) -> None:
+    async def main() -> list[rigd.Event]:
+        async with await rigd.AsyncClient.connect(daemon.socket) as c:
+            await c.subscribe()
+            job_id = (await c.submit(step_um=50, steps=2, settle_ms=0, process=False))["job_id"]
+            await asyncio.sleep(0.5)  # events arrive before anyone reads: none is lost
+            events: list[rigd.Event] = []
+            async for ev in c.events():
+                if ev.job_id == job_id:
+                    events.append(ev)
+                    if ev.terminal:
+                        break
+            # A later job on the same subscription, through a second events() loop.
+            second = (await c.submit(step_um=50, steps=1, settle_ms=0, process=False))["job_id"]
+            async for ev in c.events():
+                if ev.job_id == second and ev.terminal:
+                    break
+            return events
+
+    kinds = [ev.kind for ev in arun(main())]
+    assert kinds == ["accepted", "started", "step", "step", "finished"]

@@ -29,6 +29,8 @@ class AsyncClient:
         self._replies: dict[int, asyncio.Future[Json]] = {}
         self._queues: list[tuple[Optional[int], _Queue]] = []
         self._all = False
+        # Every job's events from `subscribe()` on, for `events()` (none lost meanwhile).
+        self._sub_q: Optional[_Queue] = None
         self._closed: Optional[BaseException] = None
         self.notices: list[str] = []
         self._task = asyncio.get_running_loop().create_task(self._read_loop())
@@ -149,6 +151,14 @@ class AsyncClient:
         return await self.request("result", job_id=job_id)
 
     async def subscribe(self, job_id: Optional[int] = None) -> Json:
+        """Follow one job's events, or every job's; `events()` yields every event from
+        here on (none is lost before it is read)."""
+        if self._sub_q is None:
+            self._sub_q = asyncio.Queue()
+            self._queues.append((None, self._sub_q))
+        return await self._subscribe(job_id)
+
+    async def _subscribe(self, job_id: Optional[int]) -> Json:
         reply = await self.request("subscribe", job_id=job_id)
         self._all = self._all or job_id is None
         return reply
@@ -177,7 +187,9 @@ class AsyncClient:
 
     # -- following jobs -------------------------------------------------------------------
 
-    async def _drain(self, q: _Queue, job_id: Optional[int]) -> AsyncIterator[Event]:
+    async def _drain(
+        self, q: _Queue, job_id: Optional[int], keep: bool = False
+    ) -> AsyncIterator[Event]:
         try:
             while True:
                 ev = await q.get()
@@ -187,13 +199,16 @@ class AsyncClient:
                 if job_id is not None and ev.terminal:
                     return
         finally:
-            self._queues = [(j, x) for j, x in self._queues if x is not q]
+            if not keep:
+                self._queues = [(j, x) for j, x in self._queues if x is not q]
 
     async def events(self) -> AsyncIterator[Event]:
-        """Every event of this connection's subscriptions from now on (endless)."""
-        q: _Queue = asyncio.Queue()
-        self._queues.append((None, q))
-        async for ev in self._drain(q, None):
+        """Every event of this connection's subscriptions since `subscribe()` (endless).
+        Breaking out of the loop and calling it again goes on where it stopped."""
+        if self._sub_q is None:
+            self._sub_q = asyncio.Queue()
+            self._queues.append((None, self._sub_q))
+        async for ev in self._drain(self._sub_q, None, keep=True):
             yield ev
 
     async def watch(self, job_id: int) -> AsyncIterator[Event]:
@@ -205,7 +220,7 @@ class AsyncClient:
             if self._all:
                 status = await self.status(job_id)
             else:
-                status = (await self.subscribe(job_id)).get("status")
+                status = (await self._subscribe(job_id)).get("status")
         except RigdError:
             self._queues = [(j, x) for j, x in self._queues if x is not q]
             raise
@@ -222,7 +237,7 @@ class AsyncClient:
         self._queues.append((None, q))
         try:
             if not self._all:
-                await self.subscribe()
+                await self._subscribe(None)
             job_id = int((await self.submit(job, **job_fields))["job_id"])
             last: Optional[Event] = None
             async for ev in self._drain(q, None):
