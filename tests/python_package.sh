@@ -1,6 +1,6 @@
 #!/bin/sh
 # The Python package (python/) against a live `rigd --sim`: a fresh venv, `pip install
-# ./python[test]`, mypy --strict on the package when it installs, and pytest (python/tests,
+# ./python[test,typing]`, mypy --strict on the package and its tests, and pytest (python/tests,
 # which starts its own rigd --sim on a temporary socket and data root; docs/python.md's
 # code included). Builds nothing: give the daemon in $RIGD_BIN (default target/debug/rigd).
 # Usage: RIGD_BIN=target/debug/rigd tests/python_package.sh [pytest args]
@@ -19,6 +19,6 @@ python3 -m venv "$VENV"
 "$VENV/bin/pip" install -q --upgrade pip
 "$VENV/bin/pip" install -q "./python[test,typing]"
 echo "python_package: mypy --strict"
-(cd python && "$VENV/bin/mypy" --strict src/rigd)
+(cd python && "$VENV/bin/mypy" --strict src/rigd tests)
 echo "python_package: pytest against $RIGD_BIN"
 cd python && "$VENV/bin/python" -m pytest -q -rs "$@" tests

@@ -17,7 +17,9 @@ from conftest import Daemon, needs
 def test_hello_lists_capabilities(daemon: Daemon, client: rigd.Client) -> None:
     if "capabilities" not in client.hello():
         pytest.skip("this rigd's hello has no capabilities")
-    assert {"hello", "submit", "status", "list", "cancel", "result", "subscribe"} <= daemon.capabilities
+    caps = client.capabilities()
+    assert caps is not None and caps == daemon.capabilities
+    assert {"hello", "submit", "status", "list", "cancel", "result", "subscribe"} <= caps
     events = client.hello()["capabilities"]["events"]
     assert {"accepted", "started", "step", "finished", "failed", "cancelled"} <= set(events)
 
