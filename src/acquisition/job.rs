@@ -8,7 +8,7 @@ use crate::pipeline::{Combine, Estimator, Registration};
 use serde::{Deserialize, Serialize};
 
 /// Which stage a job steps.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum StageKind {
     /// The numerically controlled axis (GRBL).
@@ -28,7 +28,7 @@ impl std::fmt::Display for StageKind {
 }
 
 /// The paper's three cases (Alzarok et al., section 4).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum PaperCase {
     /// One raw frame.
@@ -58,7 +58,7 @@ impl PaperCase {
 }
 
 /// Where a job's per-frame displacements come from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum JobRegistration {
     /// Measured in the image (the paper's).
@@ -113,7 +113,7 @@ fn default_true() -> bool {
 
 /// A capture job. Either a single scan (`step_um`, `steps`, `k`) or a study of the paper's
 /// cases (`study`), repeated `repeats` times.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct JobSpec {
     #[serde(default)]
@@ -182,7 +182,7 @@ impl Default for JobSpec {
 
 /// Processing settings, each optional: a replay's overrides of the recorded ones, and a
 /// rig's `[pipeline]` defaults for what a job leaves out.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Processing {
     #[serde(default, skip_serializing_if = "Option::is_none")]

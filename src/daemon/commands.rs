@@ -7,7 +7,7 @@ use crate::acquisition::JobSpec;
 use crate::daemon::jobs::{JobSource, JobState, JobStatus, QueueError};
 use crate::daemon::listing;
 use crate::daemon::protocol::{
-    CancelReply, CancelState, DaemonStatus, ErrorCode, EventBody, HelloReply, ListReply,
+    CancelReply, CancelState, Capabilities, DaemonStatus, ErrorCode, EventBody, HelloReply, ListReply,
     ProtoError, ReplyBody, Request, ResultReply, RigSummary, SubmitReply, PROTOCOL_VERSION,
 };
 use crate::daemon::replay::replay_job;
@@ -92,6 +92,7 @@ fn hello(shared: &Shared) -> HelloReply {
         },
         data_root: shared.settings.data_root.clone(),
         rig_state: shared.rig_state(),
+        capabilities: Capabilities::this_daemon(),
     }
 }
 
