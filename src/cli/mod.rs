@@ -11,6 +11,7 @@ pub mod process;
 pub mod replay;
 pub mod rig;
 pub mod schema;
+pub mod server_line;
 pub mod status;
 pub mod submit;
 pub mod watch;

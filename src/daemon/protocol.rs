@@ -48,8 +48,8 @@ pub enum Request {
     },
     /// Jobs known to this daemon run and the sessions on disk: a page of each, newest first.
     List {
-        /// At most this many jobs and this many sessions ([`LIST_DEFAULT`] when left out,
-        /// at most [`LIST_MAX`]).
+        /// At most this many jobs and this many sessions (100 when left out, at most 1000:
+        /// `LIST_DEFAULT`, `LIST_MAX`).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         limit: Option<u32>,
         /// Only those with a job id below this one (the previous page's `next_before`).
@@ -305,7 +305,7 @@ pub struct Reply {
     #[schemars(schema_with = "crate::daemon::schema::id")]
     pub id: Option<serde_json::Value>,
     pub ok: bool,
-    /// The request's result: one [`ReplyBody`] shape per request kind.
+    /// The request's result: one shape per request kind (`ReplyBody`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(with = "ReplyBody")]
     pub result: Option<serde_json::Value>,
