@@ -32,25 +32,33 @@ fn job_events() -> Vec<Value> {
     let mut v = vec![
         json!({"type": "event", "v": 1, "job_id": 99, "event": "preview", "png_b64": "iVBORw0K"}),
         json!({"type": "notice", "v": 1, "text": "a line type of protocol 1.x"}),
-        ev(json!({"event": "accepted", "queue_position": 0, "total_frames": FRAMES,
-            "job": {"step_um": 50.0, "steps": FRAMES, "plan": {"kind": "grid", "snake": true}}})),
+        ev(
+            json!({"event": "accepted", "queue_position": 0, "total_frames": FRAMES,
+            "job": {"step_um": 50.0, "steps": FRAMES, "plan": {"kind": "grid", "snake": true}}}),
+        ),
         ev(json!({"event": "paused", "at_index": 0, "reason": "asked"})),
         ev(json!({"event": "resumed"})),
-        ev(json!({"event": "started", "session": SESSION, "total_frames": FRAMES,
-            "started_at": "2026-12-01T00:00:00Z"})),
+        ev(
+            json!({"event": "started", "session": SESSION, "total_frames": FRAMES,
+            "started_at": "2026-12-01T00:00:00Z"}),
+        ),
     ];
     for i in 0..FRAMES {
-        v.push(ev(json!({"event": "step", "index": i, "run": 0, "case": "scan", "repeat": 0,
+        v.push(ev(
+            json!({"event": "step", "index": i, "run": 0, "case": "scan", "repeat": 0,
             "commanded_um": 50.0 * i as f64, "axis_um": 50.0 * i as f64,
             "timings": {"move_ms": 1.0, "settle_ms": 0.0, "grab_ms": 1.0, "write_ms": 0.5},
             "total_frames": FRAMES, "position": {"axis_um": 1.0, "piezo_um": 2.0},
-            "eta_s": 1.0})));
+            "eta_s": 1.0}),
+        ));
         v.push(ev(
             json!({"event": "preview", "frame": {"width": 4, "height": 2}, "targets": []}),
         ));
     }
-    v.push(ev(json!({"event": "result", "run": 0, "case": "scan", "repeat": 0,
-        "objects": 2, "offsets_um": [[1.0, 2.0]]})));
+    v.push(ev(
+        json!({"event": "result", "run": 0, "case": "scan", "repeat": 0,
+        "objects": 2, "offsets_um": [[1.0, 2.0]]}),
+    ));
     v.push(ev(json!({"event": "finished", "session": SESSION,
         "session_path": "/data/20261201T000000Z-job7", "elapsed_s": 0.1})));
     v
@@ -191,7 +199,10 @@ fn a_known_event_without_its_required_fields_is_still_an_error() {
     let o = rigctl(&path, &["watch", "7"]);
     let all = text(&o);
     assert!(!o.status.success(), "{all}");
-    assert!(all.contains("unreadable line from rigd") && all.contains("index"), "{all}");
+    assert!(
+        all.contains("unreadable line from rigd") && all.contains("index"),
+        "{all}"
+    );
 }
 
 #[test]

@@ -262,7 +262,9 @@ pub fn device_of(e: &HwError) -> &str {
 }
 
 /// What kind of end a job had (besides finishing).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, schemars::JsonSchema)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, schemars::JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum EndKind {
     Cancelled,

@@ -129,7 +129,9 @@ mod tests {
         let e = event(
             r#"{"type":"event","v":1,"job_id":3,"event":"failed","reason":"r","detail":{"kind":"paused_too_long"}}"#,
         );
-        assert!(matches!(e.body, EventBody::Failed { ref reason, detail: None, .. } if reason == "r"));
+        assert!(
+            matches!(e.body, EventBody::Failed { ref reason, detail: None, .. } if reason == "r")
+        );
         let ServerLine::Reply(r) = line(
             r#"{"type":"reply","v":1,"id":4,"ok":false,"error":{"code":"quota","message":"m","hint":"h"},"extra":true}"#,
         ) else {

@@ -80,10 +80,7 @@ pub fn request_envelope(schema: &mut Schema) {
         return;
     };
     for variant in variants {
-        let Some(props) = variant
-            .get_mut("properties")
-            .and_then(Value::as_object_mut)
-        else {
+        let Some(props) = variant.get_mut("properties").and_then(Value::as_object_mut) else {
             continue;
         };
         for (name, s) in &envelope {
@@ -164,7 +161,12 @@ mod tests {
         assert_eq!(hello["additionalProperties"], false);
         assert_eq!(hello["properties"]["v"]["const"], 1);
         // The document's top: a line either way.
-        assert_eq!(doc["anyOf"].as_array().map(Vec::len), Some(2), "{}", doc["anyOf"]);
+        assert_eq!(
+            doc["anyOf"].as_array().map(Vec::len),
+            Some(2),
+            "{}",
+            doc["anyOf"]
+        );
         assert!(definition(&doc, "HelloReply").is_some());
         assert!(definition(&doc, "NoSuchType").is_none());
     }
