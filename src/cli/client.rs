@@ -59,7 +59,7 @@ impl Client {
                 bail!("rigd closed the connection");
             }
             match server_line::decode(&line) {
-                Ok(Decoded::Line(l)) => return Ok(l),
+                Ok(Decoded::Line(l)) => return Ok(*l),
                 Ok(Decoded::Skipped(what)) => tracing::debug!("skipped {what} from rigd"),
                 Err(e) => bail!("unreadable line from rigd: {e}: {}", line.trim_end()),
             }

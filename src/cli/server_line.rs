@@ -13,7 +13,7 @@ use serde_json::Value;
 /// A line from the daemon, decoded.
 #[derive(Debug)]
 pub enum Decoded {
-    Line(ServerLine),
+    Line(Box<ServerLine>),
     /// Something this build does not know (named), skipped.
     Skipped(String),
 }
@@ -34,7 +34,7 @@ pub fn decode(line: &str) -> Result<Decoded, String> {
         None => return Err("a line without `type`".into()),
     }
     match serde_json::from_value::<ServerLine>(value.clone()) {
-        Ok(l) => Ok(Decoded::Line(l)),
+        Ok(l) => Ok(Decoded::Line(Box::new(l))),
         Err(first) => without_documents(value).ok_or_else(|| first.to_string()),
     }
 }
@@ -56,7 +56,7 @@ fn without_documents(mut value: Value) -> Option<Decoded> {
     }
     let line = serde_json::from_value::<ServerLine>(value).ok()?;
     tracing::debug!("rigd sent {nested:?} in a shape this rigctl does not know: left out");
-    Some(Decoded::Line(line))
+    Some(Decoded::Line(Box::new(line)))
 }
 
 #[cfg(test)]
@@ -66,7 +66,7 @@ mod tests {
 
     fn line(text: &str) -> ServerLine {
         match decode(text) {
-            Ok(Decoded::Line(l)) => l,
+            Ok(Decoded::Line(l)) => *l,
             other => panic!("{text}: {other:?}"),
         }
     }
