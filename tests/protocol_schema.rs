@@ -9,7 +9,7 @@
 
 mod support;
 
-use rigd::daemon::protocol::EVENT_KINDS;
+use rigd::daemon::protocol::{EVENT_KINDS, REQUEST_KINDS};
 use rigd::daemon::schema::{definition, document, document_text};
 use rigd::rig::{simulated, SimSettings};
 use rigd::sim::CameraModel;
@@ -130,7 +130,9 @@ impl Tap {
 /// Drive a daemon through every request kind and every event a job can end with but
 /// `failed` (which needs a faulty rig: tests/daemon_faults.rs).
 fn traffic(tap: &mut Tap) {
-    tap.ok(json!({"kind": "hello"}));
+    let hello = tap.ok(json!({"kind": "hello"}));
+    assert_eq!(hello["capabilities"]["requests"], json!(REQUEST_KINDS));
+    assert_eq!(hello["capabilities"]["events"], json!(EVENT_KINDS));
     tap.ok(json!({"kind": "status"}));
     tap.ok(json!({"kind": "subscribe"}));
     let job = json!({"step_um": 50.0, "steps": 3, "settle_ms": 0, "k": 2, "label": "schema"});
