@@ -4,10 +4,17 @@
 Usage: client.py SOCKET
 Says hello, submits a 5-frame capture job, follows its events to the end, fetches the
 result and checks a bad request gets an error reply. Exits non-zero if anything is off.
+
+Like every client it is tolerant of a newer daemon (docs/protocol.md, "Compatibility"): it
+skips line types and event kinds it does not know and ignores fields it does not use.
 """
 import json
 import socket
 import sys
+
+# The event kinds this client handles; others (a newer daemon's) are skipped. `hello`'s
+# capabilities list what the daemon may send.
+KNOWN_EVENTS = {"accepted", "started", "step", "processed", "result", "finished", "failed", "cancelled"}
 
 
 class Rigd:
@@ -19,10 +26,15 @@ class Rigd:
         self.events = []
 
     def _line(self):
-        line = self.file.readline()
-        if not line:
-            raise RuntimeError("rigd closed the connection")
-        return json.loads(line)
+        """The next reply or event of a kind this client knows; anything else is skipped."""
+        while True:
+            line = self.file.readline()
+            if not line:
+                raise RuntimeError("rigd closed the connection")
+            msg = json.loads(line)
+            kind = msg.get("type")
+            if kind == "reply" or (kind == "event" and msg.get("event") in KNOWN_EVENTS):
+                return msg
 
     def request(self, kind, **fields):
         """Send a request; return its result, or raise with the daemon's error."""
@@ -36,8 +48,9 @@ class Rigd:
                 self.events.append(msg)  # events may arrive before the reply
             elif msg.get("id") == rid:
                 if not msg["ok"]:
-                    raise RuntimeError("{code}: {message}".format(**msg["error"]))
-                return msg["result"]
+                    error = msg.get("error", {})
+                    raise RuntimeError("{}: {}".format(error.get("code"), error.get("message")))
+                return msg.get("result")
 
     def event(self):
         if self.events:
@@ -52,6 +65,8 @@ def main(path):
     rigd = Rigd(path)
     hello = rigd.request("hello")
     print("rigd", hello["rigd"], "protocol", hello["protocol"], "rig", hello["rig"]["mode"])
+    serves = hello.get("capabilities", {}).get("requests")  # absent before capabilities
+    assert serves is None or "submit" in serves, serves
     rigd.request("subscribe")  # all jobs' events: none of the new job's can be missed
     job = rigd.request("submit", job={"step_um": 50.0, "steps": 5, "settle_ms": 0, "process": False})
     job_id = job["job_id"]

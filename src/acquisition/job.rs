@@ -8,7 +8,18 @@ use crate::pipeline::{Combine, Estimator, Registration};
 use serde::{Deserialize, Serialize};
 
 /// Which stage a job steps.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+    Default,
+    clap::ValueEnum,
+    schemars::JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum StageKind {
     /// The numerically controlled axis (GRBL).
@@ -28,7 +39,9 @@ impl std::fmt::Display for StageKind {
 }
 
 /// The paper's three cases (Alzarok et al., section 4).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum, schemars::JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum PaperCase {
     /// One raw frame.
@@ -58,7 +71,18 @@ impl PaperCase {
 }
 
 /// Where a job's per-frame displacements come from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+    Default,
+    clap::ValueEnum,
+    schemars::JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum JobRegistration {
     /// Measured in the image (the paper's).
@@ -113,7 +137,7 @@ fn default_true() -> bool {
 
 /// One stage stepped: `steps` frames `step_um` apart from `start_um` (default: the axis's
 /// scan start, the piezo's lower soft limit).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Line {
     #[serde(default)]
@@ -127,7 +151,7 @@ pub struct Line {
 /// A 2-D grid over the axis and the piezo: for each of the outer line's positions, every
 /// position of the inner line (with `snake`, every other row backwards, so no row ends
 /// with a return to its start).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Grid {
     pub inner: Line,
@@ -138,7 +162,7 @@ pub struct Grid {
 
 /// One frame of a `list` plan. A stage left out stays where the previous point put it
 /// (before the first point that gives it: at its first given position).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ListPoint {
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -150,7 +174,7 @@ pub struct ListPoint {
 /// Where a job's frames are taken (docs/protocol.md, "Plans"): a line on one stage, a
 /// grid over the axis and the piezo, or a list of positions. Without one, a job's
 /// `step_um`/`steps` (or `study`) are a line on its `stage`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum ScanPlan {
     Line(Line),
@@ -171,7 +195,7 @@ impl ScanPlan {
 
 /// A capture job. Either a single scan (`step_um`, `steps`, `k`), a study of the paper's
 /// cases (`study`) or a `plan` (line, grid, list), repeated `repeats` times.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct JobSpec {
     #[serde(default)]
@@ -249,7 +273,7 @@ impl Default for JobSpec {
 
 /// Processing settings, each optional: a replay's overrides of the recorded ones, and a
 /// rig's `[pipeline]` defaults for what a job leaves out.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Processing {
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use std::fmt;
 
 /// Where a stage was left after the job stopped it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct StoppedAt {
     pub device: String,
     /// The reported position after the stop; `None` if the stage did not report.
@@ -60,7 +60,7 @@ fn at(stopped: &Option<StoppedAt>) -> String {
 }
 
 /// The part of a step a stop arrived in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Phase {
     Move,
@@ -262,7 +262,9 @@ pub fn device_of(e: &HwError) -> &str {
 }
 
 /// What kind of end a job had (besides finishing).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, schemars::JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum EndKind {
     Cancelled,
@@ -276,7 +278,7 @@ pub enum EndKind {
 }
 
 /// A stopped or failed job's reason as fields (events' and the manifest's `detail`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default, schemars::JsonSchema)]
 pub struct EndDetail {
     pub kind: EndKind,
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -1,5 +1,6 @@
 //! A blocking client of the daemon's socket, shared by the rigctl subcommands.
 
+use crate::cli::server_line::{self, Decoded};
 use crate::daemon::protocol::{Event, EventBody, Request, ServerLine};
 use anyhow::{anyhow, bail, Context};
 use std::collections::VecDeque;
@@ -52,12 +53,20 @@ impl Client {
         })
     }
 
+    /// The next line this client knows: lines and event kinds of a newer daemon are skipped
+    /// (`server_line`).
     fn read_line(&mut self) -> anyhow::Result<ServerLine> {
-        let mut line = String::new();
-        if self.reader.read_line(&mut line)? == 0 {
-            bail!("rigd closed the connection");
+        loop {
+            let mut line = String::new();
+            if self.reader.read_line(&mut line)? == 0 {
+                bail!("rigd closed the connection");
+            }
+            match server_line::decode(&line) {
+                Ok(Decoded::Line(l)) => return Ok(*l),
+                Ok(Decoded::Skipped(what)) => tracing::debug!("skipped {what} from rigd"),
+                Err(e) => bail!("unreadable line from rigd: {e}: {}", line.trim_end()),
+            }
         }
-        serde_json::from_str(&line).with_context(|| format!("unreadable line from rigd: {line}"))
     }
 
     /// Send a request and wait for its reply; events read meanwhile are kept for later.

@@ -12,6 +12,8 @@ pub mod process;
 pub mod replay;
 pub mod results;
 pub mod rig;
+pub mod schema;
+pub mod server_line;
 pub mod status;
 pub mod submit;
 pub mod text;
@@ -60,6 +62,8 @@ pub enum Command {
     Home(rig::RigArgs),
     /// Close and reopen a stage's port through the daemon (after the port was lost).
     Reconnect(rig::RigArgs),
+    /// Print the protocol's JSON Schema (docs/protocol.schema.json).
+    Schema(schema::SchemaArgs),
 }
 
 /// Entry point of the `rigctl` binary.
@@ -80,5 +84,6 @@ pub fn main() -> anyhow::Result<()> {
         Command::Unlock(a) => rig::run(RigAction::Unlock, a),
         Command::Home(a) => rig::run(RigAction::Home, a),
         Command::Reconnect(a) => rig::run(RigAction::Reconnect, a),
+        Command::Schema(a) => schema::run(a),
     }
 }

@@ -18,7 +18,7 @@ const KEEP_FINISHED: usize = 256;
 /// so the queue must not grow with what clients send.
 pub const MAX_QUEUED: usize = 256;
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum JobState {
     Queued,
@@ -61,7 +61,7 @@ pub struct JobRecord {
 }
 
 /// The public view of a job (status and list replies).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct JobStatus {
     pub job_id: u64,
     pub state: JobState,

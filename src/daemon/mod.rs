@@ -29,6 +29,7 @@ pub mod recorder;
 pub mod replay;
 pub mod rig_commands;
 pub mod rig_state;
+pub mod schema;
 pub mod server;
 pub mod session;
 pub mod strict_json;

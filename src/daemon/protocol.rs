@@ -29,9 +29,11 @@ pub const LIST_MAX: u32 = 1000;
 /// numbers, any double) holds exactly. Larger integers and fractions are refused.
 pub const MAX_ID: u64 = (1 << 53) - 1;
 
-/// What a client asks. Tagged by `kind`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// What a client asks. Tagged by `kind`. (Its schema also has the line's `v` and `id`:
+/// `decode_request` takes them off before the request is decoded.)
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+#[schemars(transform = crate::daemon::schema::request_envelope)]
 pub enum Request {
     /// Protocol and daemon versions, rig description. (A struct variant, not a unit one: serde
     /// lets unknown fields through on an internally tagged unit variant.)
@@ -46,8 +48,8 @@ pub enum Request {
     },
     /// Jobs known to this daemon run and the sessions on disk: a page of each, newest first.
     List {
-        /// At most this many jobs and this many sessions ([`LIST_DEFAULT`] when left out,
-        /// at most [`LIST_MAX`]).
+        /// At most this many jobs and this many sessions (100 when left out, at most 1000:
+        /// `LIST_DEFAULT`, `LIST_MAX`).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         limit: Option<u32>,
         /// Only those with a job id below this one (the previous page's `next_before`).
@@ -90,6 +92,22 @@ pub enum Request {
     },
 }
 
+/// The request kinds this daemon serves, one per [`Request`] variant (`hello` lists them).
+/// A new request adds its kind here: a test (`daemon::schema`) fails while one is missing.
+pub const REQUEST_KINDS: &[&str] = &[
+    "hello",
+    "submit",
+    "status",
+    "list",
+    "cancel",
+    "result",
+    "subscribe",
+    "replay",
+    "unlock",
+    "home",
+    "reconnect",
+];
+
 impl Request {
     /// The rig request this is, if it is one (`unlock`, `home`, `reconnect`).
     pub fn rig_action(&self) -> Option<(RigAction, Option<StageKind>)> {
@@ -103,7 +121,7 @@ impl Request {
 }
 
 /// Error codes of error replies.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ErrorCode {
     /// Not JSON, or not an object.
@@ -123,9 +141,16 @@ pub enum ErrorCode {
     /// A rig request the controller refused or failed.
     Hardware,
     Internal,
+    /// A code this build does not know (a newer daemon's): clients read it, the daemon
+    /// never sends it.
+    #[serde(other)]
+    #[schemars(skip)]
+    Other,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, thiserror::Error)]
+#[derive(
+    Debug, Clone, PartialEq, Serialize, Deserialize, thiserror::Error, schemars::JsonSchema,
+)]
 #[error("{}: {message}", crate::cli::text::wire_name(code))]
 pub struct ProtoError {
     pub code: ErrorCode,
@@ -266,20 +291,25 @@ fn short(v: &serde_json::Value) -> String {
 }
 
 /// One line the server writes: a reply or an event.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum ServerLine {
     Reply(Reply),
     Event(Event),
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Reply {
+    #[schemars(schema_with = "crate::daemon::schema::version")]
     pub v: u32,
+    /// The request's `id`, echoed (none on a line that answers no request).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(schema_with = "crate::daemon::schema::id")]
     pub id: Option<serde_json::Value>,
     pub ok: bool,
+    /// The request's result: one shape per request kind (`ReplyBody`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(with = "ReplyBody")]
     pub result: Option<serde_json::Value>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error: Option<ProtoError>,
@@ -307,15 +337,16 @@ impl Reply {
 }
 
 /// Something that happened to a job. Every event carries the job id.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Event {
+    #[schemars(schema_with = "crate::daemon::schema::version")]
     pub v: u32,
     pub job_id: u64,
     #[serde(flatten)]
     pub body: EventBody,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(tag = "event", rename_all = "snake_case")]
 pub enum EventBody {
     Accepted {
@@ -386,6 +417,19 @@ pub enum EventBody {
     },
 }
 
+/// The event kinds this daemon sends, one per [`EventBody`] variant (`hello` lists them).
+/// A new event adds its kind here: a test (`daemon::schema`) fails while one is missing.
+pub const EVENT_KINDS: &[&str] = &[
+    "accepted",
+    "started",
+    "step",
+    "processed",
+    "result",
+    "finished",
+    "failed",
+    "cancelled",
+];
+
 impl EventBody {
     /// Whether this event ends the job.
     pub fn is_terminal(&self) -> bool {
@@ -425,7 +469,7 @@ impl EventBody {
 }
 
 /// The rig as `hello` describes it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct RigSummary {
     pub mode: RigMode,
     pub axis_limits_um: [f64; 2],
@@ -436,7 +480,7 @@ pub struct RigSummary {
     pub job_defaults: Processing,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct HelloReply {
     pub protocol: u32,
     pub rigd: String,
@@ -445,9 +489,33 @@ pub struct HelloReply {
     /// `ready`, `busy` or `fault` (with its reason and what clears it).
     #[serde(default)]
     pub rig_state: RigState,
+    /// What this daemon serves and sends.
+    #[serde(default)]
+    pub capabilities: Capabilities,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// `hello`'s list of what this daemon speaks: a client can check for a request before it
+/// sends it, and knows which event kinds to expect (it must skip others: docs/protocol.md).
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize, schemars::JsonSchema)]
+pub struct Capabilities {
+    /// The request kinds it serves.
+    pub requests: Vec<String>,
+    /// The event kinds it may send.
+    pub events: Vec<String>,
+}
+
+impl Capabilities {
+    /// This build's: [`REQUEST_KINDS`] and [`EVENT_KINDS`].
+    pub fn this_daemon() -> Capabilities {
+        let owned = |kinds: &[&str]| kinds.iter().map(|k| k.to_string()).collect();
+        Capabilities {
+            requests: owned(REQUEST_KINDS),
+            events: owned(EVENT_KINDS),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct SubmitReply {
     pub job_id: u64,
     /// Jobs ahead of this one.
@@ -458,7 +526,7 @@ pub struct SubmitReply {
 }
 
 /// `status` without a job id: the daemon's.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct DaemonStatus {
     pub running: Option<JobStatus>,
     pub queued: Vec<u64>,
@@ -471,7 +539,7 @@ pub struct DaemonStatus {
 }
 
 /// The reply to `unlock`, `home`, `reconnect`: what the controller reports after it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct RigActionReply {
     pub request: RigAction,
     pub stage: StageKind,
@@ -481,7 +549,7 @@ pub struct RigActionReply {
 }
 
 /// A session on disk, as `list` shows it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct SessionSummary {
     pub name: String,
     pub job_id: u64,
@@ -496,7 +564,7 @@ pub struct SessionSummary {
     pub timing: crate::daemon::timing::JobTiming,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct ListReply {
     pub jobs: Vec<JobStatus>,
     pub sessions: Vec<SessionSummary>,
@@ -505,20 +573,20 @@ pub struct ListReply {
 }
 
 /// A queued job is cancelled at once; a running one is told to stop.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum CancelState {
     Cancelled,
     Cancelling,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct CancelReply {
     pub job_id: u64,
     pub state: CancelState,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct ResultReply {
     pub job_id: u64,
     pub session: String,
@@ -528,14 +596,14 @@ pub struct ResultReply {
     pub result: Option<serde_json::Value>,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct SubscribeReply {
     pub subscribed: Option<u64>,
     pub status: Option<JobStatus>,
 }
 
 /// The `result` of an ok reply, one shape per request.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, schemars::JsonSchema)]
 #[serde(untagged)]
 pub enum ReplyBody {
     Hello(HelloReply),

@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 
 /// The requests that act on the rig outside a job (issue 13's `position`/`move`/`stop`
 /// will join them).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum RigAction {
     /// Clear a latched alarm or error (GRBL `$X`; GCS `ERR?` and servo on).
@@ -36,7 +36,7 @@ impl RigAction {
 }
 
 /// Why the rig cannot run jobs, and what clears it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct RigFault {
     /// The stage in fault ("axis", "piezo").
     pub device: String,
@@ -71,7 +71,7 @@ impl RigFault {
 
 /// The rig state on the wire: `{"state":"ready"}`, `{"state":"busy","job_id":3}`,
 /// `{"state":"fault","device":"axis","reason":"…","clear_with":["unlock","home"]}`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default, schemars::JsonSchema)]
 #[serde(tag = "state", rename_all = "snake_case")]
 pub enum RigState {
     #[default]

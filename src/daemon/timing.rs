@@ -20,7 +20,7 @@ const KEEP: usize = 64;
 pub const MOVE_GRAB_GUESS_S: f64 = 0.1;
 
 /// Where a job's per-frame time comes from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum EtaBasis {
     /// The job's own recorded steps (median interval).
@@ -33,7 +33,7 @@ pub enum EtaBasis {
 
 /// The timing fields of a job's status; each absent when it does not apply (a queued job has
 /// no `started_at`, a finished one no `eta_s`).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct JobTiming {
     /// When it started running (RFC 3339, UTC).
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -68,7 +68,7 @@ pub fn short_um(v: f64) -> String {
 }
 
 /// Motion state as the controller reports it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum MotionState {
     Idle,

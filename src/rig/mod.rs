@@ -31,7 +31,7 @@ use crate::board::Board;
 use serde::{Deserialize, Serialize};
 
 /// Which kind of rig a daemon runs (recorded in sessions as "sim", "replay", "hardware").
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum RigMode {
     /// The simulated rig (`rigd --sim`, or a config whose every driver is "sim").

@@ -32,6 +32,7 @@ use serde::{Deserialize, Serialize};
 /// How a circle centre is estimated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum Estimator {
     /// What the paper did: centroids of the thresholded red regions.
@@ -46,6 +47,7 @@ pub enum Estimator {
 /// How frames are combined before (or instead of) measuring.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum Combine {
     /// The paper's: interpolate each frame by k (cubic), shift on the fine grid, average.
@@ -63,6 +65,7 @@ pub enum Combine {
 /// Where each frame's displacement comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum Registration {
     /// Measured in the image from the targets' outer circles (the paper's).

@@ -1,0 +1,314 @@
+//! The protocol's JSON Schema against the code: docs/protocol.schema.json is what the code
+//! generates, and a real daemon's traffic (every request sent, every reply and event it
+//! writes, over its socket) validates against it. The lines are checked against a closed
+//! copy of the schema (no property it does not describe), so a field the daemon sends
+//! that the schema lacks fails here too; the committed schema itself stays open, since
+//! clients must ignore fields they do not know.
+
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
+mod support;
+
+use rigd::daemon::protocol::{EVENT_KINDS, REQUEST_KINDS};
+use rigd::daemon::schema::{definition, document, document_text};
+use rigd::rig::{simulated, SimSettings};
+use rigd::sim::CameraModel;
+use serde_json::{json, Value};
+use std::collections::{BTreeMap, BTreeSet};
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::UnixStream;
+use std::path::Path;
+use support::daemon::Daemon;
+
+const REGENERATE: &str = "cargo run --bin rigctl -- schema > docs/protocol.schema.json";
+
+#[test]
+fn the_committed_schema_is_what_the_code_generates() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/protocol.schema.json");
+    let committed = std::fs::read_to_string(&path).unwrap_or_default();
+    assert!(
+        committed == document_text(),
+        "docs/protocol.schema.json is not what the wire types generate (a request, event or \
+         field was added or changed): regenerate it with `{REGENERATE}` and commit it"
+    );
+}
+
+/// The reply body (a `$defs` name) each request kind's `result` has. A new request adds
+/// its line here and to the traffic below.
+fn body_of(req: &Value) -> &'static str {
+    let kind = req["kind"].as_str().unwrap();
+    match kind {
+        "hello" => "HelloReply",
+        "submit" | "replay" => "SubmitReply",
+        "status" if req.get("job_id").is_some() => "JobStatus",
+        "status" => "DaemonStatus",
+        "list" => "ListReply",
+        "cancel" => "CancelReply",
+        "result" => "ResultReply",
+        "subscribe" => "SubscribeReply",
+        "unlock" | "home" | "reconnect" => "RigActionReply",
+        _ => panic!("no reply body for `{kind}`: add it to body_of in tests/protocol_schema.rs"),
+    }
+}
+
+/// A client that keeps every line it sends and receives.
+struct Tap {
+    out: UnixStream,
+    input: BufReader<UnixStream>,
+    next_id: u64,
+    sent: Vec<Value>,
+    got: Vec<Value>,
+    /// Each ok reply's result with the request it answers.
+    results: Vec<(Value, Value)>,
+}
+
+impl Tap {
+    fn connect(socket: &Path) -> Tap {
+        let s = UnixStream::connect(socket).unwrap();
+        Tap {
+            input: BufReader::new(s.try_clone().unwrap()),
+            out: s,
+            next_id: 1,
+            sent: Vec::new(),
+            got: Vec::new(),
+            results: Vec::new(),
+        }
+    }
+
+    fn line(&mut self) -> Value {
+        let mut l = String::new();
+        assert!(self.input.read_line(&mut l).unwrap() > 0, "rigd closed");
+        let v: Value = serde_json::from_str(&l).unwrap();
+        self.got.push(v.clone());
+        v
+    }
+
+    /// Send `req` (with `v` and a fresh `id`); its reply.
+    fn send(&mut self, mut req: Value) -> Value {
+        let id = self.next_id;
+        self.next_id += 1;
+        req["v"] = 1.into();
+        req["id"] = id.into();
+        writeln!(self.out, "{req}").unwrap();
+        self.sent.push(req.clone());
+        loop {
+            let l = self.line();
+            if l["type"] == "reply" && l["id"] == id {
+                if l["ok"] == true {
+                    self.results.push((req, l["result"].clone()));
+                }
+                return l;
+            }
+        }
+    }
+
+    /// The result of `req`, which must succeed.
+    fn ok(&mut self, req: Value) -> Value {
+        let r = self.send(req);
+        assert_eq!(r["ok"], true, "{r}");
+        r["result"].clone()
+    }
+
+    /// Lines until job `id`'s terminal event; that event.
+    fn until_end(&mut self, id: u64) -> Value {
+        loop {
+            let l = self.line();
+            let end =
+                ["finished", "failed", "cancelled"].contains(&l["event"].as_str().unwrap_or(""));
+            if l["job_id"] == id && end {
+                return l;
+            }
+        }
+    }
+
+    /// Lines until job `id`'s first `step` event.
+    fn until_step(&mut self, id: u64) {
+        while !(self.line()["event"] == "step" && self.got.last().unwrap()["job_id"] == id) {}
+    }
+}
+
+/// Drive a daemon through every request kind and every event a job can end with but
+/// `failed` (which needs a faulty rig: tests/daemon_faults.rs).
+fn traffic(tap: &mut Tap) {
+    let hello = tap.ok(json!({"kind": "hello"}));
+    assert_eq!(hello["capabilities"]["requests"], json!(REQUEST_KINDS));
+    assert_eq!(hello["capabilities"]["events"], json!(EVENT_KINDS));
+    tap.ok(json!({"kind": "status"}));
+    tap.ok(json!({"kind": "subscribe"}));
+    let job = json!({"step_um": 50.0, "steps": 3, "settle_ms": 0, "k": 2, "label": "schema"});
+    let id = tap.ok(json!({"kind": "submit", "job": job}))["job_id"]
+        .as_u64()
+        .unwrap();
+    let end = tap.until_end(id);
+    assert_eq!(end["event"], "finished", "{end}");
+    let session = end["session"].clone();
+    tap.ok(json!({"kind": "status", "job_id": id}));
+    tap.ok(json!({"kind": "result", "job_id": id}));
+    tap.ok(json!({"kind": "list", "limit": 5}));
+    tap.ok(json!({"kind": "subscribe", "job_id": id}));
+    let replay = json!({"kind": "replay", "session": session, "processing": {"combine": "mean"}});
+    let again = tap.ok(replay)["job_id"].as_u64().unwrap();
+    tap.until_end(again);
+    // A long capture, cancelled once it has a frame: `cancelled` with its detail.
+    let long = json!({"step_um": 10.0, "steps": 2000, "settle_ms": 5, "process": false});
+    let long = tap.ok(json!({"kind": "submit", "job": long}))["job_id"]
+        .as_u64()
+        .unwrap();
+    tap.until_step(long);
+    tap.ok(json!({"kind": "cancel", "job_id": long}));
+    assert_eq!(tap.until_end(long)["event"], "cancelled");
+    tap.ok(json!({"kind": "unlock"}));
+    tap.ok(json!({"kind": "home"}));
+    tap.send(json!({"kind": "reconnect", "stage": "piezo"}));
+    // Error replies: a job the rig refuses, a job that is not there.
+    tap.send(json!({"kind": "submit", "job": {"step_um": 0.0, "steps": 3}}));
+    tap.send(json!({"kind": "cancel", "job_id": 999_999}));
+}
+
+/// `doc` with every object closed where that is sound: `unevaluatedProperties: false` on
+/// each definition, but those a `$ref` completes with its own properties (internally
+/// tagged newtype variants: `Reply` and `Event` under `ServerLine`), which the referrer's
+/// closing covers.
+fn closed(doc: &Value) -> Value {
+    fn completed(v: &Value, out: &mut BTreeSet<String>) {
+        match v {
+            Value::Object(m) => {
+                if let (Some(Value::String(r)), true) =
+                    (m.get("$ref"), m.contains_key("properties"))
+                {
+                    out.insert(r.trim_start_matches("#/$defs/").to_string());
+                }
+                m.values().for_each(|x| completed(x, out));
+            }
+            Value::Array(a) => a.iter().for_each(|x| completed(x, out)),
+            _ => {}
+        }
+    }
+    let mut skip = BTreeSet::new();
+    completed(doc, &mut skip);
+    assert!(skip.contains("Event") && skip.contains("Reply"), "{skip:?}");
+    let mut doc = doc.clone();
+    for (name, def) in doc["$defs"].as_object_mut().unwrap() {
+        if !skip.contains(name) {
+            def["unevaluatedProperties"] = false.into();
+        }
+    }
+    doc
+}
+
+/// A `rigd --sim` rig whose small frames show the small board's two targets, so frames are
+/// processed (`processed` events).
+fn small_sim_rig(dir: &Path) -> rigd::rig::Rig {
+    let board = dir.join("small.toml");
+    std::fs::write(&board, support::SMALL_BOARD).unwrap();
+    simulated(&SimSettings {
+        camera: CameraModel {
+            width: 300,
+            height: 200,
+            supersample: 2,
+            frame_period_ms: 2.0,
+            exposure_ms: 1.0,
+            ..CameraModel::default()
+        },
+        board_file: Some(board),
+        ..SimSettings::default()
+    })
+    .unwrap()
+}
+
+fn validator(doc: &Value, name: &str) -> jsonschema::Validator {
+    let s = definition(doc, name).unwrap_or_else(|| panic!("no `{name}` in the schema"));
+    jsonschema::draft202012::new(&s).unwrap_or_else(|e| panic!("schema `{name}`: {e}"))
+}
+
+fn errors(v: &jsonschema::Validator, instance: &Value) -> Vec<String> {
+    v.iter_errors(instance)
+        .map(|e| format!("{e} at {}", e.instance_path()))
+        .collect()
+}
+
+#[test]
+fn a_daemons_traffic_validates_against_the_schema() {
+    let dir = tempfile::tempdir().unwrap();
+    let daemon = Daemon::start(small_sim_rig(dir.path()));
+    let mut tap = Tap::connect(&daemon.bg.socket);
+    traffic(&mut tap);
+
+    let doc = closed(&document());
+    let request = validator(&doc, "Request");
+    for r in &tap.sent {
+        let e = errors(&request, r);
+        assert!(e.is_empty(), "request {r}: {e:?}");
+    }
+    let line = validator(&doc, "ServerLine");
+    for l in &tap.got {
+        let e = errors(&line, l);
+        assert!(e.is_empty(), "line {l}: {e:?}");
+    }
+    let mut bodies = BTreeMap::new();
+    for (req, result) in &tap.results {
+        let name = body_of(req);
+        let v = bodies.entry(name).or_insert_with(|| validator(&doc, name));
+        let e = errors(v, result);
+        assert!(e.is_empty(), "{name} (the reply to {req}): {result}: {e:?}");
+    }
+    // What the traffic held: every reply body, every event kind but `failed`.
+    let seen: BTreeSet<&str> = tap.got.iter().filter_map(|l| l["event"].as_str()).collect();
+    let want: BTreeSet<&str> = EVENT_KINDS
+        .iter()
+        .copied()
+        .filter(|k| *k != "failed")
+        .collect();
+    assert_eq!(seen, want, "event kinds in the traffic");
+    assert_eq!(bodies.len(), 9, "reply bodies checked: {:?}", bodies.keys());
+    assert!(tap.got.iter().any(|l| l["ok"] == false), "no error reply");
+
+    // The closed copy is strict: an unknown field anywhere is refused. The committed
+    // schema lets it through (clients ignore what they do not know).
+    let step = tap.got.iter().find(|l| l["event"] == "step").unwrap();
+    let open = validator(&document(), "ServerLine");
+    let mut top = step.clone();
+    top["extra"] = 1.into();
+    let mut nested = step.clone();
+    nested["timings"]["extra"] = 1.into();
+    for with in [top, nested] {
+        assert!(!line.is_valid(&with), "closed schema took {with}");
+        assert!(open.is_valid(&with), "open schema refused {with}");
+    }
+}
+
+#[test]
+fn what_the_daemon_refuses_the_schema_refuses() {
+    let doc = document();
+    let request = validator(&doc, "Request");
+    for bad in [
+        json!({"kind": "launch"}),
+        json!({"kind": "status", "jobid": 3}),
+        json!({"kind": "hello", "x": 1}),
+        json!({"v": 2, "kind": "hello"}),
+        json!({"id": 1.5, "kind": "hello"}),
+        json!({"id": 9_007_199_254_740_992_u64, "kind": "hello"}),
+        json!({"kind": "submit", "job": {"step_um": "fifty"}}),
+        json!({"kind": "submit", "job": {"steps": 3, "step": 5}}),
+        json!({"kind": "submit", "job": ["axis", 50, 3]}),
+        json!({"kind": "cancel"}),
+    ] {
+        let line = bad.to_string();
+        let refused = rigd::daemon::protocol::decode_request(line.as_bytes()).is_err();
+        assert!(refused, "the daemon took {line}");
+        assert!(!request.is_valid(&bad), "the schema took {line}");
+    }
+    for good in [
+        json!({"kind": "hello"}),
+        json!({"v": 1, "id": "a", "kind": "list", "limit": 5, "before": 40}),
+        json!({"id": -9_007_199_254_740_991_i64, "kind": "submit", "job": {"steps": 3, "step_um": 5}}),
+    ] {
+        let line = good.to_string();
+        assert!(
+            rigd::daemon::protocol::decode_request(line.as_bytes()).is_ok(),
+            "{line}"
+        );
+        let e = errors(&request, &good);
+        assert!(e.is_empty(), "{line}: {e:?}");
+    }
+}
