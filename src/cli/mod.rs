@@ -12,6 +12,7 @@ pub mod replay;
 pub mod rig;
 pub mod status;
 pub mod submit;
+pub mod view;
 pub mod watch;
 
 use crate::daemon::rig_state::RigAction;
@@ -57,6 +58,10 @@ pub enum Command {
     Home(rig::RigArgs),
     /// Close and reopen a stage's port through the daemon (after the port was lost).
     Reconnect(rig::RigArgs),
+    /// One fresh frame (a running job's next one) with the targets in it, saved as PNG.
+    Snap(view::SnapArgs),
+    /// The live view: targets, their centres and sharpness, refreshed; the latest PNG kept.
+    View(view::ViewArgs),
 }
 
 /// Entry point of the `rigctl` binary.
@@ -77,5 +82,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Unlock(a) => rig::run(RigAction::Unlock, a),
         Command::Home(a) => rig::run(RigAction::Home, a),
         Command::Reconnect(a) => rig::run(RigAction::Reconnect, a),
+        Command::Snap(a) => view::snap(a),
+        Command::View(a) => view::view(a),
     }
 }

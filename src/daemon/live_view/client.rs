@@ -129,7 +129,7 @@ async fn forward(mut rx: watch::Receiver<Option<Line>>, out: Arc<Outbox>) {
         // The writer drops a line once it is on the socket: until then, wait.
         loop {
             let written = out.written();
-            if !in_flight.as_ref().is_some_and(|l| Arc::strong_count(l) > 1) {
+            if in_flight.as_ref().is_none_or(|l| Arc::strong_count(l) <= 1) {
                 break;
             }
             written.await;
