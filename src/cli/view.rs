@@ -237,7 +237,9 @@ mod tests {
     fn crops_parse_or_say_what_is_expected() {
         assert_eq!(parse_crop("1, 2,30,40"), Ok([1, 2, 30, 40]));
         assert!(parse_crop("1,2,3").unwrap_err().contains("four numbers"));
-        assert!(parse_crop("a,b,c,d").unwrap_err().contains("X,Y,WIDTH,HEIGHT"));
+        assert!(parse_crop("a,b,c,d")
+            .unwrap_err()
+            .contains("X,Y,WIDTH,HEIGHT"));
     }
 
     #[test]
@@ -255,7 +257,11 @@ mod tests {
         };
         let mut best = HashMap::new();
         let full = target_lines(&[t(0.2)], &mut best);
-        assert!(full[0].contains(&format!("[{}]", "#".repeat(BAR))), "{}", full[0]);
+        assert!(
+            full[0].contains(&format!("[{}]", "#".repeat(BAR))),
+            "{}",
+            full[0]
+        );
         let half = target_lines(&[t(0.1)], &mut best);
         let want = format!("[{}{}]", "#".repeat(BAR / 2), " ".repeat(BAR / 2));
         assert!(half[0].contains(&want), "{}", half[0]);

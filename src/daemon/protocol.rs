@@ -399,7 +399,8 @@ pub enum EventBody {
         reason: Option<String>,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         detail: Option<EndDetail>,
-    },    /// A live-view frame, after `preview` (`job_id` 0: no job, the live view grabbed it).
+    },
+    /// A live-view frame, after `preview` (`job_id` 0: no job, the live view grabbed it).
     Preview(Box<ViewFrame>),
 }
 

@@ -141,6 +141,9 @@ async fn forward(mut rx: watch::Receiver<Option<Line>>, out: Arc<Outbox>) {
         let Some(line) = rx.borrow_and_update().clone() else {
             continue;
         };
+        // A copy of its own (the slot keeps the original): once the writer drops it, this
+        // is its only holder.
+        let line: Line = Arc::from(&line[..]);
         if out.offer(line.clone()) {
             in_flight = Some(line);
         }

@@ -98,7 +98,11 @@ pub async fn grab(live: &std::sync::Arc<crate::daemon::Shared>, rig: Rig) -> Rig
 }
 
 /// A fresh frame (exposed at or after `not_before`), then where the stages are.
-fn grab_now(rig: &mut Rig, not_before: SystemTime, timeout: Duration) -> Result<LiveFrame, HwError> {
+fn grab_now(
+    rig: &mut Rig,
+    not_before: SystemTime,
+    timeout: Duration,
+) -> Result<LiveFrame, HwError> {
     // Fresh: nothing queued from before now (the frame must still be due's).
     let not_before = not_before.max(SystemTime::now());
     let frame = rig.camera.grab_fresh(not_before, timeout)?;

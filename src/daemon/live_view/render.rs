@@ -81,7 +81,11 @@ pub fn png_base64(img: &RgbImage, shown: &Shown) -> (String, u32, u32) {
     PngEncoder::new_with_quality(&mut png, CompressionType::Fast, FilterType::Sub)
         .write_image(part.as_raw(), sw, sh, image::ExtendedColorType::Rgb8)
         .expect("encoding a PNG into memory");
-    (base64::engine::general_purpose::STANDARD.encode(png), sw, sh)
+    (
+        base64::engine::general_purpose::STANDARD.encode(png),
+        sw,
+        sh,
+    )
 }
 
 /// The targets in `img`: detected, measured by the rig's estimator, named after its board,
@@ -144,7 +148,10 @@ mod tests {
     #[test]
     fn options_are_checked_against_the_frame() {
         let ok = Shown::check(&ViewOptions::default(), (64, 48)).unwrap();
-        assert_eq!((ok.crop, ok.scale, ok.size()), ([0, 0, 64, 48], 1.0, (64, 48)));
+        assert_eq!(
+            (ok.crop, ok.scale, ok.size()),
+            ([0, 0, 64, 48], 1.0, (64, 48))
+        );
         let o = ViewOptions {
             scale: Some(0.25),
             crop: Some([10, 8, 40, 20]),
