@@ -59,6 +59,9 @@ const KINDS: &[(&str, &[&str])] = &[
     ("unlock", &["stage"]),
     ("home", &["stage"]),
     ("reconnect", &["stage"]),
+    ("snap", &["scale", "crop"]),
+    ("preview", &["max_fps", "scale", "crop"]),
+    ("preview_stop", &[]),
 ];
 
 proptest! {

@@ -17,6 +17,7 @@ pub mod server_line;
 pub mod status;
 pub mod submit;
 pub mod text;
+pub mod view;
 pub mod watch;
 
 use crate::daemon::rig_state::RigAction;
@@ -64,6 +65,10 @@ pub enum Command {
     Reconnect(rig::RigArgs),
     /// Print the protocol's JSON Schema (docs/protocol.schema.json).
     Schema(schema::SchemaArgs),
+    /// One fresh frame (a running job's next one) with the targets in it, saved as PNG.
+    Snap(view::SnapArgs),
+    /// The live view: targets, their centres and sharpness, refreshed; the latest PNG kept.
+    View(view::ViewArgs),
 }
 
 /// Entry point of the `rigctl` binary.
@@ -85,5 +90,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Home(a) => rig::run(RigAction::Home, a),
         Command::Reconnect(a) => rig::run(RigAction::Reconnect, a),
         Command::Schema(a) => schema::run(a),
+        Command::Snap(a) => view::snap(a),
+        Command::View(a) => view::view(a),
     }
 }

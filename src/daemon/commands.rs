@@ -75,7 +75,10 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
         Request::Subscribe { .. }
         | Request::Unlock { .. }
         | Request::Home { .. }
-        | Request::Reconnect { .. } => Err(ProtoError::new(
+        | Request::Reconnect { .. }
+        | Request::Snap { .. }
+        | Request::Preview { .. }
+        | Request::PreviewStop {} => Err(ProtoError::new(
             ErrorCode::Internal,
             "subscribe and rig requests are handled by the connection",
         )),

@@ -11,7 +11,7 @@ use crate::daemon::protocol::{
     decode_request, encode, Envelope, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
     SubscribeReply, MAX_LINE_BYTES,
 };
-use crate::daemon::{rig_commands, Shared};
+use crate::daemon::{live_view, rig_commands, Shared};
 use futures_util::StreamExt;
 use std::sync::Arc;
 use std::time::Duration;
@@ -98,6 +98,7 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>, _permit: Permit) {
     let mut lines: Lines = FramedRead::new(rd, LinesCodec::new_with_max_length(MAX_LINE_BYTES));
     let mut after_error = false;
     let mut subs: Vec<tokio::task::JoinHandle<()>> = Vec::new();
+    let mut preview: Option<live_view::client::Subscription> = None;
     loop {
         // Back-pressure: no request is read while the client's queue is full.
         if let Err(s) = outbox.wait_for_room(stall).await {
@@ -111,7 +112,7 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>, _permit: Permit) {
         }
         subs.retain(|h| !h.is_finished());
         let read = read_line(&mut lines, &mut after_error);
-        let next = match idle.filter(|_| subs.is_empty()) {
+        let next = match idle.filter(|_| subs.is_empty() && preview.is_none()) {
             Some(d) => match tokio::time::timeout(d, read).await {
                 Ok(r) => r,
                 Err(_) => {
@@ -131,6 +132,13 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>, _permit: Permit) {
                     id,
                     request: Request::Subscribe { job_id },
                 }) => subscribe(&shared, id, job_id, &outbox, &mut subs),
+                Ok(env) if live_view::client::handles(&env.request) => {
+                    let r = live_view::client::handle(&shared, env.request, &outbox, &mut preview);
+                    match r.await {
+                        Ok(body) => Reply::with(env.id, &body),
+                        Err(e) => Reply::err(env.id, e),
+                    }
+                }
                 Ok(env) if env.request.rig_action().is_some() => {
                     let (action, stage) = env.request.rig_action().expect("a rig request");
                     match rig_commands::request(&shared, action, stage).await {
@@ -149,6 +157,7 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>, _permit: Permit) {
     for f in subs {
         f.abort();
     }
+    drop(preview);
     outbox.close();
     // What is queued goes out if the client takes it within the stall time.
     if tokio::time::timeout(stall, &mut writer).await.is_err() {
@@ -194,6 +203,8 @@ async fn write_out(outbox: Arc<Outbox>, mut wr: OwnedWriteHalf) {
         if wr.write_all(&line).await.is_err() {
             return;
         }
+        drop(line);
+        outbox.wrote();
     }
 }
 

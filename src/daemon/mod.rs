@@ -10,7 +10,9 @@
 //! - `recorder`: the session as a step sink; `session`: the crash-safe session folder;
 //! - `replay`: a session's job run again (on `rig::replay`); `events`: the event bus;
 //! - `rig_state`: the rig's `ready`/`busy`/`fault` state; `rig_commands`: `unlock`, `home`,
-//!   `reconnect`, run by the worker beside the job queue.
+//!   `reconnect`, run by the worker beside the job queue;
+//! - `live_view`: `snap` and `preview` (the job's frames, or frames the worker grabs
+//!   between jobs, with the targets found in them).
 //!
 //! The rig a job runs on is `crate::rig`; the daemon's settings are `config::DaemonSettings`.
 
@@ -21,6 +23,7 @@ pub mod events;
 pub mod job_ids;
 pub mod jobs;
 pub mod listing;
+pub mod live_view;
 pub mod notify;
 pub mod outbox;
 pub mod ownership;
@@ -58,6 +61,8 @@ pub struct Shared {
     /// Rig requests to the worker; the worker takes the receiver when it starts.
     pub rig_requests: rig_commands::Sender,
     rig_requests_rx: Mutex<Option<rig_commands::Receiver>>,
+    /// `snap` and `preview`: the frames' slot, the watchers, the analyser thread.
+    pub live: live_view::LiveView,
 }
 
 impl Shared {
@@ -71,6 +76,7 @@ impl Shared {
             rig_requests: tx,
             rig_requests_rx: Mutex::new(Some(rx)),
             settings,
+            live: live_view::LiveView::new(rig_info.clone()),
             rig_info,
             jobs: Mutex::new(Jobs::new(ids)),
             events: EventBus::default(),

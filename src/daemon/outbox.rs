@@ -28,6 +28,8 @@ pub struct Outbox {
     queued: Notify,
     /// Wakes the reader waiting for room: the writer took a line.
     taken: Notify,
+    /// Wakes every live-view forwarder: the writer finished writing a line.
+    written: Notify,
 }
 
 #[derive(Default)]
@@ -53,6 +55,7 @@ impl Outbox {
             state: Mutex::new(State::default()),
             queued: Notify::new(),
             taken: Notify::new(),
+            written: Notify::new(),
         }
     }
 
@@ -86,6 +89,32 @@ impl Outbox {
         drop(st);
         self.queued.notify_one();
         true
+    }
+
+    /// Queue a latest-value line (a live-view frame) if it fits under the bound, or the
+    /// queue is empty (a frame larger than the bound goes out alone, like a reply); never
+    /// counted as lost (a newer frame replaces it). Returns whether it was queued.
+    pub fn offer(&self, line: Line) -> bool {
+        let mut st = self.state();
+        let fits = st.bytes == 0 || st.bytes + line.len() <= self.limit_bytes;
+        if st.closed || st.dropped_events > 0 || !fits {
+            return false;
+        }
+        st.bytes += line.len();
+        st.lines.push_back(line);
+        drop(st);
+        self.queued.notify_one();
+        true
+    }
+
+    /// The writer has written a line (and dropped it).
+    pub fn wrote(&self) {
+        self.written.notify_waiters();
+    }
+
+    /// Resolves at the writer's next [`Outbox::wrote`] after this call.
+    pub fn written(&self) -> tokio::sync::futures::Notified<'_> {
+        self.written.notified()
     }
 
     /// Bytes queued now.

@@ -9,6 +9,7 @@ use crate::acquisition::outcome::EndDetail;
 use crate::acquisition::record::{StepRecord, StepTimings};
 use crate::acquisition::{JobSpec, Processing, StageKind};
 use crate::daemon::jobs::JobStatus;
+use crate::daemon::live_view::wire::{PreviewReply, PreviewStopReply, SnapReply, ViewFrame};
 use crate::daemon::rig_state::{RigAction, RigState};
 use crate::daemon::session::SessionState;
 use crate::daemon::strict_json;
@@ -90,6 +91,27 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         stage: Option<StageKind>,
     },
+    /// One fresh frame now, with the stages' positions and the targets found in it
+    /// (docs/protocol.md, "Live view").
+    Snap {
+        /// 0 < scale <= 1 (default 1).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        scale: Option<f64>,
+        /// x, y, width, height in frame px (default: the whole frame).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        crop: Option<[u32; 4]>,
+    },
+    /// Preview events: the latest frame, at most `max_fps` a second (one per connection; a
+    /// new one replaces it).
+    Preview {
+        max_fps: f64,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        scale: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        crop: Option<[u32; 4]>,
+    },
+    /// End this connection's preview.
+    PreviewStop {},
 }
 
 /// The request kinds this daemon serves, one per [`Request`] variant (`hello` lists them).
@@ -415,6 +437,8 @@ pub enum EventBody {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         detail: Option<EndDetail>,
     },
+    /// A live-view frame, after `preview` (`job_id` 0: no job, the live view grabbed it).
+    Preview(Box<ViewFrame>),
 }
 
 /// The event kinds this daemon sends, one per [`EventBody`] variant (`hello` lists them).
@@ -615,6 +639,9 @@ pub enum ReplyBody {
     Result(ResultReply),
     Subscribe(SubscribeReply),
     RigAction(RigActionReply),
+    Snap(Box<SnapReply>),
+    Preview(PreviewReply),
+    PreviewStop(PreviewStopReply),
 }
 
 impl Reply {

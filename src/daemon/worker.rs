@@ -9,6 +9,7 @@ use crate::acquisition::{
     Devices, Engine, EngineSettings, JobError, Outcome, StageKind, StepSink, Threaded,
 };
 use crate::daemon::jobs::{JobRecord, JobSource, JobState};
+use crate::daemon::live_view::{self, tap::Tap};
 use crate::daemon::protocol::EventBody;
 use crate::daemon::recorder::{disk_error, Recorder};
 use crate::daemon::rig_commands::{self, RigRequest};
@@ -37,6 +38,7 @@ pub async fn run(shared: Arc<Shared>, mut rig: Rig) -> Rig {
                 rx.close();
                 rig_commands::refuse_waiting(rx);
             }
+            shared.live.close();
             return rig;
         }
         if let Some(req) = requests.as_mut().and_then(|rx| rx.try_recv().ok()) {
@@ -45,11 +47,17 @@ pub async fn run(shared: Arc<Shared>, mut rig: Rig) -> Rig {
         }
         let next = shared.jobs().start_next();
         let Some(job) = next else {
+            // Between jobs and requests: a frame for the live view, when one is due.
+            if shared.live.grab_due() {
+                rig = live_view::idle::grab(&shared, rig).await;
+                continue;
+            }
             tokio::select! {
                 Some(req) = next_request(&mut requests) => {
                     rig = rig_commands::serve(&shared, rig, req).await;
                 }
                 _ = notified => {}
+                _ = shared.live.wait_due() => {}
             }
             continue;
         };
@@ -178,7 +186,8 @@ type Captured = (
 /// The job's sinks: the interferometer read (on the engine's thread: see
 /// `acquisition::interferometer`), then the session and processing, each on its own
 /// thread behind the one before.
-type JobSink = ReadLog<Threaded<Recorder>>;
+/// The live view's tap sits in front of the recorder, on the engine's thread.
+type JobSink = ReadLog<Tap<Threaded<Recorder>>>;
 
 /// Drive the rig through the job's plan, recording and processing behind it.
 fn capture(
@@ -220,7 +229,7 @@ fn capture(
     if let Some(log) = rig.log.as_deref_mut() {
         log.end();
     }
-    let Some(mut recorder) = sink.inner.into_inner() else {
+    let Some(mut recorder) = sink.inner.inner.into_inner() else {
         // The recorder's thread panicked: the session cannot be closed here; the next
         // start marks it incomplete.
         return (outcome, None, Vec::new(), Vec::new());
@@ -250,7 +259,8 @@ fn job_sink(
     let recorder = Recorder::new(session, step_recorded(shared, job.id), processor);
     let registration = job.spec.registration.unwrap_or_default();
     let recorder = Threaded::spawn("recorder", recorder, RECORDER_QUEUE);
-    ReadLog::new(rig.log.take(), registration, recorder)
+    let tap = Tap::new(shared.clone(), job.id, job.spec.stage, recorder);
+    ReadLog::new(rig.log.take(), registration, tap)
 }
 
 /// The job's stage, and the piezo when its plan moves it besides the axis.

@@ -75,6 +75,32 @@ pub fn match_layout(
     out
 }
 
+/// The board's name for each found target (outer centres, image px): [`match_layout`] within
+/// half the board's smallest ring hole, so a target cannot be taken for its neighbour (the
+/// tolerance the pipeline names its results with).
+pub fn name_targets(
+    found_px: &[[f64; 2]],
+    board: &crate::board::Board,
+    scale_um_per_px: f64,
+) -> Vec<Option<String>> {
+    let centres: Vec<[f64; 2]> = board.targets.iter().map(|t| t.centre_um).collect();
+    let tol = board
+        .targets
+        .iter()
+        .map(|t| match t.outer {
+            crate::board::Shape::Ring {
+                inner_radius_um, ..
+            } => inner_radius_um,
+            crate::board::Shape::Disk { radius_um } => radius_um,
+        })
+        .fold(f64::INFINITY, f64::min)
+        * 0.5;
+    match_layout(found_px, &centres, scale_um_per_px, tol)
+        .into_iter()
+        .map(|j| j.map(|j| board.targets[j].name.clone()))
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

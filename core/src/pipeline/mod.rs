@@ -12,6 +12,7 @@
 pub mod accumulate;
 pub mod detect;
 pub mod estimate;
+pub mod focus;
 pub mod layout;
 pub mod mean;
 pub mod options;
