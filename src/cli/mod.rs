@@ -7,6 +7,8 @@ pub mod demo;
 pub mod fetch;
 pub mod hw;
 pub mod list;
+pub mod manual;
+pub mod pause;
 pub mod process;
 pub mod replay;
 pub mod rig;
@@ -57,6 +59,18 @@ pub enum Command {
     Home(rig::RigArgs),
     /// Close and reopen a stage's port through the daemon (after the port was lost).
     Reconnect(rig::RigArgs),
+    /// Both stages' positions as the controllers report them.
+    Position(manual::PositionArgs),
+    /// Move a stage when no job runs (`--to-um X` absolute, `--by-um D` relative).
+    Move(manual::MoveArgs),
+    /// Jog a stage from the keyboard (or keys on stdin), showing its position.
+    Jog(manual::JogArgs),
+    /// Stop a manual move under way.
+    Stop(manual::StopArgs),
+    /// Pause a running job at its next step boundary.
+    Pause(pause::PauseArgs),
+    /// Let a paused job go on; or complete an interrupted session as a new job.
+    Resume(pause::ResumeArgs),
 }
 
 /// Entry point of the `rigctl` binary.
@@ -77,5 +91,11 @@ pub fn main() -> anyhow::Result<()> {
         Command::Unlock(a) => rig::run(RigAction::Unlock, a),
         Command::Home(a) => rig::run(RigAction::Home, a),
         Command::Reconnect(a) => rig::run(RigAction::Reconnect, a),
+        Command::Position(a) => manual::position(a),
+        Command::Move(a) => manual::move_stage(a),
+        Command::Jog(a) => manual::jog(a),
+        Command::Stop(a) => manual::stop(a),
+        Command::Pause(a) => pause::pause(a),
+        Command::Resume(a) => pause::resume(a),
     }
 }

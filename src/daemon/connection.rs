@@ -11,7 +11,7 @@ use crate::daemon::protocol::{
     decode_request, encode, Envelope, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
     SubscribeReply, MAX_LINE_BYTES,
 };
-use crate::daemon::{rig_commands, Shared};
+use crate::daemon::{manual, rig_commands, Shared};
 use futures_util::StreamExt;
 use std::sync::Arc;
 use std::time::Duration;
@@ -131,6 +131,12 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>, _permit: Permit) {
                     id,
                     request: Request::Subscribe { job_id },
                 }) => subscribe(&shared, id, job_id, &outbox, &mut subs),
+                Ok(env) if manual::is_manual(&env.request) => {
+                    match manual::handle(&shared, env.request).await {
+                        Ok(body) => Reply::with(env.id, &body),
+                        Err(e) => Reply::err(env.id, e),
+                    }
+                }
                 Ok(env) if env.request.rig_action().is_some() => {
                     let (action, stage) = env.request.rig_action().expect("a rig request");
                     match rig_commands::request(&shared, action, stage).await {

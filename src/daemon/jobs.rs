@@ -20,6 +20,8 @@ pub const MAX_QUEUED: usize = 256;
 pub enum JobState {
     Queued,
     Running,
+    /// Running, paused between steps or on a controller's feed hold.
+    Paused,
     Finished,
     Failed,
     Cancelled,
@@ -215,7 +217,7 @@ impl Jobs {
                 self.retire(id);
                 Ok(true)
             }
-            JobState::Running => {
+            JobState::Running | JobState::Paused => {
                 rec.stop.cancel();
                 Ok(false)
             }

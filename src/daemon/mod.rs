@@ -10,7 +10,8 @@
 //! - `recorder`: the session as a step sink; `session`: the crash-safe session folder;
 //! - `replay`: a session's job run again (on `rig::replay`); `events`: the event bus;
 //! - `rig_state`: the rig's `ready`/`busy`/`fault` state; `rig_commands`: `unlock`, `home`,
-//!   `reconnect`, run by the worker beside the job queue.
+//!   `reconnect`, run by the worker beside the job queue; `manual`: `position`, `move`,
+//!   `stop` outside jobs; `pausing`: `pause`/`resume` and the `paused`/`resumed` events.
 //!
 //! The rig a job runs on is `crate::rig`; the daemon's settings are `config::DaemonSettings`.
 
@@ -21,12 +22,15 @@ pub mod events;
 pub mod job_ids;
 pub mod jobs;
 pub mod listing;
+pub mod manual;
 pub mod notify;
 pub mod outbox;
 pub mod ownership;
+pub mod pausing;
 pub mod protocol;
 pub mod recorder;
 pub mod replay;
+pub mod resume_session;
 pub mod rig_commands;
 pub mod rig_state;
 pub mod server;
@@ -56,6 +60,8 @@ pub struct Shared {
     /// Rig requests to the worker; the worker takes the receiver when it starts.
     pub rig_requests: rig_commands::Sender,
     rig_requests_rx: Mutex<Option<rig_commands::Receiver>>,
+    /// Manual moves' stop flag and last poll.
+    pub manual: manual::ManualState,
 }
 
 impl Shared {
@@ -68,6 +74,7 @@ impl Shared {
             }),
             rig_requests: tx,
             rig_requests_rx: Mutex::new(Some(rx)),
+            manual: manual::ManualState::default(),
             settings,
             rig_info,
             jobs: Mutex::new(Jobs::new(ids)),

@@ -88,6 +88,32 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         stage: Option<StageKind>,
     },
+    /// Both stages' positions and motion states as the controllers report them.
+    Position {},
+    /// Move a stage outside a job: `to_um` (absolute) or `by_um` (relative), one of them;
+    /// the soft limits and `max_step_um` apply. Replies when the move ends (or is stopped).
+    Move {
+        stage: StageKind,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        to_um: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        by_um: Option<f64>,
+    },
+    /// Stop a manual move under way (a job: `cancel` or `pause` it).
+    Stop {},
+    /// Pause a running job at its next step boundary.
+    Pause {
+        job_id: u64,
+    },
+    /// Let a paused job go on with its next frame.
+    Resume {
+        job_id: u64,
+    },
+    /// Capture the frames an interrupted or failed session is missing, as a new session
+    /// linked to it.
+    ResumeSession {
+        session: String,
+    },
 }
 
 impl Request {
@@ -378,6 +404,21 @@ pub enum EventBody {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         detail: Option<EndDetail>,
     },
+    /// The job paused: at a step boundary (a client's `pause`) or mid-move (a feed hold).
+    Paused {
+        /// The next frame to take; the frames before it are taken.
+        next_index: u32,
+        /// Where the stage was left, when known.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        at_um: Option<f64>,
+        /// `client` or `feed_hold`.
+        cause: String,
+        reason: String,
+    },
+    /// The job goes on with frame `next_index`.
+    Resumed {
+        next_index: u32,
+    },
 }
 
 impl EventBody {
@@ -533,6 +574,10 @@ pub enum ReplyBody {
     Result(ResultReply),
     Subscribe(SubscribeReply),
     RigAction(RigActionReply),
+    Position(crate::daemon::manual::PositionReply),
+    Move(crate::daemon::manual::MoveReply),
+    Stop(crate::daemon::manual::StopReply),
+    Pause(crate::daemon::pausing::PauseReply),
 }
 
 impl Reply {
