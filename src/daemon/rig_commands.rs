@@ -70,11 +70,13 @@ pub async fn send(
     if let Some((id, pause)) = running {
         return Err(busy(match pause {
             Some(crate::acquisition::PauseState::Paused) => format!(
-                "job {id} is paused and owns the stage: `{}` waits until it ends (resume it:                  rigctl resume {id}, or cancel it: rigctl cancel {id})",
+                "job {id} is paused and owns the stage: `{}` waits until it ends (resume it: \
+                 rigctl resume {id}, or cancel it: rigctl cancel {id})",
                 action.name()
             ),
             _ => format!(
-                "job {id} is running: `{}` waits until it ends (or cancel it: rigctl cancel                  {id}, or pause it: rigctl pause {id})",
+                "job {id} is running: `{}` waits until it ends (or cancel it: rigctl cancel \
+                 {id}, or pause it: rigctl pause {id})",
                 action.name()
             ),
         }));
