@@ -69,7 +69,7 @@ pub enum Command {
     Stop(manual::StopArgs),
     /// Pause a running job at its next step boundary.
     Pause(pause::PauseArgs),
-    /// Let a paused job go on; or complete an interrupted session as a new job.
+    /// Let a paused job go on with its next frame.
     Resume(pause::ResumeArgs),
 }
 

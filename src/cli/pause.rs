@@ -1,9 +1,8 @@
-//! `rigctl pause JOB`, `rigctl resume JOB|SESSION`: pause a running job at its next step
-//! boundary, let it go on; a session name (not a number) resumes an interrupted or failed
-//! session as a new job capturing its missing frames (`resume_session`).
+//! `rigctl pause JOB`, `rigctl resume JOB`: pause a running job at its next step boundary,
+//! let it go on.
 
 use crate::cli::client::SocketArg;
-use crate::daemon::protocol::{Request, SubmitReply};
+use crate::daemon::protocol::Request;
 
 #[derive(clap::Args, Debug)]
 pub struct PauseArgs {
@@ -17,9 +16,8 @@ pub struct PauseArgs {
 pub struct ResumeArgs {
     #[command(flatten)]
     pub socket: SocketArg,
-    /// A paused job's id, or the name of an interrupted or failed session to complete.
-    #[arg(value_name = "JOB|SESSION")]
-    pub what: String,
+    /// The paused job to resume.
+    pub job_id: u64,
 }
 
 pub fn pause(a: PauseArgs) -> anyhow::Result<()> {
@@ -35,17 +33,7 @@ pub fn pause(a: PauseArgs) -> anyhow::Result<()> {
 
 pub fn resume(a: ResumeArgs) -> anyhow::Result<()> {
     let mut c = a.socket.connect()?;
-    if let Ok(job_id) = a.what.parse::<u64>() {
-        c.request(&Request::Resume { job_id })?;
-        println!("job {job_id}: resumed");
-        return Ok(());
-    }
-    let r: SubmitReply = serde_json::from_value(c.request(&Request::ResumeSession {
-        session: a.what.clone(),
-    })?)?;
-    println!(
-        "job {}: resumes session {} ({} missing frames)",
-        r.job_id, a.what, r.total_frames
-    );
+    c.request(&Request::Resume { job_id: a.job_id })?;
+    println!("job {}: resumed", a.job_id);
     Ok(())
 }

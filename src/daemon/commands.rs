@@ -69,9 +69,6 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
         Request::Result { job_id } => result(shared, job_id).map(ReplyBody::Result),
         Request::Pause { job_id } => pausing::pause(shared, job_id).map(ReplyBody::Pause),
         Request::Resume { job_id } => pausing::resume(shared, job_id).map(ReplyBody::Pause),
-        Request::ResumeSession { session } => {
-            crate::daemon::resume_session::submit(shared, &session).map(ReplyBody::Submit)
-        }
         Request::Subscribe { .. }
         | Request::Position {}
         | Request::Move { .. }

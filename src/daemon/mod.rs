@@ -30,7 +30,6 @@ pub mod pausing;
 pub mod protocol;
 pub mod recorder;
 pub mod replay;
-pub mod resume_session;
 pub mod rig_commands;
 pub mod rig_state;
 pub mod server;

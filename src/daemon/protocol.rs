@@ -109,11 +109,6 @@ pub enum Request {
     Resume {
         job_id: u64,
     },
-    /// Capture the frames an interrupted or failed session is missing, as a new session
-    /// linked to it.
-    ResumeSession {
-        session: String,
-    },
 }
 
 impl Request {
