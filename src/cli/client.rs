@@ -154,6 +154,12 @@ pub fn follow(c: &mut Client, id: u64, total: u32, quiet: bool) -> anyhow::Resul
                 error: Some(err),
                 ..
             } => bar.println(format!("run {run}: {err}")),
+            EventBody::Paused { reason, .. } => {
+                bar.println(format!("job {id} paused: {reason} (rigctl resume {id})"))
+            }
+            EventBody::Resumed { next_index } => {
+                bar.println(format!("job {id} resumed at frame {next_index}"))
+            }
             b if b.is_terminal() => {
                 bar.finish_and_clear();
                 return Ok(Ended { body: e.body });
