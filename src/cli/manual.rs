@@ -270,6 +270,32 @@ mod tests {
     use super::*;
 
     #[test]
+    fn negative_moves_parse_without_an_equals_sign_and_one_target_is_required() {
+        use crate::cli::{Cli, Command};
+        use clap::Parser;
+        let cli =
+            Cli::try_parse_from(["rigctl", "move", "--stage", "piezo", "--by-um", "-50"]).unwrap();
+        let Command::Move(m) = cli.command else {
+            panic!("not a move")
+        };
+        assert_eq!(
+            (m.stage, m.to_um, m.by_um),
+            (StageKind::Piezo, None, Some(-50.0))
+        );
+        let cli = Cli::try_parse_from(["rigctl", "move", "--to-um", "-1.5"]).unwrap();
+        let Command::Move(m) = cli.command else {
+            panic!("not a move")
+        };
+        assert_eq!((m.stage, m.to_um), (StageKind::Axis, Some(-1.5)));
+        for bad in [
+            &["rigctl", "move"][..],
+            &["rigctl", "move", "--to-um", "1", "--by-um", "2"],
+        ] {
+            assert!(Cli::try_parse_from(bad).is_err(), "{bad:?}");
+        }
+    }
+
+    #[test]
     fn arrows_and_keys_are_read_from_raw_bytes() {
         assert_eq!(
             keys(b"\x1b[A\x1b[B+-[]sqx\x1b[C\x1b[D"),
