@@ -333,6 +333,8 @@ pub struct DaemonSettings {
     pub idle_timeout_s: u64,
     /// The memory one job may need to process (its estimate at submit), MB.
     pub max_job_memory_mb: u64,
+    /// A controller's feed hold mid-job: `pause` the job (resume goes on) or `fail` it.
+    pub on_feed_hold: crate::acquisition::HoldPolicy,
 }
 
 /// `[daemon] max_connections` when the config leaves it out.
@@ -351,6 +353,7 @@ impl Default for DaemonSettings {
             stalled_client_ms: 10_000,
             idle_timeout_s: 600,
             max_job_memory_mb: 2048,
+            on_feed_hold: crate::acquisition::HoldPolicy::Pause,
         }
     }
 }

@@ -44,6 +44,25 @@ fn malformed_shapes_are_refused_and_nothing_runs() {
             r#"{"id":5,"kind":"status","kind":"cancel","job_id":1}"#,
             r#"duplicate key "kind" in the request"#,
         ),
+        // Issue 13's requests, as strict as the others: a second target would have won.
+        (
+            r#"{"id":6,"kind":"move","stage":"axis","to_um":10,"to_um":200000}"#,
+            r#"duplicate key "to_um" in the request"#,
+        ),
+        (
+            r#"{"id":7,"kind":"move","stage":"axis","to_um":10,"by_um":10}"#,
+            "not both",
+        ),
+        (
+            r#"{"id":8,"kind":"stop","now":true}"#,
+            "unknown field `now`",
+        ),
+        (
+            r#"{"id":9,"kind":"position","stage":"axis"}"#,
+            "unknown field `stage`",
+        ),
+        (r#"{"id":10,"kind":"pause","job_id":1.5}"#, "invalid type"),
+        (r#"{"id":11,"kind":"resume"}"#, "missing field `job_id`"),
     ];
     for (line, needle) in cases {
         let r = c.request(line);

@@ -1,14 +1,16 @@
-//! Someone presses feed hold on the GRBL controller mid-job: the runner sees the stage
-//! holding while it waits for the move and fails the step at once (not after the 30 s move
-//! deadline), naming the stage, the hold and where it stopped; the stage is left stopped.
-//! The axis is rigd's GRBL driver over a real pseudo-terminal to the GRBL emulator.
+//! Someone presses feed hold on the GRBL controller mid-job. With `[daemon] on_feed_hold =
+//! "pause"` (the default) the job pauses where the stage held (`paused`, cause `feed_hold`),
+//! and `resume` sends cycle start, re-issues the held move and goes on: the frame is taken
+//! at its planned position. With `"fail"` the runner fails the step at once (not after the
+//! 30 s move deadline), naming the stage, the hold and where it stopped; the stage is left
+//! stopped. The axis is rigd's GRBL driver over a real pseudo-terminal to the GRBL emulator.
 
 #![cfg(feature = "sim")] // the simulated rig (default feature)
 
 mod support;
 
-use rigd::acquisition::JobSpec;
-use rigd::daemon::protocol::EventBody;
+use rigd::acquisition::{HoldPolicy, JobSpec};
+use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::session::SessionState;
 use rigd::hw::grbl::{GrblOptions, GrblStage};
 use rigd::hw::limits::TravelLimits;
@@ -61,10 +63,21 @@ impl Stage for HoldOnMove {
     fn status(&mut self) -> Result<StageStatus, HwError> {
         self.inner.status()
     }
+    fn resume(&mut self) -> Result<(), HwError> {
+        self.inner.resume()
+    }
 }
 
-#[test]
-fn a_feed_hold_mid_move_fails_the_job_at_once_naming_the_hold_and_position() {
+/// A daemon whose axis is held on its third move (a 40 mm move from 1100 to 41100 µm),
+/// with `on_feed_hold` as given; returns it, the emulated axis and the emulator (whose pty
+/// is the driver's port: kept as long as the daemon).
+fn held_daemon(
+    policy: HoldPolicy,
+) -> (
+    Daemon,
+    std::sync::Arc<rigd_sim::motion::Axis>,
+    rigd_sim::grbl::GrblSim,
+) {
     let (axis, grbl) = fast_grbl();
     let mut opts = GrblOptions::new(
         grbl.path().to_str().unwrap(),
@@ -81,9 +94,12 @@ fn a_feed_hold_mid_move_fails_the_job_at_once_naming_the_hold_and_position() {
         hold_on: 3,
         moves: 0,
     });
-    let d = Daemon::start_in(rig, dir);
-    let mut c = d.subscribed();
-    // Frames at 1000, 1100, then a 40 mm move to 41100 that is held on its way.
+    let d = Daemon::start_with(rig, dir, |s| s.on_feed_hold = policy);
+    (d, axis, grbl)
+}
+
+/// Frames at 1000 and 1100 (job one), then one at 41100 (job two) whose move is held.
+fn submit_both(c: &mut rigd::cli::client::Client) -> (u64, u64) {
     let job = JobSpec {
         start_um: Some(1_000.0),
         step_um: Some(100.0),
@@ -92,7 +108,7 @@ fn a_feed_hold_mid_move_fails_the_job_at_once_naming_the_hold_and_position() {
         process: false,
         ..JobSpec::default()
     };
-    let first = submit(&mut c, job);
+    let first = submit(c, job);
     let job = JobSpec {
         start_um: Some(41_100.0),
         steps: Some(1),
@@ -100,7 +116,76 @@ fn a_feed_hold_mid_move_fails_the_job_at_once_naming_the_hold_and_position() {
         process: false,
         ..JobSpec::default()
     };
-    let id = submit(&mut c, job);
+    (first, submit(c, job))
+}
+
+#[test]
+fn a_feed_hold_mid_move_pauses_the_job_and_resume_takes_the_frame_where_planned() {
+    let (d, axis, _grbl) = held_daemon(HoldPolicy::Pause);
+    let mut c = d.subscribed();
+    let (first, id) = submit_both(&mut c);
+    let end = end_of(&mut c, first);
+    assert!(matches!(end, EventBody::Finished { .. }), "{end:?}");
+    let mut ev = Vec::new();
+    let (next_index, at_um, reason) = loop {
+        let e = c.next_event().unwrap();
+        if e.job_id != id {
+            continue;
+        }
+        ev.push(e.body.clone());
+        match e.body {
+            EventBody::Paused {
+                next_index,
+                at_um,
+                cause,
+                reason,
+            } => {
+                assert_eq!(cause, "feed_hold");
+                break (next_index, at_um.unwrap(), reason);
+            }
+            b => assert!(!b.is_terminal(), "ended before pausing: {ev:?}"),
+        }
+    };
+    assert_eq!(next_index, 0);
+    assert!(
+        at_um > 1_500.0 && at_um < 41_100.0,
+        "held mid-move: {reason}"
+    );
+    assert!(
+        reason.starts_with("axis: feed hold at ") && reason.contains("during the move to 41100 µm"),
+        "{reason}"
+    );
+    // Held where it paused, and the job says so.
+    assert!(!axis.is_moving(Instant::now()));
+    assert!((axis.position_at(Instant::now()) - at_um).abs() < 1.0);
+    let mut other = d.client();
+    let st = other
+        .request(&Request::Status { job_id: Some(id) })
+        .unwrap();
+    assert_eq!(st["state"], "paused", "{st}");
+    other.request(&Request::Resume { job_id: id }).unwrap();
+    ev.extend(events_until_end(&mut c, id));
+    assert!(
+        matches!(ev.last(), Some(EventBody::Finished { .. })),
+        "{ev:?}"
+    );
+    assert!(ev.contains(&EventBody::Resumed { next_index: 0 }), "{ev:?}");
+    let s = d.session(&ev);
+    assert_eq!(s.manifest.state, SessionState::Finished);
+    assert_eq!(s.steps.len(), 1);
+    assert_eq!(s.steps[0].position_um, 41_100.0);
+    assert!(
+        (s.steps[0].axis_um - 41_100.0).abs() < 1.0,
+        "{:?}",
+        s.steps[0]
+    );
+}
+
+#[test]
+fn a_feed_hold_mid_move_fails_the_job_at_once_naming_the_hold_and_position() {
+    let (d, axis, _grbl) = held_daemon(HoldPolicy::Fail);
+    let mut c = d.subscribed();
+    let (first, id) = submit_both(&mut c);
     let end = end_of(&mut c, first);
     assert!(matches!(end, EventBody::Finished { .. }), "{end:?}");
     let ev = events_until_end(&mut c, id);

@@ -62,6 +62,11 @@ const KINDS: &[(&str, &[&str])] = &[
     ("snap", &["scale", "crop"]),
     ("preview", &["max_fps", "scale", "crop"]),
     ("preview_stop", &[]),
+    ("position", &[]),
+    ("move", &["stage", "to_um", "by_um"]),
+    ("stop", &[]),
+    ("pause", &["job_id"]),
+    ("resume", &["job_id"]),
 ];
 
 proptest! {
@@ -260,6 +265,36 @@ fn bad_requests_get_error_replies_and_the_connection_keeps_serving() {
         ),
         (
             br#"{"id":10,"kind":"result","job_id":99}"#,
+            "not_found",
+            "99",
+        ),
+        (
+            br#"{"id":11,"kind":"move","stage":"axis","to_um":1e9}"#,
+            "rejected",
+            "outside the soft travel limits",
+        ),
+        (
+            br#"{"id":12,"kind":"move","stage":"axis"}"#,
+            "bad_request",
+            "a move needs `to_um`",
+        ),
+        (
+            br#"{"id":13,"kind":"move","stage":"axle","to_um":1}"#,
+            "bad_request",
+            "axle",
+        ),
+        (
+            br#"{"id":14,"kind":"move","stage":"axis","by_um":"x"}"#,
+            "bad_request",
+            "invalid type",
+        ),
+        (
+            br#"{"id":15,"kind":"pause","job_id":99}"#,
+            "not_found",
+            "99",
+        ),
+        (
+            br#"{"id":16,"kind":"resume","job_id":99}"#,
             "not_found",
             "99",
         ),

@@ -3,8 +3,8 @@
 //! (a stop after every fault, no grab after a stop) and `done()` that none was skipped.
 
 use rigd::acquisition::fake::{
-    frame, grab, move_abs, plain_move, status, status_fails, stop, stop_fails, wait_settled,
-    wait_settled_fails, IdealStage, ScriptedCamera, ScriptedLog, ScriptedStage,
+    frame, grab, move_abs, plain_move, resume, status, status_fails, stop, stop_fails,
+    wait_settled, wait_settled_fails, IdealStage, ScriptedCamera, ScriptedLog, ScriptedStage,
 };
 use rigd::acquisition::interferometer::ReadLog;
 use rigd::acquisition::outcome::{EndKind, Phase, StopCause};
@@ -14,8 +14,10 @@ use rigd::acquisition::{
     CaseScan, Devices, Engine, EngineSettings, JobError, JobRegistration, Outcome, StepRecord,
     StopFlag,
 };
+use rigd::acquisition::{HoldPolicy, PauseCause, PauseEvent};
 use rigd::hw::{HwError, MotionState};
 use std::sync::Arc;
+use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 fn plan(positions_um: &[f64]) -> Plan {
@@ -112,7 +114,10 @@ fn a_feed_hold_mid_move_fails_the_step_naming_where_the_stage_held() {
     let flag = StopFlag::default();
     let out = run(
         &p,
-        settings(0),
+        EngineSettings {
+            on_feed_hold: HoldPolicy::Fail,
+            ..settings(0)
+        },
         &flag,
         &mut stage,
         &mut camera,
@@ -582,4 +587,156 @@ fn a_cancel_during_the_last_grab_ends_cancelled_without_that_frame() {
     );
     let kept: Vec<f64> = sink.records.iter().map(|r| r.commanded_um).collect();
     assert_eq!(kept, vec![100.0, 150.0]);
+}
+
+/// What a pause listener does when the engine pauses.
+#[derive(Clone, Copy)]
+enum OnPause {
+    Resume,
+    Cancel,
+}
+
+/// Hear the flag's pauses: record them, and resume or cancel at once (the engine waits for
+/// it, polling), so the test takes no wall-clock wait.
+fn on_pause(flag: &Arc<StopFlag>, then: OnPause) -> Arc<Mutex<Vec<PauseEvent>>> {
+    let seen = Arc::new(Mutex::new(Vec::new()));
+    let (s, f) = (seen.clone(), Arc::downgrade(flag));
+    flag.pause.listen(Some(Box::new(move |ev| {
+        s.lock().unwrap().push(ev.clone());
+        let Some(f) = f.upgrade() else { return };
+        if matches!(ev, PauseEvent::Paused { .. }) {
+            match then {
+                OnPause::Resume => {
+                    f.pause.release();
+                }
+                OnPause::Cancel => f.cancel(),
+            }
+        }
+    })));
+    seen
+}
+
+#[test]
+fn a_pause_is_taken_at_the_next_boundary_and_resume_goes_on_with_the_next_frame() {
+    let positions = [100.0, 150.0, 200.0, 250.0];
+    let p = plan(&positions);
+    let flag = Arc::new(StopFlag::default());
+    let seen = on_pause(&flag, OnPause::Resume);
+    // Asked during the second frame's move: taken after that frame, before the third move.
+    let f = flag.clone();
+    let mut script = plain_move(100.0);
+    script.push(move_abs(150.0).then(move || {
+        f.pause.request();
+    }));
+    script.extend([status(MotionState::Idle, 150.0), wait_settled(150.0)]);
+    script.extend([200.0, 250.0].into_iter().flat_map(plain_move));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::frames(4);
+    let mut sink = Collect::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    assert!(matches!(out, Outcome::Finished), "{out:?}");
+    // Every frame of the plan once, in order, at its position: none lost or repeated.
+    let got: Vec<(u32, f64, u64)> = sink
+        .records
+        .iter()
+        .map(|r| (r.index, r.commanded_um, r.frame.sequence))
+        .collect();
+    assert_eq!(
+        got,
+        vec![(0, 100.0, 0), (1, 150.0, 1), (2, 200.0, 2), (3, 250.0, 3)]
+    );
+    assert_eq!(
+        *seen.lock().unwrap(),
+        vec![
+            PauseEvent::Paused {
+                next_index: 2,
+                at_um: Some(150.0),
+                cause: PauseCause::Client
+            },
+            PauseEvent::Resumed { next_index: 2 }
+        ]
+    );
+}
+
+#[test]
+fn a_paused_job_cancelled_ends_cancelled_between_steps_with_its_frames_kept() {
+    let p = plan(&[100.0, 150.0, 200.0]);
+    let flag = Arc::new(StopFlag::default());
+    let seen = on_pause(&flag, OnPause::Cancel);
+    flag.pause.request();
+    let mut script = Vec::new();
+    // Paused before the first step: nothing moves until the cancel, then the stop.
+    script.extend(stopped_idle_at(0.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::new([]);
+    let mut sink = Collect::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    let Outcome::Cancelled(stop) = &out else {
+        panic!("{out:?}")
+    };
+    assert_eq!((stop.cause, stop.during), (StopCause::Client, None));
+    assert!(sink.records.is_empty() && sink.finished);
+    assert_eq!(seen.lock().unwrap().len(), 1, "paused, never resumed");
+}
+
+#[test]
+fn a_feed_hold_pauses_and_resume_restarts_the_controller_and_the_held_move() {
+    let p = plan(&[100.0, 5000.0]);
+    let flag = Arc::new(StopFlag::default());
+    let seen = on_pause(&flag, OnPause::Resume);
+    let mut script = plain_move(100.0);
+    script.extend([
+        move_abs(5000.0),
+        status(MotionState::Moving, 1200.0),
+        status(MotionState::Holding, 1482.0),
+        // Resumed: cycle start, the move issued again, then waited for as before.
+        resume(),
+        move_abs(5000.0),
+        status(MotionState::Moving, 3000.0),
+        status(MotionState::Idle, 5000.0),
+        wait_settled(5000.0),
+    ]);
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::frames(2);
+    let mut sink = Collect::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    assert!(matches!(out, Outcome::Finished), "{out:?}");
+    let got: Vec<(u32, f64, f64)> = sink
+        .records
+        .iter()
+        .map(|r| (r.index, r.commanded_um, r.axis_um))
+        .collect();
+    assert_eq!(got, vec![(0, 100.0, 100.0), (1, 5000.0, 5000.0)]);
+    let seen = seen.lock().unwrap();
+    assert_eq!(
+        seen[0],
+        PauseEvent::Paused {
+            next_index: 1,
+            at_um: Some(1482.0),
+            cause: PauseCause::FeedHold {
+                device: "axis".into(),
+                target_um: 5000.0
+            }
+        }
+    );
+    assert_eq!(seen[1], PauseEvent::Resumed { next_index: 1 });
+}
+
+#[test]
+fn a_job_held_then_cancelled_ends_cancelled_in_the_move_and_records_nothing_of_it() {
+    let p = plan(&[5000.0]);
+    let flag = Arc::new(StopFlag::default());
+    let _seen = on_pause(&flag, OnPause::Cancel);
+    let mut script = vec![move_abs(5000.0), status(MotionState::Holding, 1482.0)];
+    script.extend(stopped_idle_at(1482.0));
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::new([]);
+    let mut sink = Collect::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    let Outcome::Cancelled(stop) = &out else {
+        panic!("{out:?}")
+    };
+    assert_eq!(stop.during, Some((Phase::Move, 5000.0)));
+    assert_eq!(stop.stopped.as_ref().unwrap().position_um, Some(1482.0));
+    assert!(sink.records.is_empty());
 }

@@ -127,6 +127,38 @@ fn stop_mid_move_halts_short_and_leaves_the_axis_usable() {
     assert!((p - (here + 100.0)).abs() < 1.5, "{p} vs {here}+100");
 }
 
+/// Feed hold (`!`, as the controller's button) mid-move, then the driver's `resume` (cycle
+/// start `~`) and the move issued again, as the engine does after a pause: the axis goes on
+/// to the held target, the second move a no-op.
+#[test]
+fn resume_after_a_feed_hold_goes_on_to_the_held_target() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    s.move_abs(4_000.0).unwrap();
+    let polls = || 0..100_000;
+    assert!(
+        polls().any(|_| s.status().unwrap().position_um > 200.0),
+        "never under way"
+    );
+    s.send_line("!").unwrap();
+    let held = polls()
+        .find_map(|_| {
+            let st = s.status().unwrap();
+            (st.state == MotionState::Holding).then_some(st.position_um)
+        })
+        .expect("the controller holds");
+    assert!(held > 200.0 && held < 3_900.0, "held at {held}");
+    s.resume().unwrap();
+    s.move_abs(4_000.0).unwrap();
+    let p = s.wait_settled(SETTLE).unwrap();
+    assert!((p - 4_000.0).abs() < 1.5, "{p}");
+    let t = r.axis.position_at(Instant::now());
+    assert!((t - 4_000.0).abs() < TRUE_POSITION_TOL_UM, "{t}");
+    // Nothing held: resume is harmless.
+    s.resume().unwrap();
+    assert_eq!(s.status().unwrap().state, MotionState::Idle);
+}
+
 #[test]
 fn home_sets_the_origin() {
     let r = rig();

@@ -47,6 +47,13 @@ fn body_of(req: &Value) -> &'static str {
         "result" => "ResultReply",
         "subscribe" => "SubscribeReply",
         "unlock" | "home" | "reconnect" => "RigActionReply",
+        "snap" => "SnapReply",
+        "preview" => "PreviewReply",
+        "preview_stop" => "PreviewStopReply",
+        "position" => "PositionReply",
+        "move" => "MoveReply",
+        "stop" => "StopReply",
+        "pause" | "resume" => "PauseReply",
         _ => panic!("no reply body for `{kind}`: add it to body_of in tests/protocol_schema.rs"),
     }
 }
@@ -121,6 +128,11 @@ impl Tap {
         }
     }
 
+    /// Lines until an event of this kind.
+    fn until_event(&mut self, kind: &str) {
+        while self.line()["event"] != kind {}
+    }
+
     /// Lines until job `id`'s first `step` event.
     fn until_step(&mut self, id: u64) {
         while !(self.line()["event"] == "step" && self.got.last().unwrap()["job_id"] == id) {}
@@ -160,9 +172,38 @@ fn traffic(tap: &mut Tap) {
     tap.ok(json!({"kind": "unlock"}));
     tap.ok(json!({"kind": "home"}));
     tap.send(json!({"kind": "reconnect", "stage": "piezo"}));
+    at_the_rig(tap);
     // Error replies: a job the rig refuses, a job that is not there.
     tap.send(json!({"kind": "submit", "job": {"step_um": 0.0, "steps": 3}}));
     tap.send(json!({"kind": "cancel", "job_id": 999_999}));
+}
+
+/// Issue 13's requests: manual control, the live view, pause and resume, a 2-D plan.
+fn at_the_rig(tap: &mut Tap) {
+    tap.ok(json!({"kind": "position"}));
+    tap.ok(json!({"kind": "move", "stage": "axis", "by_um": 100.0}));
+    tap.ok(json!({"kind": "stop"}));
+    tap.ok(json!({"kind": "snap", "scale": 0.5}));
+    tap.ok(json!({"kind": "preview", "max_fps": 5.0, "scale": 0.25}));
+    tap.until_event("preview");
+    tap.ok(json!({"kind": "preview_stop"}));
+    let grid = json!({"plan": {"grid": {"inner": {"stage": "axis", "step_um": 50.0, "steps": 2},
+        "outer": {"stage": "piezo", "step_um": 10.0, "steps": 2}}}, "settle_ms": 0, "k": 2});
+    let grid = tap.ok(json!({"kind": "submit", "job": grid}))["job_id"]
+        .as_u64()
+        .unwrap();
+    tap.until_end(grid);
+    let long = json!({"step_um": 10.0, "steps": 2000, "settle_ms": 5, "process": false});
+    let long = tap.ok(json!({"kind": "submit", "job": long}))["job_id"]
+        .as_u64()
+        .unwrap();
+    tap.until_step(long);
+    tap.ok(json!({"kind": "pause", "job_id": long}));
+    tap.until_event("paused");
+    tap.ok(json!({"kind": "resume", "job_id": long}));
+    tap.until_event("resumed");
+    tap.ok(json!({"kind": "cancel", "job_id": long}));
+    tap.until_end(long);
 }
 
 /// `doc` with every object closed where that is sound: `unevaluatedProperties: false` on
@@ -260,7 +301,12 @@ fn a_daemons_traffic_validates_against_the_schema() {
         .filter(|k| *k != "failed")
         .collect();
     assert_eq!(seen, want, "event kinds in the traffic");
-    assert_eq!(bodies.len(), 9, "reply bodies checked: {:?}", bodies.keys());
+    assert_eq!(
+        bodies.len(),
+        16,
+        "reply bodies checked: {:?}",
+        bodies.keys()
+    );
     assert!(tap.got.iter().any(|l| l["ok"] == false), "no error reply");
 
     // The closed copy is strict: an unknown field anywhere is refused. The committed

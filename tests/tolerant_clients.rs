@@ -30,14 +30,14 @@ fn job_events() -> Vec<Value> {
         e
     };
     let mut v = vec![
-        json!({"type": "event", "v": 1, "job_id": 99, "event": "preview", "png_b64": "iVBORw0K"}),
+        json!({"type": "event", "v": 1, "job_id": 99, "event": "hologram", "png_b64": "iVBORw0K"}),
         json!({"type": "notice", "v": 1, "text": "a line type of protocol 1.x"}),
         ev(
             json!({"event": "accepted", "queue_position": 0, "total_frames": FRAMES,
             "job": {"step_um": 50.0, "steps": FRAMES, "plan": {"kind": "grid", "snake": true}}}),
         ),
-        ev(json!({"event": "paused", "at_index": 0, "reason": "asked"})),
-        ev(json!({"event": "resumed"})),
+        ev(json!({"event": "levitated", "at_index": 0, "reason": "asked"})),
+        ev(json!({"event": "landed"})),
         ev(
             json!({"event": "started", "session": SESSION, "total_frames": FRAMES,
             "started_at": "2026-12-01T00:00:00Z"}),
@@ -52,7 +52,7 @@ fn job_events() -> Vec<Value> {
             "eta_s": 1.0}),
         ));
         v.push(ev(
-            json!({"event": "preview", "frame": {"width": 4, "height": 2}, "targets": []}),
+            json!({"event": "hologram", "frame": {"width": 4, "height": 2}, "targets": []}),
         ));
     }
     v.push(ev(

@@ -7,8 +7,13 @@
 //! Stops: a cancel is seen mid-move (the stage is stopped where it is: GRBL feed hold, GCS
 //! HLT); a shutdown lets the move end. Either, arriving during the settle or the grab, ends
 //! the step without a frame; arriving after the last step, the job still ends cancelled.
+//!
+//! Pauses (`acquisition::pause`): a client's is taken between steps, a controller's feed
+//! hold mid-move (or fails the step, as `on_feed_hold` says); either waits for a resume or
+//! a stop, and the plan goes on with the frame it was at.
 
 use crate::acquisition::outcome::{JobError, Outcome, Phase, Stop, StopCause, StoppedAt};
+use crate::acquisition::pause::{HoldPolicy, Pause, PauseCause, PauseEvent};
 use crate::acquisition::plan::{Plan, RunPlan};
 use crate::acquisition::record::{ms, StepRecord, StepTimings};
 use crate::acquisition::sink::{SinkError, StepSink};
@@ -17,9 +22,13 @@ use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
-/// A job's stop request, set by clients and signals, read by the engine.
+/// A job's stop request, set by clients and signals, read by the engine; and its pause
+/// switch.
 #[derive(Debug, Default)]
-pub struct StopFlag(AtomicU8);
+pub struct StopFlag {
+    stop: AtomicU8,
+    pub pause: Pause,
+}
 
 const RUN: u8 = 0;
 const CANCEL: u8 = 1;
@@ -27,16 +36,16 @@ const SHUTDOWN: u8 = 2;
 
 impl StopFlag {
     pub fn cancel(&self) {
-        self.0.store(CANCEL, Ordering::SeqCst);
+        self.stop.store(CANCEL, Ordering::SeqCst);
     }
     /// The daemon stops; a client's cancel asked for earlier is kept.
     pub fn shutdown(&self) {
         let _ = self
-            .0
+            .stop
             .compare_exchange(RUN, SHUTDOWN, Ordering::SeqCst, Ordering::SeqCst);
     }
     pub fn cause(&self) -> Option<StopCause> {
-        match self.0.load(Ordering::SeqCst) {
+        match self.stop.load(Ordering::SeqCst) {
             RUN => None,
             CANCEL => Some(StopCause::Client),
             _ => Some(StopCause::Shutdown),
@@ -65,6 +74,8 @@ pub struct EngineSettings {
     pub move_poll: Duration,
     /// Each repeat starts this long after the previous one started (`interval_s`).
     pub repeat_interval: Option<Duration>,
+    /// A feed hold mid-move pauses the job or fails it (`[daemon] on_feed_hold`).
+    pub on_feed_hold: HoldPolicy,
 }
 
 impl Default for EngineSettings {
@@ -75,6 +86,7 @@ impl Default for EngineSettings {
             move_timeout: Duration::from_secs(30),
             move_poll: Duration::from_millis(2),
             repeat_interval: None,
+            on_feed_hold: HoldPolicy::Pause,
         }
     }
 }
@@ -117,12 +129,17 @@ impl Engine<'_> {
         let mut repeat_started: Option<(u32, Instant)> = None;
         // The piezo is moved only when its target changes (once a row in a grid).
         let mut piezo_at: Option<f64> = None;
+        // Where the last frame was taken: where a pause between steps leaves the stage.
+        let mut last_um = None;
         for run in &self.plan.runs {
             if let Err(cause) = self.wait_for_repeat(run.repeat, &mut repeat_started) {
                 return self.stopped(dev, cause, None);
             }
             for (i, &commanded_um) in run.positions_um.iter().enumerate() {
                 if let Some(cause) = self.stop.cause() {
+                    return self.stopped(dev, cause, None);
+                }
+                if let Err(cause) = self.pause_between_steps(index, last_um) {
                     return self.stopped(dev, cause, None);
                 }
                 let piezo = run
@@ -138,6 +155,7 @@ impl Engine<'_> {
                         return Outcome::Failed(JobError::Hardware { source, stopped });
                     }
                 };
+                last_um = Some(rec.axis_um);
                 if let Err(e) = sink.step(Arc::new(rec)) {
                     return self.failed(dev, sink_error(e));
                 }
@@ -152,6 +170,22 @@ impl Engine<'_> {
             Some(cause) => self.stopped(dev, cause, None),
             None => Outcome::Finished,
         }
+    }
+
+    /// A client's pause, taken here between steps: the stage is idle where the last frame
+    /// was taken; the next step moves and settles as any step does.
+    fn pause_between_steps(&self, index: u32, last_um: Option<f64>) -> Result<(), StopCause> {
+        if !self.stop.pause.take_request() {
+            return Ok(());
+        }
+        let event = PauseEvent::Paused {
+            next_index: index,
+            at_um: last_um,
+            cause: PauseCause::Client,
+        };
+        self.stop
+            .pause
+            .hold_until_resumed(event, || self.stop.cause())
     }
 
     fn stopped(
@@ -218,9 +252,9 @@ impl Engine<'_> {
             (None, _) => None,
         };
         dev.stage.move_abs(commanded_um)?;
-        let axis_um = self.finish_move(dev.stage, commanded_um)?;
+        let axis_um = self.finish_move(dev.stage, commanded_um, index)?;
         let (piezo_commanded_um, piezo_um) = match piezo_stage {
-            Some((target, Some(p))) => (Some(target), Some(self.finish_move(p, target)?)),
+            Some((target, Some(p))) => (Some(target), Some(self.finish_move(p, target, index)?)),
             // Not moved since the previous frame: where it settled then.
             Some((target, None)) => (Some(target), Some(self.last_piezo_um(dev, target))),
             None => (None, None),
@@ -298,8 +332,13 @@ impl Engine<'_> {
     /// A stage that stops moving in `Holding` (feed hold or safety door: never rigd's doing
     /// here) or in `Alarm` fails the step at once, naming the state and where the stage is,
     /// rather than waiting out the deadline for a move that will not finish by itself.
-    fn finish_move(&self, stage: &mut dyn Stage, target_um: f64) -> Result<f64, StepEnd> {
-        let deadline = Instant::now() + self.settings.move_timeout;
+    fn finish_move(
+        &self,
+        stage: &mut dyn Stage,
+        target_um: f64,
+        index: u32,
+    ) -> Result<f64, StepEnd> {
+        let mut deadline = Instant::now() + self.settings.move_timeout;
         loop {
             if self.stop.cause() == Some(StopCause::Client) {
                 return Err(StepEnd::Stopped(Stop {
@@ -312,7 +351,15 @@ impl Engine<'_> {
             match st.state {
                 MotionState::Moving | MotionState::Homing => {}
                 MotionState::Idle => break,
-                MotionState::Holding => return Err(held(stage.name(), st.position_um, target_um)),
+                MotionState::Holding if self.settings.on_feed_hold == HoldPolicy::Fail => {
+                    return Err(held(stage.name(), st.position_um, target_um))
+                }
+                MotionState::Holding => {
+                    self.pause_on_hold(stage, st.position_um, target_um, index)?;
+                    // The pause does not count against the move's deadline.
+                    deadline = Instant::now() + self.settings.move_timeout;
+                    continue;
+                }
                 MotionState::Alarm => return Err(alarm(stage, st.position_um, target_um)),
             }
             if Instant::now() >= deadline {
@@ -327,6 +374,42 @@ impl Engine<'_> {
         // The driver's own wait confirms the end of the move (and reports alarms and timeouts).
         let left = deadline.saturating_duration_since(Instant::now());
         Ok(stage.wait_settled(left.max(Duration::from_millis(1)))?)
+    }
+}
+
+impl Engine<'_> {
+    /// The controller holds mid-move: pause the job there; on resume, resume the
+    /// controller and issue the interrupted move again (a no-op if the controller already
+    /// went on with it), then wait for it as before.
+    fn pause_on_hold(
+        &self,
+        stage: &mut dyn Stage,
+        at_um: f64,
+        target_um: f64,
+        index: u32,
+    ) -> Result<(), StepEnd> {
+        let event = PauseEvent::Paused {
+            next_index: index,
+            at_um: Some(at_um),
+            cause: PauseCause::FeedHold {
+                device: stage.name().to_string(),
+                target_um,
+            },
+        };
+        let stopped = |cause| {
+            StepEnd::Stopped(Stop {
+                cause,
+                during: Some((Phase::Move, target_um)),
+                stopped: None,
+            })
+        };
+        self.stop
+            .pause
+            .hold_until_resumed(event, || self.stop.cause())
+            .map_err(stopped)?;
+        stage.resume()?;
+        stage.move_abs(target_um)?;
+        Ok(())
     }
 }
 

@@ -18,6 +18,8 @@ pub enum StageCall {
     Status(Result<StageStatus, HwError>),
     WaitSettled(Result<f64, HwError>),
     Stop(Result<(), HwError>),
+    /// Cycle start after a hold.
+    Resume(Result<(), HwError>),
 }
 
 pub struct Expect<C> {
@@ -62,6 +64,9 @@ pub fn stop() -> Expect<StageCall> {
 }
 pub fn stop_fails(e: HwError) -> Expect<StageCall> {
     stage_call(StageCall::Stop(Err(e)))
+}
+pub fn resume() -> Expect<StageCall> {
+    stage_call(StageCall::Resume(Ok(())))
 }
 fn stage_call(call: StageCall) -> Expect<StageCall> {
     Expect { call, effect: None }
@@ -145,6 +150,12 @@ impl Stage for ScriptedStage {
     }
     fn home(&mut self) -> Result<(), HwError> {
         panic!("{}: unexpected home", self.name)
+    }
+    fn resume(&mut self) -> Result<(), HwError> {
+        match self.next("resume") {
+            StageCall::Resume(r) => r,
+            _ => panic!("{}: unexpected resume", self.name),
+        }
     }
     fn status(&mut self) -> Result<StageStatus, HwError> {
         match self.next("status") {

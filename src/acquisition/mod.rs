@@ -9,6 +9,7 @@
 //!   position log read behind it, filling in each record's reading;
 //! - `sink`: the engine's consumers (`StepSink`), and `Threaded` to keep them off the
 //!   motion path; `processor`: the pipeline as a sink;
+//! - `pause`: a job's pause switch (a client's pause, a controller's feed hold);
 //! - `outcome`: how a job ended, typed; `study`: a job's runs reduced to the paper's tables;
 //! - `fake`: scripted devices for testing the engine without hardware or time.
 
@@ -18,6 +19,7 @@ pub mod fake;
 pub mod interferometer;
 pub mod job;
 pub mod outcome;
+pub mod pause;
 pub mod plan;
 pub mod processor;
 pub mod record;
@@ -31,6 +33,7 @@ pub use job::{
     StageKind,
 };
 pub use outcome::{EndDetail, JobError, Outcome, Stop, StopCause, StoppedAt};
+pub use pause::{HoldPolicy, PauseCause, PauseEvent, PauseState};
 pub use plan::{Plan, PlanError, RunPlan};
 pub use record::{StepRecord, StepTimings};
 pub use sink::{SinkError, StepSink, Threaded};

@@ -228,6 +228,12 @@ pub fn follow_from(
                 error: Some(err),
                 ..
             } => bar.println(format!("run {run}: {err}")),
+            EventBody::Paused { reason, .. } => {
+                bar.println(format!("job {id} paused: {reason} (rigctl resume {id})"))
+            }
+            EventBody::Resumed { next_index } => {
+                bar.println(format!("job {id} resumed at frame {next_index}"))
+            }
             b if b.is_terminal() => {
                 bar.finish_and_clear();
                 return Ok(Ended { body: e.body });

@@ -7,6 +7,8 @@ pub mod demo;
 pub mod fetch;
 pub mod hw;
 pub mod list;
+pub mod manual;
+pub mod pause;
 pub mod plan_args;
 pub mod process;
 pub mod replay;
@@ -69,6 +71,18 @@ pub enum Command {
     Snap(view::SnapArgs),
     /// The live view: targets, their centres and sharpness, refreshed; the latest PNG kept.
     View(view::ViewArgs),
+    /// Both stages' positions as the controllers report them.
+    Position(manual::PositionArgs),
+    /// Move a stage when no job runs (`--to-um X` absolute, `--by-um D` relative).
+    Move(manual::MoveArgs),
+    /// Jog a stage from the keyboard (or keys on stdin), showing its position.
+    Jog(manual::JogArgs),
+    /// Stop a manual move under way.
+    Stop(manual::StopArgs),
+    /// Pause a running job at its next step boundary.
+    Pause(pause::PauseArgs),
+    /// Let a paused job go on with its next frame.
+    Resume(pause::ResumeArgs),
 }
 
 /// Entry point of the `rigctl` binary.
@@ -92,5 +106,11 @@ pub fn main() -> anyhow::Result<()> {
         Command::Schema(a) => schema::run(a),
         Command::Snap(a) => view::snap(a),
         Command::View(a) => view::view(a),
+        Command::Position(a) => manual::position(a),
+        Command::Move(a) => manual::move_stage(a),
+        Command::Jog(a) => manual::jog(a),
+        Command::Stop(a) => manual::stop(a),
+        Command::Pause(a) => pause::pause(a),
+        Command::Resume(a) => pause::resume(a),
     }
 }

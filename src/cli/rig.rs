@@ -22,6 +22,7 @@ pub fn run(action: RigAction, a: RigArgs) -> anyhow::Result<()> {
         RigAction::Unlock => Request::Unlock { stage },
         RigAction::Home => Request::Home { stage },
         RigAction::Reconnect => Request::Reconnect { stage },
+        other => anyhow::bail!("`{}` is not a fault-clearing request", other.name()),
     };
     let r: RigActionReply = serde_json::from_value(c.request(&req)?)?;
     println!(

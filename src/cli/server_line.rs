@@ -85,8 +85,8 @@ mod tests {
             other => panic!("{text}: {other:?}"),
         };
         assert_eq!(
-            skipped(r#"{"type":"event","v":1,"job_id":1,"event":"paused","at_index":3}"#),
-            "event `paused`"
+            skipped(r#"{"type":"event","v":1,"job_id":1,"event":"levitated","at_index":3}"#),
+            "event `levitated`"
         );
         assert_eq!(
             skipped(r#"{"type":"notice","v":1,"text":"hi"}"#),

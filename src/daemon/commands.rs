@@ -6,6 +6,7 @@ use crate::acquisition::plan::{check_disk, plan, Plan, PlanError};
 use crate::acquisition::JobSpec;
 use crate::daemon::jobs::{JobSource, JobState, JobStatus, QueueError};
 use crate::daemon::listing;
+use crate::daemon::pausing;
 use crate::daemon::protocol::{
     CancelReply, CancelState, Capabilities, DaemonStatus, ErrorCode, EventBody, HelloReply,
     ListReply, ProtoError, ReplyBody, Request, ResultReply, RigSummary, SubmitReply,
@@ -72,7 +73,12 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
         Request::List { limit, before } => list(shared, limit, before).map(ReplyBody::List),
         Request::Cancel { job_id } => cancel(shared, job_id).map(ReplyBody::Cancel),
         Request::Result { job_id } => result(shared, job_id).map(ReplyBody::Result),
+        Request::Pause { job_id } => pausing::pause(shared, job_id).map(ReplyBody::Pause),
+        Request::Resume { job_id } => pausing::resume(shared, job_id).map(ReplyBody::Pause),
         Request::Subscribe { .. }
+        | Request::Position {}
+        | Request::Move { .. }
+        | Request::Stop {}
         | Request::Unlock { .. }
         | Request::Home { .. }
         | Request::Reconnect { .. }

@@ -11,7 +11,7 @@ use crate::daemon::protocol::{
     decode_request, encode, Envelope, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
     SubscribeReply, MAX_LINE_BYTES,
 };
-use crate::daemon::{live_view, rig_commands, Shared};
+use crate::daemon::{live_view, manual, rig_commands, Shared};
 use futures_util::StreamExt;
 use std::sync::Arc;
 use std::time::Duration;
@@ -135,6 +135,12 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>, _permit: Permit) {
                 Ok(env) if live_view::client::handles(&env.request) => {
                     let r = live_view::client::handle(&shared, env.request, &outbox, &mut preview);
                     match r.await {
+                        Ok(body) => Reply::with(env.id, &body),
+                        Err(e) => Reply::err(env.id, e),
+                    }
+                }
+                Ok(env) if manual::is_manual(&env.request) => {
+                    match manual::handle(&shared, env.request).await {
                         Ok(body) => Reply::with(env.id, &body),
                         Err(e) => Reply::err(env.id, e),
                     }

@@ -23,6 +23,8 @@ pub const MAX_QUEUED: usize = 256;
 pub enum JobState {
     Queued,
     Running,
+    /// Running, paused between steps or on a controller's feed hold.
+    Paused,
     Finished,
     Failed,
     Cancelled,
@@ -231,7 +233,7 @@ impl Jobs {
                 self.retire(id);
                 Ok(true)
             }
-            JobState::Running => {
+            JobState::Running | JobState::Paused => {
                 rec.stop.cancel();
                 Ok(false)
             }

@@ -10,7 +10,8 @@
 //! - `recorder`: the session as a step sink; `session`: the crash-safe session folder;
 //! - `replay`: a session's job run again (on `rig::replay`); `events`: the event bus;
 //! - `rig_state`: the rig's `ready`/`busy`/`fault` state; `rig_commands`: `unlock`, `home`,
-//!   `reconnect`, run by the worker beside the job queue;
+//!   `reconnect`, run by the worker beside the job queue; `manual`: `position`, `move`,
+//!   `stop` outside jobs; `pausing`: `pause`/`resume` and the `paused`/`resumed` events;
 //! - `live_view`: `snap` and `preview` (the job's frames, or frames the worker grabs
 //!   between jobs, with the targets found in them).
 //!
@@ -24,9 +25,11 @@ pub mod job_ids;
 pub mod jobs;
 pub mod listing;
 pub mod live_view;
+pub mod manual;
 pub mod notify;
 pub mod outbox;
 pub mod ownership;
+pub mod pausing;
 pub mod protocol;
 pub mod recorder;
 pub mod replay;
@@ -63,6 +66,8 @@ pub struct Shared {
     rig_requests_rx: Mutex<Option<rig_commands::Receiver>>,
     /// `snap` and `preview`: the frames' slot, the watchers, the analyser thread.
     pub live: live_view::LiveView,
+    /// Manual moves' stop flag and last poll.
+    pub manual: manual::ManualState,
 }
 
 impl Shared {
@@ -75,6 +80,7 @@ impl Shared {
             }),
             rig_requests: tx,
             rig_requests_rx: Mutex::new(Some(rx)),
+            manual: manual::ManualState::default(),
             settings,
             live: live_view::LiveView::new(rig_info.clone()),
             rig_info,

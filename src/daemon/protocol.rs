@@ -112,6 +112,27 @@ pub enum Request {
     },
     /// End this connection's preview.
     PreviewStop {},
+    /// Both stages' positions and motion states as the controllers report them.
+    Position {},
+    /// Move a stage outside a job: `to_um` (absolute) or `by_um` (relative), one of them;
+    /// the soft limits and `max_step_um` apply. Replies when the move ends (or is stopped).
+    Move {
+        stage: StageKind,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        to_um: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        by_um: Option<f64>,
+    },
+    /// Stop a manual move under way (a job: `cancel` or `pause` it).
+    Stop {},
+    /// Pause a running job at its next step boundary.
+    Pause {
+        job_id: u64,
+    },
+    /// Let a paused job go on with its next frame.
+    Resume {
+        job_id: u64,
+    },
 }
 
 /// The request kinds this daemon serves, one per [`Request`] variant (`hello` lists them).
@@ -128,6 +149,14 @@ pub const REQUEST_KINDS: &[&str] = &[
     "unlock",
     "home",
     "reconnect",
+    "snap",
+    "preview",
+    "preview_stop",
+    "position",
+    "move",
+    "stop",
+    "pause",
+    "resume",
 ];
 
 impl Request {
@@ -439,6 +468,21 @@ pub enum EventBody {
     },
     /// A live-view frame, after `preview` (`job_id` 0: no job, the live view grabbed it).
     Preview(Box<ViewFrame>),
+    /// The job paused: at a step boundary (a client's `pause`) or mid-move (a feed hold).
+    Paused {
+        /// The next frame to take; the frames before it are taken.
+        next_index: u32,
+        /// Where the stage was left, when known.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        at_um: Option<f64>,
+        /// `client` or `feed_hold`.
+        cause: String,
+        reason: String,
+    },
+    /// The job goes on with frame `next_index`.
+    Resumed {
+        next_index: u32,
+    },
 }
 
 /// The event kinds this daemon sends, one per [`EventBody`] variant (`hello` lists them).
@@ -452,6 +496,9 @@ pub const EVENT_KINDS: &[&str] = &[
     "finished",
     "failed",
     "cancelled",
+    "preview",
+    "paused",
+    "resumed",
 ];
 
 impl EventBody {
@@ -642,6 +689,10 @@ pub enum ReplyBody {
     Snap(Box<SnapReply>),
     Preview(PreviewReply),
     PreviewStop(PreviewStopReply),
+    Position(crate::daemon::manual::PositionReply),
+    Move(crate::daemon::manual::MoveReply),
+    Stop(crate::daemon::manual::StopReply),
+    Pause(crate::daemon::pausing::PauseReply),
 }
 
 impl Reply {

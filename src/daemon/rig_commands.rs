@@ -1,7 +1,6 @@
 //! Rig requests outside a job (`unlock`, `home`, `reconnect`): checked on the connection,
 //! run by the worker on the rig's own blocking thread (the worker owns the rig), answered
-//! through a oneshot. The channel beside the job queue is the one issue 13's
-//! `position`/`move`/`stop` requests can use too.
+//! through a oneshot. `position` and `move` (`daemon::manual`) use the same channel.
 //!
 //! A request is refused while a job runs, or while another request runs; one that was
 //! sent before a job started and reaches the worker after is refused too. The fault is
@@ -9,8 +8,9 @@
 //! `Alarm` and it answered); otherwise the fault is what the controller now says.
 
 use crate::acquisition::StageKind;
+use crate::daemon::manual::{self, Target};
 use crate::daemon::protocol::{ErrorCode, ProtoError, ReplyBody, RigActionReply};
-use crate::daemon::rig_state::{probe, RigAction, RigFault};
+use crate::daemon::rig_state::{probe, RigAction, RigFault, RigState};
 use crate::daemon::Shared;
 use crate::hw::{HwError, MotionState, StageStatus};
 use crate::rig::Rig;
@@ -28,7 +28,9 @@ pub struct RigRequest {
     pub stage: StageKind,
     /// `RigCondition::jobs_started` when it was checked.
     pub jobs_started: u64,
-    pub reply: oneshot::Sender<Result<RigActionReply, ProtoError>>,
+    /// Where a `move` goes.
+    pub target: Option<Target>,
+    pub reply: oneshot::Sender<Result<ReplyBody, ProtoError>>,
 }
 
 pub type Sender = mpsc::Sender<RigRequest>;
@@ -44,18 +46,40 @@ pub async fn request(
     action: RigAction,
     stage: Option<StageKind>,
 ) -> Result<ReplyBody, ProtoError> {
+    send(shared, action, stage, None).await
+}
+
+/// Any rig request, `move` with its target.
+pub async fn send(
+    shared: &Arc<Shared>,
+    action: RigAction,
+    stage: Option<StageKind>,
+    target: Option<Target>,
+) -> Result<ReplyBody, ProtoError> {
     if shared.shutting_down.load(Ordering::SeqCst) {
         return Err(ProtoError::new(
             ErrorCode::Unavailable,
             "the daemon is shutting down",
         ));
     }
-    let running = shared.jobs().running();
-    if let Some(id) = running {
-        return Err(busy(format!(
-            "job {id} is running: `{}` waits until it ends (or cancel it: rigctl cancel {id})",
-            action.name()
-        )));
+    let running = {
+        let jobs = shared.jobs();
+        jobs.running()
+            .map(|id| (id, jobs.get(id).map(|r| r.stop.pause.state())))
+    };
+    if let Some((id, pause)) = running {
+        return Err(busy(match pause {
+            Some(crate::acquisition::PauseState::Paused) => format!(
+                "job {id} is paused and owns the stage: `{}` waits until it ends (resume it: \
+                 rigctl resume {id}, or cancel it: rigctl cancel {id})",
+                action.name()
+            ),
+            _ => format!(
+                "job {id} is running: `{}` waits until it ends (or cancel it: rigctl cancel \
+                 {id}, or pause it: rigctl pause {id})",
+                action.name()
+            ),
+        }));
     }
     let (tx, rx) = oneshot::channel();
     let req = {
@@ -68,6 +92,7 @@ pub async fn request(
             action,
             stage,
             jobs_started: cond.jobs_started,
+            target,
             reply: tx,
         }
     };
@@ -75,7 +100,7 @@ pub async fn request(
         return Err(busy("rig requests are already waiting".into()));
     }
     match rx.await {
-        Ok(r) => r.map(ReplyBody::RigAction),
+        Ok(r) => r,
         Err(_) => Err(ProtoError::new(
             ErrorCode::Unavailable,
             "the daemon stopped before the request ran",
@@ -103,6 +128,9 @@ pub async fn serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
             return rig;
         }
         cond.request = Some(req.action);
+    }
+    if matches!(req.action, RigAction::Position | RigAction::Move) {
+        return manual_serve(shared, rig, req).await;
     }
     let (action, stage) = (req.action, req.stage);
     tracing::info!(request = action.name(), %stage, "rig request");
@@ -132,13 +160,13 @@ pub async fn serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
     let reply = match result {
         Ok(st) => {
             tracing::info!(request = action.name(), %stage, at_um = st.position_um, "rig request done");
-            Ok(RigActionReply {
+            Ok(ReplyBody::RigAction(RigActionReply {
                 request: action,
                 stage,
                 state: st.state,
                 position_um: st.position_um,
                 rig_state: state,
-            })
+            }))
         }
         Err(e) => {
             tracing::warn!(request = action.name(), %stage, "rig request failed: {e}");
@@ -159,6 +187,7 @@ fn act(rig: &mut Rig, action: RigAction, stage: StageKind) -> Result<StageStatus
         RigAction::Unlock => s.unlock()?,
         RigAction::Home => s.home()?,
         RigAction::Reconnect => s.reconnect()?,
+        RigAction::Position | RigAction::Move => unreachable!("served by manual_serve"),
     }
     let st = s.status()?;
     if st.state == MotionState::Alarm {
@@ -173,6 +202,54 @@ fn act(rig: &mut Rig, action: RigAction, stage: StageKind) -> Result<StageStatus
         });
     }
     Ok(st)
+}
+
+/// `position` and `move` on the rig's blocking thread. A move that fails on the hardware
+/// leaves the fault the controller now says, as the other requests do.
+async fn manual_serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
+    let (stage, target) = (req.stage, req.target);
+    let sh = shared.clone();
+    let handle = tokio::task::spawn_blocking(move || {
+        let mut rig = rig;
+        let Some(t) = target else {
+            let p = manual::read_position(&mut rig);
+            return (rig, Ok(ReplyBody::Position(p)), None);
+        };
+        let r = manual::run_move(&sh.manual, &mut rig, stage, t);
+        sh.manual.clear_last();
+        let fault = match &r {
+            Err(e) if !matches!(e, HwError::Limit { .. }) => probe(&mut rig, stage),
+            _ => None,
+        };
+        let r = r.map(|(target_um, st, stopped)| {
+            tracing::info!(%stage, target_um, at_um = st.position_um, stopped, "manual move");
+            ReplyBody::Move(manual::MoveReply {
+                stage,
+                target_um,
+                position_um: st.position_um,
+                state: st.state,
+                stopped,
+                rig_state: RigState::Ready,
+            })
+        });
+        (rig, r.map_err(manual::move_error), fault)
+    });
+    let (rig, mut reply, fault) = handle.await.expect("manual request thread panicked");
+    {
+        let mut cond = shared.rig();
+        cond.request = None;
+        if fault.is_some() {
+            cond.fault = fault;
+        }
+        let state = cond.state(None);
+        match &mut reply {
+            Ok(ReplyBody::Position(p)) => p.rig_state = state,
+            Ok(ReplyBody::Move(m)) => m.rig_state = state,
+            _ => {}
+        }
+    }
+    let _ = req.reply.send(reply);
+    rig
 }
 
 /// Refuse what is waiting (the daemon stops).

@@ -12,8 +12,7 @@ use crate::hw::{HwError, MotionState};
 use crate::rig::Rig;
 use serde::{Deserialize, Serialize};
 
-/// The requests that act on the rig outside a job (issue 13's `position`/`move`/`stop`
-/// will join them).
+/// The requests that act on the rig outside a job, run by the worker.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum RigAction {
@@ -23,6 +22,10 @@ pub enum RigAction {
     Home,
     /// Close and reopen the port, handshake included.
     Reconnect,
+    /// Read both stages' positions (`daemon::manual`).
+    Position,
+    /// A manual move (`daemon::manual`).
+    Move,
 }
 
 impl RigAction {
@@ -31,6 +34,8 @@ impl RigAction {
             RigAction::Unlock => "unlock",
             RigAction::Home => "home",
             RigAction::Reconnect => "reconnect",
+            RigAction::Position => "position",
+            RigAction::Move => "move",
         }
     }
 }

@@ -211,10 +211,12 @@ fn capture(
             settle: Duration::from_millis(job.spec.settle_ms),
             grab_timeout: Duration::from_millis(rig.info.grab_timeout_ms),
             repeat_interval: job.spec.interval_s.map(Duration::from_secs_f64),
+            on_feed_hold: shared.settings.on_feed_hold,
             ..EngineSettings::default()
         },
         stop: &job.stop,
     };
+    crate::daemon::pausing::listen(shared, job);
     let outcome = match devices(rig, job.spec.stages()) {
         Ok(mut dev) => engine.run(&mut dev, &mut sink),
         Err(e) => {
@@ -225,6 +227,7 @@ fn capture(
             })
         }
     };
+    crate::daemon::pausing::unlisten(job);
     rig.log = sink.log.take();
     if let Some(log) = rig.log.as_deref_mut() {
         log.end();

@@ -746,6 +746,25 @@ impl Stage for GrblStage {
         self.reopen()
     }
 
+    fn resume(&mut self) -> Result<(), HwError> {
+        self.guard(|s| {
+            s.ensure_connected()?;
+            // Cycle start: a realtime byte, answered by no `ok`.
+            s.link.write(b"~")?;
+            let r = s.query(s.reply_deadline())?;
+            match r.state {
+                GrblState::Hold { .. } | GrblState::Door => Err(HwError::Other {
+                    device: s.name.clone(),
+                    message: format!(
+                        "still holding at {:.1} µm after cycle start (a safety door open?)",
+                        r.position_um
+                    ),
+                }),
+                _ => Ok(()),
+            }
+        })
+    }
+
     fn status(&mut self) -> Result<StageStatus, HwError> {
         let r = self.report()?;
         Ok(StageStatus {

@@ -119,6 +119,11 @@ pub trait Stage: Send {
     fn unlock(&mut self) -> Result<(), HwError> {
         Err(unsupported(self.name(), "unlock"))
     }
+    /// Resume after a feed hold (GRBL cycle start `~`): the controller goes on with what
+    /// it held. `Ok` when nothing was held.
+    fn resume(&mut self) -> Result<(), HwError> {
+        Err(unsupported(self.name(), "resume after a hold"))
+    }
     /// Close the port and open it again, handshake included (after the port was lost).
     fn reconnect(&mut self) -> Result<(), HwError> {
         Err(unsupported(self.name(), "reconnect"))

@@ -73,13 +73,23 @@ impl Daemon {
 
     /// Serve `rig` with its socket and data root in `dir` (kept until the daemon drops).
     pub fn start_in(rig: Rig, dir: tempfile::TempDir) -> Daemon {
+        Daemon::start_with(rig, dir, |_| {})
+    }
+
+    /// As [`Daemon::start_in`], with settings changed by `f`.
+    pub fn start_with(
+        rig: Rig,
+        dir: tempfile::TempDir,
+        f: impl FnOnce(&mut DaemonSettings),
+    ) -> Daemon {
         let data = dir.path().join("data");
-        let settings = DaemonSettings {
+        let mut settings = DaemonSettings {
             socket: dir.path().join("rigd.sock"),
             group: None,
             data_root: data.clone(),
             ..DaemonSettings::default()
         };
+        f(&mut settings);
         Daemon {
             bg: Background::start(settings, rig).unwrap(),
             data,

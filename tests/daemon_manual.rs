@@ -1,0 +1,311 @@
+//! Issue 13, manual control and pause/resume, over the real socket on sim rigs (rigd's GRBL
+//! driver over a pty to the GRBL emulator): `position`, `move` (limits and the maximum step
+//! refused naming them, nothing moved), `stop` mid-move (the stage left short of its
+//! target), moves refused during a job; `pause`/`resume` mid-run with every frame of the
+//! plan recorded once at its position, a paused job cancelled.
+
+#![cfg(feature = "sim")]
+
+mod support;
+
+use rigd::acquisition::{JobSpec, StageKind};
+use rigd::cli::client::Client;
+use rigd::daemon::manual::{MoveReply, PositionReply, PositionSource};
+use rigd::daemon::protocol::{EventBody, Request};
+use rigd::daemon::session::SessionState;
+use rigd::hw::MotionState;
+use support::daemon::{events_until_end, rig_from_toml, submit, Daemon};
+
+/// A config rig: the sim axis (20 mm/s) behind the GRBL emulator, soft limits [0, 100 mm],
+/// at most 20 mm a move; a small fast camera.
+const RIG: &str = r#"
+[axis]
+driver = "sim"
+soft_min_um = 0.0
+soft_max_um = 100000.0
+max_step_um = 20000.0
+[camera]
+driver = "sim"
+[camera.sim]
+width = 48
+height = 32
+supersample = 2
+frame_period_ms = 2.0
+exposure_ms = 1.0
+"#;
+
+fn start() -> Daemon {
+    let dir = tempfile::tempdir().unwrap();
+    let rig = rig_from_toml(dir.path(), RIG);
+    Daemon::start_in(rig, dir)
+}
+
+fn position(c: &mut Client) -> PositionReply {
+    serde_json::from_value(c.request(&Request::Position {}).unwrap()).unwrap()
+}
+
+fn move_to(c: &mut Client, to_um: Option<f64>, by_um: Option<f64>) -> anyhow::Result<MoveReply> {
+    let r = c.request(&Request::Move {
+        stage: StageKind::Axis,
+        to_um,
+        by_um,
+    })?;
+    Ok(serde_json::from_value(r)?)
+}
+
+fn axis_um(p: &PositionReply) -> f64 {
+    p.axis.as_ref().unwrap().position_um.unwrap()
+}
+
+#[test]
+fn moves_go_where_asked_and_limits_are_refused_naming_them() {
+    let d = start();
+    let mut c = d.client();
+    let p = position(&mut c);
+    assert_eq!(p.source, PositionSource::Controllers);
+    assert_eq!(p.axis.as_ref().unwrap().state, Some(MotionState::Idle));
+    let m = move_to(&mut c, Some(5_000.0), None).unwrap();
+    assert!(!m.stopped && m.state == MotionState::Idle, "{m:?}");
+    assert!((m.position_um - 5_000.0).abs() < 10.0, "{m:?}");
+    let m = move_to(&mut c, None, Some(-1_500.0)).unwrap();
+    assert_eq!(m.target_um, 3_500.0);
+    assert!((m.position_um - 3_500.0).abs() < 10.0, "{m:?}");
+    assert!((axis_um(&position(&mut c)) - 3_500.0).abs() < 10.0);
+    // Outside the soft limits, and a step over max_step_um: refused, nothing moves.
+    let e = move_to(&mut c, Some(150_000.0), None)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("Rejected") && e.contains("outside the soft travel limits [0, 100000] µm"),
+        "{e}"
+    );
+    let e = move_to(&mut c, None, Some(25_000.0))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("exceeds the maximum step of 20000 µm") && e.contains("last target 3500 µm"),
+        "{e}"
+    );
+    assert!((axis_um(&position(&mut c)) - 3_500.0).abs() < 10.0);
+    // Bad shapes name the fields.
+    let e = move_to(&mut c, Some(1.0), Some(1.0))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("`to_um` (absolute) or `by_um` (relative), not both"),
+        "{e}"
+    );
+    let e = move_to(&mut c, None, None).unwrap_err().to_string();
+    assert!(e.contains("a move needs `to_um`"), "{e}");
+    // The daemon still serves.
+    assert_eq!(position(&mut c).source, PositionSource::Controllers);
+}
+
+#[test]
+fn a_stop_mid_move_leaves_the_stage_short_of_its_target() {
+    let d = start();
+    let mut c = d.client();
+    move_to(&mut c, Some(1_000.0), None).unwrap();
+    let socket = d.bg.socket.clone();
+    // 20 mm at 20 mm/s: about a second, on another connection.
+    let mover = std::thread::spawn(move || {
+        let mut c = Client::connect(&socket).unwrap();
+        // One rig request at a time: the polls' `position` may hold the worker a moment.
+        loop {
+            match move_to(&mut c, None, Some(20_000.0)) {
+                Err(e) if e.to_string().contains("`position` is already running") => continue,
+                r => return r.unwrap(),
+            }
+        }
+    });
+    // Wait (by what position says, not by the clock) until the axis is on its way.
+    loop {
+        let p = position(&mut c);
+        let a = p.axis.clone().unwrap();
+        if p.source == PositionSource::Move
+            && a.state == Some(MotionState::Moving)
+            && a.position_um.unwrap() > 1_100.0
+        {
+            break;
+        }
+        assert!(
+            !mover.is_finished(),
+            "the move ended before it was seen moving"
+        );
+    }
+    let r = c.request(&Request::Stop {}).unwrap();
+    assert_eq!(r["stopping"], true, "{r}");
+    let m = mover.join().unwrap();
+    assert!(m.stopped, "{m:?}");
+    assert_eq!(m.target_um, 21_000.0);
+    assert!(
+        m.position_um > 1_100.0 && m.position_um < 20_000.0,
+        "stopped short: {m:?}"
+    );
+    let at = axis_um(&position(&mut c));
+    assert!((at - m.position_um).abs() < 5.0, "{at} vs {m:?}");
+    // Nothing to stop now.
+    let r = c.request(&Request::Stop {}).unwrap();
+    assert_eq!(r["stopping"], false, "{r}");
+    // The stage moves again from where it stopped.
+    let m2 = move_to(&mut c, None, Some(100.0)).unwrap();
+    assert!((m2.position_um - (m.position_um + 100.0)).abs() < 10.0);
+}
+
+fn job(steps: u32) -> JobSpec {
+    JobSpec {
+        start_um: Some(1_000.0),
+        step_um: Some(50.0),
+        steps: Some(steps),
+        settle_ms: 20,
+        process: false,
+        ..JobSpec::default()
+    }
+}
+
+/// Events of job `id` until one matches.
+fn until(c: &mut Client, id: u64, f: impl Fn(&EventBody) -> bool) -> Vec<EventBody> {
+    let mut seen = Vec::new();
+    loop {
+        let e = c.next_event().unwrap();
+        if e.job_id != id {
+            continue;
+        }
+        let done = f(&e.body) || e.body.is_terminal();
+        seen.push(e.body);
+        if done {
+            return seen;
+        }
+    }
+}
+
+#[test]
+fn pause_and_resume_mid_run_record_every_frame_of_the_plan_once() {
+    let d = start();
+    let mut c = d.subscribed();
+    let mut other = d.client();
+    let id = submit(&mut c, job(20));
+    let mut events = until(&mut c, id, |b| {
+        matches!(b, EventBody::Step { index: 3, .. })
+    });
+    let r = other.request(&Request::Pause { job_id: id }).unwrap();
+    assert_eq!(r["state"], "pausing", "{r}");
+    events.extend(until(&mut c, id, |b| matches!(b, EventBody::Paused { .. })));
+    let Some(EventBody::Paused {
+        next_index,
+        at_um,
+        cause,
+        ..
+    }) = events.last().cloned()
+    else {
+        panic!("not paused: {events:?}")
+    };
+    assert_eq!(cause, "client");
+    assert!((4..20).contains(&next_index), "{next_index}");
+    // Left where the last frame was taken.
+    let last_um = 1_000.0 + 50.0 * (next_index - 1) as f64;
+    assert!(
+        (at_um.unwrap() - last_um).abs() < 10.0,
+        "{at_um:?} vs {last_um}"
+    );
+    let st = other
+        .request(&Request::Status { job_id: Some(id) })
+        .unwrap();
+    assert_eq!(st["state"], "paused", "{st}");
+    // The paused job owns the stage: no move; its position is readable.
+    let e = move_to(&mut other, Some(5_000.0), None)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(&format!("job {id} is paused")) && e.contains(&format!("rigctl resume {id}")),
+        "{e}"
+    );
+    let p = position(&mut other);
+    assert_eq!((p.source, p.job_id), (PositionSource::PausedJob, Some(id)));
+    let r = other.request(&Request::Resume { job_id: id }).unwrap();
+    assert_eq!(r["state"], "resumed", "{r}");
+    events.extend(events_until_end(&mut c, id));
+    assert!(
+        events.contains(&EventBody::Resumed { next_index }),
+        "{events:?}"
+    );
+    assert!(matches!(events.last(), Some(EventBody::Finished { .. })));
+    // Each frame's step event once, in order; the session's steps exactly the plan's.
+    let indices: Vec<u32> = events
+        .iter()
+        .filter_map(|e| match e {
+            EventBody::Step { index, .. } => Some(*index),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(indices, (0..20).collect::<Vec<_>>());
+    let s = d.session(&events);
+    assert_eq!(s.manifest.state, SessionState::Finished);
+    let steps: Vec<(u32, f64)> = s.steps.iter().map(|r| (r.index, r.position_um)).collect();
+    let plan: Vec<(u32, f64)> = (0..20).map(|i| (i, 1_000.0 + 50.0 * i as f64)).collect();
+    assert_eq!(steps, plan);
+    for r in &s.steps {
+        assert!(s.frame_path(r.index).is_file(), "frame {}", r.index);
+    }
+}
+
+#[test]
+fn a_paused_job_cancelled_ends_cancelled_with_the_frames_before_the_pause() {
+    let d = start();
+    let mut c = d.subscribed();
+    let mut other = d.client();
+    let id = submit(&mut c, job(30));
+    let mut ev = until(&mut c, id, |b| {
+        matches!(b, EventBody::Step { index: 1, .. })
+    });
+    other.request(&Request::Pause { job_id: id }).unwrap();
+    ev.extend(until(&mut c, id, |b| matches!(b, EventBody::Paused { .. })));
+    let Some(EventBody::Paused { next_index, .. }) = ev.last().cloned() else {
+        panic!("{ev:?}")
+    };
+    // A pause while paused says so; a resume of a job not paused is refused.
+    let r = other.request(&Request::Pause { job_id: id }).unwrap();
+    assert_eq!(r["state"], "paused");
+    let r = other.request(&Request::Cancel { job_id: id }).unwrap();
+    assert_eq!(r["state"], "cancelling");
+    ev.extend(events_until_end(&mut c, id));
+    assert!(
+        matches!(ev.last(), Some(EventBody::Cancelled { .. })),
+        "{ev:?}"
+    );
+    let s = d.session(&ev);
+    assert_eq!(s.manifest.state, SessionState::Cancelled);
+    assert_eq!(s.steps.len() as u32, next_index);
+    let e = other
+        .request(&Request::Resume { job_id: id })
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains(&format!("job {id} is cancelled")), "{e}");
+}
+
+#[test]
+fn moves_are_refused_while_a_job_runs_naming_it_and_how_to_stop_it() {
+    let d = start();
+    let mut c = d.subscribed();
+    let mut other = d.client();
+    let id = submit(&mut c, job(30));
+    until(&mut c, id, |b| matches!(b, EventBody::Step { .. }));
+    let e = move_to(&mut other, Some(5_000.0), None)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("Busy")
+            && e.contains(&format!("job {id} is running"))
+            && e.contains(&format!("rigctl cancel {id}"))
+            && e.contains(&format!("rigctl pause {id}")),
+        "{e}"
+    );
+    let r = other.request(&Request::Stop {}).unwrap();
+    assert_eq!(r["stopping"], false);
+    assert!(r["message"]
+        .as_str()
+        .unwrap()
+        .contains(&format!("rigctl cancel {id}")));
+    other.request(&Request::Cancel { job_id: id }).unwrap();
+    events_until_end(&mut c, id);
+}
