@@ -76,7 +76,7 @@ fn moves_go_where_asked_and_limits_are_refused_naming_them() {
         .unwrap_err()
         .to_string();
     assert!(
-        e.contains("Rejected") && e.contains("outside the soft travel limits [0, 100000] µm"),
+        e.contains("rejected:") && e.contains("outside the soft travel limits [0, 100000] µm"),
         "{e}"
     );
     let e = move_to(&mut c, None, Some(25_000.0))
@@ -294,7 +294,7 @@ fn moves_are_refused_while_a_job_runs_naming_it_and_how_to_stop_it() {
         .unwrap_err()
         .to_string();
     assert!(
-        e.contains("Busy")
+        e.contains("busy:")
             && e.contains(&format!("job {id} is running"))
             && e.contains(&format!("rigctl cancel {id}"))
             && e.contains(&format!("rigctl pause {id}")),

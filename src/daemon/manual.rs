@@ -208,8 +208,7 @@ async fn position(shared: &Arc<Shared>) -> Result<ReplyBody, ProtoError> {
             rig_state: shared.rig_state(),
         }));
     }
-    let moving = shared.rig().request == Some(RigAction::Move);
-    if let Some((axis, piezo, _)) = moving.then(|| shared.manual.last()).flatten() {
+    if let Some((axis, piezo, _)) = move_reading(shared).await {
         return Ok(ReplyBody::Position(PositionReply {
             axis: Some(axis),
             piezo: shared.rig_info.piezo_limits_um.map(|_| piezo),
@@ -219,6 +218,22 @@ async fn position(shared: &Arc<Shared>) -> Result<ReplyBody, ProtoError> {
         }));
     }
     rig_commands::send(shared, RigAction::Position, None, None).await
+}
+
+/// The running manual move's latest reading. A move that has just been handed to the worker
+/// has none until its first poll (every 5 ms): wait for that rather than answer `busy`.
+async fn move_reading(shared: &Shared) -> Option<(StageReading, StageReading, StageKind)> {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(2);
+    while shared.rig().request == Some(RigAction::Move) {
+        if let Some(last) = shared.manual.last() {
+            return Some(last);
+        }
+        if tokio::time::Instant::now() >= deadline {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    None
 }
 
 fn stop(shared: &Shared) -> StopReply {
