@@ -11,12 +11,13 @@
 //!
 //! `cargo bench --bench preview_latency` (figures in docs/performance.md).
 
-use rigd::acquisition::JobSpec;
+#[path = "support/job.rs"]
+mod support;
+
 use rigd::cli::client::Client;
 use rigd::config::DaemonSettings;
 use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::server::Background;
-use rigd::daemon::session::Session;
 use rigd::rig::{simulated, SimSettings};
 use rigd::sim::CameraModel;
 use std::path::Path;
@@ -42,29 +43,7 @@ fn now_s() -> f64 {
 
 /// One job; its median step interval, ms, and its id.
 fn one_job(c: &mut Client, data: &Path) -> (f64, u64) {
-    let job = JobSpec {
-        step_um: Some(50.0),
-        steps: Some(40),
-        k: Some(10),
-        settle_ms: 20,
-        ..JobSpec::default()
-    };
-    let r = c.request(&Request::Submit { job }).unwrap();
-    let id = r["job_id"].as_u64().unwrap();
-    let session = loop {
-        let e = c.next_event().unwrap();
-        match e.body {
-            EventBody::Finished { session } if e.job_id == id => break session,
-            b if e.job_id == id && b.is_terminal() => panic!("job {id} ended: {b:?}"),
-            _ => {}
-        }
-    };
-    let s = Session::open(&data.join(session)).unwrap();
-    let mut iv: Vec<f64> = s
-        .steps
-        .windows(2)
-        .map(|w| (w[1].t_unix_s - w[0].t_unix_s) * 1e3)
-        .collect();
+    let (id, _, mut iv) = support::forty_frames(c, data);
     (quantile(&mut iv, 0.5), id)
 }
 
