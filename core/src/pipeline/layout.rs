@@ -75,14 +75,13 @@ pub fn match_layout(
     out
 }
 
-/// The board's name for each found target (outer centres, image px): [`match_layout`] within
-/// half the board's smallest ring hole, so a target cannot be taken for its neighbour (the
-/// tolerance the pipeline names its results with).
-pub fn name_targets(
+/// The board's target for each found one (outer centres, image px): [`match_layout`] within
+/// half the board's smallest ring hole, so a target cannot be taken for its neighbour.
+pub fn match_board(
     found_px: &[[f64; 2]],
     board: &crate::board::Board,
     scale_um_per_px: f64,
-) -> Vec<Option<String>> {
+) -> Vec<Option<usize>> {
     let centres: Vec<[f64; 2]> = board.targets.iter().map(|t| t.centre_um).collect();
     let tol = board
         .targets
@@ -96,6 +95,16 @@ pub fn name_targets(
         .fold(f64::INFINITY, f64::min)
         * 0.5;
     match_layout(found_px, &centres, scale_um_per_px, tol)
+}
+
+/// The board's name for each found target ([`match_board`]: the tolerance the pipeline
+/// names its results with).
+pub fn name_targets(
+    found_px: &[[f64; 2]],
+    board: &crate::board::Board,
+    scale_um_per_px: f64,
+) -> Vec<Option<String>> {
+    match_board(found_px, board, scale_um_per_px)
         .into_iter()
         .map(|j| j.map(|j| board.targets[j].name.clone()))
         .collect()

@@ -644,20 +644,7 @@ pub fn mean_offset(ests: &[&CentreEstimate]) -> ([f64; 2], Option<[f64; 2]>) {
 /// Name the measured targets after the board's, and give their nominal offsets.
 fn name_objects(objects: &mut [ObjectResult], board: &Board, scale_um_per_px: f64) {
     let found: Vec<[f64; 2]> = objects.iter().map(|o| o.centre_px).collect();
-    let centres: Vec<[f64; 2]> = board.targets.iter().map(|t| t.centre_um).collect();
-    // Within half the smallest ring hole: a target cannot be mistaken for its neighbour.
-    let tol = board
-        .targets
-        .iter()
-        .map(|t| match t.outer {
-            crate::board::Shape::Ring {
-                inner_radius_um, ..
-            } => inner_radius_um,
-            crate::board::Shape::Disk { radius_um } => radius_um,
-        })
-        .fold(f64::INFINITY, f64::min)
-        * 0.5;
-    let m = super::layout::match_layout(&found, &centres, scale_um_per_px, tol);
+    let m = super::layout::match_board(&found, board, scale_um_per_px);
     for (o, j) in objects.iter_mut().zip(m) {
         if let Some(j) = j {
             o.name = Some(board.targets[j].name.clone());
