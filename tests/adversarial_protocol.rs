@@ -63,6 +63,14 @@ fn malformed_shapes_are_refused_and_nothing_runs() {
         ),
         (r#"{"id":10,"kind":"pause","job_id":1.5}"#, "invalid type"),
         (r#"{"id":11,"kind":"resume"}"#, "missing field `job_id`"),
+        (
+            r#"{"id":12,"kind":"resume_session","session":7}"#,
+            "invalid type",
+        ),
+        (
+            r#"{"id":13,"kind":"resume_session","job_id":1}"#,
+            "unknown field `job_id`",
+        ),
     ];
     for (line, needle) in cases {
         let r = c.request(line);

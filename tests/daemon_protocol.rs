@@ -67,6 +67,7 @@ const KINDS: &[(&str, &[&str])] = &[
     ("stop", &[]),
     ("pause", &["job_id"]),
     ("resume", &["job_id"]),
+    ("resume_session", &["session"]),
 ];
 
 proptest! {
@@ -297,6 +298,16 @@ fn bad_requests_get_error_replies_and_the_connection_keeps_serving() {
             br#"{"id":16,"kind":"resume","job_id":99}"#,
             "not_found",
             "99",
+        ),
+        (
+            br#"{"id":17,"kind":"resume_session","session":"nope"}"#,
+            "not_found",
+            "no session nope",
+        ),
+        (
+            br#"{"id":18,"kind":"resume_session","session":"../x"}"#,
+            "rejected",
+            "not a session name",
         ),
     ];
     for (line, code, needle) in &cases {

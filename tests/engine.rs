@@ -36,6 +36,7 @@ fn plan(positions_um: &[f64]) -> Plan {
             processing: None,
         }],
         total_frames: positions_um.len() as u32,
+        first_index: 0,
     }
 }
 

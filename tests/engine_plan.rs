@@ -49,6 +49,7 @@ fn a_grid_moves_the_piezo_once_a_row_and_grabs_with_both_settled() {
             Some(&[0.0, 0.0, 10.0, 10.0]),
         )],
         total_frames: 4,
+        first_index: 0,
     };
     let settled = Arc::new(AtomicU32::new(0));
     let count = |s: &Arc<AtomicU32>| {
@@ -126,6 +127,7 @@ fn a_cancel_during_the_piezos_move_stops_both_stages() {
     let plan = Plan {
         runs: vec![run_plan(0, &[100.0, 150.0], Some(&[0.0, 10.0]))],
         total_frames: 2,
+        first_index: 0,
     };
     let flag = Arc::new(StopFlag::default());
     let f = flag.clone();
@@ -196,6 +198,7 @@ fn repeats_start_an_interval_apart_and_a_cancel_ends_the_wait() {
     let plan = Plan {
         runs,
         total_frames: 3,
+        first_index: 0,
     };
     let interval = Duration::from_millis(40);
     let flag = StopFlag::default();

@@ -39,7 +39,7 @@ fn body_of(req: &Value) -> &'static str {
     let kind = req["kind"].as_str().unwrap();
     match kind {
         "hello" => "HelloReply",
-        "submit" | "replay" => "SubmitReply",
+        "submit" | "replay" | "resume_session" => "SubmitReply",
         "status" if req.get("job_id").is_some() => "JobStatus",
         "status" => "DaemonStatus",
         "list" => "ListReply",
@@ -168,7 +168,14 @@ fn traffic(tap: &mut Tap) {
         .unwrap();
     tap.until_step(long);
     tap.ok(json!({"kind": "cancel", "job_id": long}));
-    assert_eq!(tap.until_end(long)["event"], "cancelled");
+    let end = tap.until_end(long);
+    assert_eq!(end["event"], "cancelled");
+    // Resumed from its first missing frame (`resumed_from` in the reply), cancelled again.
+    let resumed = json!({"kind": "resume_session", "session": end["session"]});
+    let resumed = tap.ok(resumed)["job_id"].as_u64().unwrap();
+    tap.until_step(resumed);
+    tap.ok(json!({"kind": "cancel", "job_id": resumed}));
+    tap.until_end(resumed);
     tap.ok(json!({"kind": "unlock"}));
     tap.ok(json!({"kind": "home"}));
     tap.send(json!({"kind": "reconnect", "stage": "piezo"}));
@@ -176,6 +183,7 @@ fn traffic(tap: &mut Tap) {
     // Error replies: a job the rig refuses, a job that is not there.
     tap.send(json!({"kind": "submit", "job": {"step_um": 0.0, "steps": 3}}));
     tap.send(json!({"kind": "cancel", "job_id": 999_999}));
+    tap.send(json!({"kind": "resume_session", "session": "nope"}));
 }
 
 /// Issue 13's requests: manual control, the live view, pause and resume, a 2-D plan.

@@ -88,3 +88,34 @@ def test_a_grid_plan_runs(daemon: Daemon, client: rigd.Client) -> None:
     da = s.to_xarray()
     assert list(da["piezo_commanded_um"].values) == list(s.steps["piezo_commanded_um"])
     assert len(set(da["piezo_commanded_um"].values)) == 2  # two rows of the grid
+
+
+def test_resume_session_takes_the_missing_frames(daemon: Daemon, client: rigd.Client) -> None:
+    needs(daemon, "resume_session")
+    client.subscribe()
+    job_id = client.submit(step_um=50, steps=8, settle_ms=30, process=False)["job_id"]
+    session = None
+    with daemon.client() as other:
+        for ev in client.events():
+            if ev.job_id != job_id:
+                continue
+            if isinstance(ev, rigd.Step) and ev.index == 2:
+                other.cancel(job_id)
+            if ev.terminal:
+                assert isinstance(ev, rigd.Cancelled)
+                session = ev.session
+                break
+    assert session is not None
+    kept = len(rigd.Session(daemon.data_root / session).steps)
+    reply = client.resume_session(session)
+    assert reply["resumed_from"] == {"session": session, "first_index": kept}
+    assert reply["total_frames"] == 8
+    last = None
+    for last in client.events():
+        if last.job_id == reply["job_id"] and last.terminal:
+            break
+    assert last is not None and last.kind == "finished"
+    new = rigd.Session(daemon.data_root / client.result(reply["job_id"])["session"])
+    assert list(new.steps["index"]) == list(range(kept, 8))
+    with pytest.raises(rigd.Rejected, match="finished"):
+        client.resume_session(new.path.name)

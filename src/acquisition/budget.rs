@@ -26,10 +26,11 @@ fn kept_images(plan: &Plan, rig: &RigInfo) -> Vec<u64> {
         .collect()
 }
 
-/// The disk a job writes: its frames ([`estimated_bytes`]) and its reconstructions' PNGs.
+/// The disk a job writes: its frames ([`estimated_bytes`]; a resumed job's from its first
+/// missing one) and its reconstructions' PNGs (every run's).
 pub fn disk_bytes(plan: &Plan, rig: &RigInfo) -> u64 {
     reconstruction_bytes(plan, rig)
-        .saturating_add(estimated_bytes(plan.total_frames as u64, rig.frame_size))
+        .saturating_add(estimated_bytes(plan.frames_to_capture() as u64, rig.frame_size))
 }
 
 /// The disk the reconstructions' PNGs take (about their raw 16-bit size).

@@ -8,6 +8,10 @@
 //! HLT); a shutdown lets the move end. Either, arriving during the settle or the grab, ends
 //! the step without a frame; arriving after the last step, the job still ends cancelled.
 //!
+//! A resumed plan (`Plan::first_index`) starts at its first missing frame: the first move
+//! goes there from wherever the stage is (checked by the driver against `max_step_um`, as
+//! any job's first move), and the plan goes on as if never interrupted.
+//!
 //! Pauses (`acquisition::pause`): a client's is taken between steps, a controller's feed
 //! hold mid-move (or fails the step, as `on_feed_hold` says); either waits for a resume or
 //! a stop, and the plan goes on with the frame it was at.
@@ -131,11 +135,23 @@ impl Engine<'_> {
         let mut piezo_at: Option<f64> = None;
         // Where the last frame was taken: where a pause between steps leaves the stage.
         let mut last_um = None;
+        // A resumed plan starts at its first missing frame: the frames before it (whole
+        // runs, and the start of the run it falls in) are the original session's.
+        let first = self.plan.first_index;
         for run in &self.plan.runs {
+            let len = run.positions_um.len() as u32;
+            if index + len <= first {
+                index += len;
+                continue;
+            }
             if let Err(cause) = self.wait_for_repeat(run.repeat, &mut repeat_started) {
                 return self.stopped(dev, cause, None);
             }
             for (i, &commanded_um) in run.positions_um.iter().enumerate() {
+                if index < first {
+                    index += 1;
+                    continue;
+                }
                 if let Some(cause) = self.stop.cause() {
                     return self.stopped(dev, cause, None);
                 }

@@ -55,7 +55,16 @@ pub struct RunPlan {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Plan {
     pub runs: Vec<RunPlan>,
+    /// Frames of the whole plan (those before `first_index` included).
     pub total_frames: u32,
+    /// The plan index of the first frame this job takes: 0, or a resumed session's first
+    /// missing frame (`daemon::resuming`); the frames before it are the original's.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub first_index: u32,
+}
+
+fn is_zero(v: &u32) -> bool {
+    *v == 0
 }
 
 /// The processing options of one scan of `spec` (resolved: see `JobSpec::with_defaults`),
@@ -162,13 +171,24 @@ pub fn plan(
     data_root: &Path,
     committed_bytes: u64,
 ) -> Result<Plan, PlanError> {
+    let plan = expand(spec, rig)?;
+    check_disk(&plan, rig, data_root, committed_bytes)?;
+    Ok(plan)
+}
+
+/// Every check of [`plan`] but the disk's (shape, limits, `max_step_um` between frames,
+/// settle, processing options), and the runs. A resumed job is expanded with this, then
+/// checked against the disk for the frames it has left.
+pub fn expand(spec: &JobSpec, rig: &RigInfo) -> Result<Plan, PlanError> {
     check_job(spec, rig)?;
     if let Some(shape) = &spec.plan {
         let runs = super::shapes::runs(spec, shape, rig)?;
         let total_frames = runs.iter().map(|r| r.positions_um.len() as u32).sum();
-        let plan = Plan { runs, total_frames };
-        check_disk(&plan, rig, data_root, committed_bytes)?;
-        return Ok(plan);
+        return Ok(Plan {
+            runs,
+            total_frames,
+            first_index: 0,
+        });
     }
     let cases = cases(spec)?;
     let bounds = rig
@@ -212,11 +232,11 @@ pub fn plan(
     let plan = Plan {
         runs,
         total_frames: total as u32,
+        first_index: 0,
     };
     if let Some(max) = bounds.max_step_um {
         check_steps(&plan, max, spec.stage)?;
     }
-    check_disk(&plan, rig, data_root, committed_bytes)?;
     Ok(plan)
 }
 
@@ -328,7 +348,7 @@ pub fn check_disk(
     let images = budget::reconstruction_bytes(plan, rig);
     match free_bytes(data_root) {
         Some(free) if need.saturating_add(committed_bytes) > free => Err(rejected(disk_message(
-            plan.total_frames,
+            plan.frames_to_capture(),
             (need, images),
             committed_bytes,
             data_root,
@@ -339,8 +359,23 @@ pub fn check_disk(
 }
 
 impl Plan {
-    /// This plan for a replay of a session that holds `frames` frames: cut to them, `k`
-    /// and processing overridden, every run's options rebuilt and checked as at submit.
+    /// The frames this job takes: those from `first_index` on.
+    pub fn frames_to_capture(&self) -> u32 {
+        self.total_frames.saturating_sub(self.first_index)
+    }
+
+    /// (plan index, run, position in the run) of every frame, in plan order.
+    pub fn frames(&self) -> impl Iterator<Item = (u32, &RunPlan, usize)> + '_ {
+        self.runs
+            .iter()
+            .flat_map(|r| (0..r.positions_um.len()).map(move |i| (r, i)))
+            .enumerate()
+            .map(|(n, (r, i))| (n as u32, r, i))
+    }
+
+    /// This plan for a replay of a session that holds `frames` frames from the plan's
+    /// `first_index` on (a resumed session's are its own): cut to them, `k` and processing
+    /// overridden, every run's options rebuilt and checked as at submit.
     pub fn for_replay(
         &self,
         frames: usize,
@@ -349,13 +384,14 @@ impl Plan {
         rig: &RigInfo,
     ) -> Result<Plan, PlanError> {
         let mut plan = self.clone();
-        let mut left = frames;
+        let end = self.first_index as usize + frames;
+        let mut left = end;
         plan.runs.retain(|r| {
             let keep = left > 0;
             left = left.saturating_sub(r.positions_um.len());
             keep
         });
-        let mut left = frames;
+        let mut left = end;
         for r in &mut plan.runs {
             let n = r.positions_um.len().min(left);
             r.positions_um.truncate(n);

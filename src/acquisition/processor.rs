@@ -29,6 +29,27 @@ pub enum ProcessorEvent {
 
 pub type Emit = Box<dyn Fn(ProcessorEvent) + Send>;
 
+/// A frame an earlier session took of this plan (a resumed job's original): processed with
+/// this job's frames of its run, as if this job had taken it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PriorFrame {
+    pub index: u32,
+    pub run: u32,
+    /// The position it registers by (`StepRecord::registration_um`); `None`: the job
+    /// registers by the interferometer and the frame has no reading.
+    pub registration_um: Option<f64>,
+    pub piezo_commanded_um: Option<f64>,
+}
+
+/// Reads a prior frame's image by its plan index (from the session that holds it).
+pub type LoadFrame = Box<dyn Fn(u32) -> Result<image::RgbImage, String> + Send>;
+
+/// The frames before a resumed plan's first one, in plan order, and how to read them.
+pub struct Prior {
+    pub frames: Vec<PriorFrame>,
+    pub load: LoadFrame,
+}
+
 pub struct Processor {
     runs: Vec<RunPlan>,
     board: Option<Board>,
@@ -38,6 +59,8 @@ pub struct Processor {
     pub results: Vec<RunResult>,
     /// Reconstructions, named `run-NNN-<name>`.
     pub images: Vec<(String, Image16)>,
+    /// A resumed job's earlier frames: a run's are pushed before this job's frames of it.
+    prior: Option<Prior>,
 }
 
 impl Processor {
@@ -49,7 +72,47 @@ impl Processor {
             current: None,
             results: Vec::new(),
             images: Vec::new(),
+            prior: None,
         }
+    }
+
+    /// Process the frames of `prior` too: a run's before this job's frames of it; the runs
+    /// it holds whole at `finish`.
+    pub fn with_prior(mut self, prior: Prior) -> Processor {
+        self.prior = Some(prior);
+        self
+    }
+
+    /// A new pipeline for `run`, fed the prior frames of it first.
+    fn start_run(&self, run: u32) -> Result<Pipeline, String> {
+        let mut p = self.pipeline_for(run)?;
+        let Some(prior) = self.prior.as_ref() else {
+            return Ok(p);
+        };
+        for f in prior.frames.iter().filter(|f| f.run == run) {
+            let image = (prior.load)(f.index)?;
+            let at = f.registration_um.ok_or_else(|| {
+                format!("frame {}: no interferometer reading at its time", f.index)
+            })?;
+            p.push_at(&image, at, f.piezo_commanded_um)
+                .map_err(|e| format!("frame {}: {e}", f.index))?;
+        }
+        Ok(p)
+    }
+
+    /// The runs the prior frames hold whole (every planned frame of them), in run order.
+    fn prior_runs(&self) -> Vec<u32> {
+        let Some(prior) = self.prior.as_ref() else {
+            return Vec::new();
+        };
+        self.runs
+            .iter()
+            .filter(|r| {
+                let n = prior.frames.iter().filter(|f| f.run == r.run).count();
+                n > 0 && n == r.positions_um.len()
+            })
+            .map(|r| r.run)
+            .collect()
     }
 
     fn pipeline_for(&self, run: u32) -> Result<Pipeline, String> {
@@ -96,7 +159,7 @@ impl Processor {
 impl StepSink for Processor {
     fn step(&mut self, rec: Arc<StepRecord>) -> Result<(), SinkError> {
         if self.current.as_ref().map(|c| c.0) != Some(rec.run) {
-            self.current = Some((rec.run, self.pipeline_for(rec.run)));
+            self.current = Some((rec.run, self.start_run(rec.run)));
         }
         let Some((_, Ok(p))) = self.current.as_mut() else {
             return Ok(());
@@ -129,6 +192,19 @@ impl StepSink for Processor {
             _ => Err("no frame reached processing".into()),
         };
         self.record(run, outcome);
+        Ok(())
+    }
+
+    /// A resumed job's runs taken whole by the earlier session are processed from its
+    /// frames now, behind the capture (the rig never waits for them); results in run order.
+    fn finish(&mut self) -> Result<(), SinkError> {
+        for run in self.prior_runs() {
+            let outcome = self
+                .start_run(run)
+                .and_then(|p| p.finish().map_err(|e| e.to_string()));
+            self.record(run, outcome);
+        }
+        self.results.sort_by_key(|r| r.run);
         Ok(())
     }
 }

@@ -143,6 +143,9 @@ pub fn follow(c: &mut Client, id: u64, total: u32, quiet: bool) -> anyhow::Resul
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Pace {
     started: Option<Instant>,
+    /// Frames of the plan done before the job started (a resumed session's original's):
+    /// they do not count towards its rate.
+    before: u32,
 }
 
 impl Pace {
@@ -151,16 +154,23 @@ impl Pace {
         let back = Duration::from_secs_f64(elapsed_s.max(0.0));
         Pace {
             started: Some(now.checked_sub(back).unwrap_or(now)),
+            before: 0,
         }
+    }
+
+    /// The same pace for a plan whose first `before` frames another session took.
+    pub fn taken_before(self, before: u32) -> Pace {
+        Pace { before, ..self }
     }
 
     /// Frames per second and seconds left, once the job has started and done a frame.
     pub fn rate_eta(&self, done: u32, total: u32, now: Instant) -> Option<(f64, f64)> {
         let dt = now.saturating_duration_since(self.started?).as_secs_f64();
-        if done == 0 || dt <= 0.0 {
+        let taken = done.saturating_sub(self.before);
+        if taken == 0 || dt <= 0.0 {
             return None;
         }
-        let rate = done as f64 / dt;
+        let rate = taken as f64 / dt;
         Some((rate, total.saturating_sub(done) as f64 / rate))
     }
 
@@ -209,7 +219,7 @@ pub fn follow_from(
         }
         match &e.body {
             EventBody::Started { session: s, .. } => {
-                pace = Pace::running_for(0.0, Instant::now());
+                pace = Pace::running_for(0.0, Instant::now()).taken_before(pace.before);
                 bar.set_message(format!("started: session {s}"));
             }
             EventBody::Step {

@@ -81,7 +81,8 @@ pub enum Command {
     Stop(manual::StopArgs),
     /// Pause a running job at its next step boundary.
     Pause(pause::PauseArgs),
-    /// Let a paused job go on with its next frame.
+    /// Let a paused job go on with its next frame; or resume an interrupted session from
+    /// its first missing frame as a new job.
     Resume(pause::ResumeArgs),
 }
 

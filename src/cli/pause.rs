@@ -1,5 +1,6 @@
 //! `rigctl pause JOB`, `rigctl resume JOB`: pause a running job at its next step boundary,
-//! let it go on.
+//! let it go on. `rigctl resume SESSION`: resume an interrupted session as a new job
+//! (`resume_session`), followed as `submit` follows a job.
 
 use crate::cli::client::SocketArg;
 use crate::daemon::protocol::Request;
@@ -16,8 +17,13 @@ pub struct PauseArgs {
 pub struct ResumeArgs {
     #[command(flatten)]
     pub socket: SocketArg,
-    /// The paused job to resume.
-    pub job_id: u64,
+    /// A paused job's id (it goes on with its next frame), or an incomplete, failed or
+    /// cancelled session's name (a new job takes its plan on from its first missing frame).
+    #[arg(value_name = "JOB|SESSION")]
+    pub target: String,
+    /// A session: return once queued (print the job id) instead of following the job.
+    #[arg(long)]
+    pub detach: bool,
 }
 
 pub fn pause(a: PauseArgs) -> anyhow::Result<()> {
@@ -32,8 +38,18 @@ pub fn pause(a: PauseArgs) -> anyhow::Result<()> {
 }
 
 pub fn resume(a: ResumeArgs) -> anyhow::Result<()> {
+    // Session names start with a UTC stamp and hold a `-`: never a bare number.
+    let Ok(job_id) = a.target.parse::<u64>() else {
+        let req = Request::ResumeSession {
+            session: a.target.clone(),
+        };
+        return crate::cli::submit::submit_and_follow(&a.socket, req, a.detach).map(|_| ());
+    };
+    if a.detach {
+        anyhow::bail!("--detach is for resuming a session; job {job_id} resumes in place");
+    }
     let mut c = a.socket.connect()?;
-    c.request(&Request::Resume { job_id: a.job_id })?;
-    println!("job {}: resumed", a.job_id);
+    c.request(&Request::Resume { job_id })?;
+    println!("job {job_id}: resumed");
     Ok(())
 }

@@ -116,7 +116,7 @@ impl SubmitArgs {
     }
 }
 
-/// Submit `req` (a submit or a replay) and follow it unless `detach`.
+/// Submit `req` (a submit, a replay or a resume_session) and follow it unless `detach`.
 pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyhow::Result<u64> {
     let mut c = socket.connect()?;
     if !detach {
@@ -134,7 +134,16 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
         println!("{id}");
         return Ok(id);
     }
-    let end = follow(&mut c, id, total, false)?;
+    // A resumed session's job: the plan's frames before its first are the original's.
+    let before = r["resumed_from"]["first_index"].as_u64().unwrap_or(0) as u32;
+    if before > 0 {
+        eprintln!(
+            "resuming session {} from frame {before}",
+            r["resumed_from"]["session"].as_str().unwrap_or("?")
+        );
+    }
+    let pace = crate::cli::client::Pace::default().taken_before(before);
+    let end = crate::cli::client::follow_from(&mut c, id, total, false, pace, before)?;
     report_end(id, &end)?;
     print_results(&mut c, id)?;
     Ok(id)

@@ -13,6 +13,7 @@ use crate::daemon::protocol::{
     PROTOCOL_VERSION,
 };
 use crate::daemon::replay::replay_job;
+use crate::daemon::resuming::{self, ResumeError};
 use crate::daemon::session::{self, Session};
 use crate::daemon::timing::{rfc3339_unix, JobTiming};
 use crate::daemon::Shared;
@@ -53,6 +54,7 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
             let (id, ahead) = queue(shared, spec.clone(), plan.clone(), &s.manifest.rig, source)?;
             Ok(ReplyBody::Submit(announce(shared, id, ahead, spec, &plan)))
         }
+        Request::ResumeSession { session: name } => resume(shared, &name).map(ReplyBody::Submit),
         Request::Status { job_id: None } => {
             let jobs = shared.jobs();
             Ok(ReplyBody::DaemonStatus(DaemonStatus {
@@ -179,7 +181,30 @@ fn announce(shared: &Shared, id: u64, ahead: usize, job: JobSpec, plan: &Plan) -
         queue_position: ahead,
         total_frames,
         job,
+        resumed_from: None,
     }
+}
+
+/// Check an interrupted session's job against the rig as a submit is, and queue it to take
+/// the frames from the session's first missing one on (`daemon::resuming`).
+fn resume(shared: &Shared, name: &str) -> Result<SubmitReply, ProtoError> {
+    refuse_if_stopping(shared)?;
+    if let Some(f) = shared.rig().fault.clone() {
+        return Err(ProtoError::new(ErrorCode::Rejected, f.refusal()));
+    }
+    let dir = session_dir(shared, name)?;
+    let root = &shared.settings.data_root;
+    let (spec, plan, origin) =
+        resuming::resume_job(root, &dir, &shared.rig_info).map_err(|e| match e {
+            ResumeError::NotFound(m) => not_found(m),
+            ResumeError::Rejected(m) => ProtoError::new(ErrorCode::Rejected, m),
+        })?;
+    let link = origin.link.clone();
+    let source = JobSource::Resume(std::sync::Arc::new(origin));
+    let (id, ahead) = queue(shared, spec.clone(), plan.clone(), &shared.rig_info, source)?;
+    let mut reply = announce(shared, id, ahead, spec, &plan);
+    reply.resumed_from = Some(link);
+    Ok(reply)
 }
 
 fn list(shared: &Shared, limit: Option<u32>, before: Option<u64>) -> Result<ListReply, ProtoError> {

@@ -4,6 +4,7 @@
 use crate::acquisition::plan::Plan;
 use crate::acquisition::{JobSpec, Processing, StopFlag};
 use crate::daemon::job_ids::{JobIdError, JobIds};
+use crate::daemon::resuming::Origin;
 use crate::daemon::timing::{self, JobClock, JobTiming, Pending, RigPace};
 use crate::rig::RigInfo;
 use serde::{Deserialize, Serialize};
@@ -42,7 +43,19 @@ impl JobState {
 #[derive(Debug, Clone)]
 pub enum JobSource {
     Live,
-    Replay { dir: PathBuf, overrides: Processing },
+    Replay {
+        dir: PathBuf,
+        overrides: Processing,
+    },
+    /// A live job resuming an interrupted session (`daemon::resuming`).
+    Resume(Arc<Origin>),
+}
+
+impl JobSource {
+    /// The job runs on the rig (a replay runs on its recorded session).
+    pub fn uses_rig(&self) -> bool {
+        !matches!(self, JobSource::Replay { .. })
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -91,7 +104,7 @@ impl JobRecord {
                 JobSource::Replay { dir, .. } => {
                     dir.file_name().map(|n| n.to_string_lossy().into_owned())
                 }
-                JobSource::Live => None,
+                JobSource::Live | JobSource::Resume(_) => None,
             },
             session: self.session.clone(),
             frames_done: self.frames_done,
@@ -147,6 +160,8 @@ impl Jobs {
             return Err(QueueError::Full);
         }
         let id = self.ids.take()?;
+        // A resumed plan's frames before its first one are done (the original's).
+        let frames_done = plan.first_index;
         self.table.insert(
             id,
             JobRecord {
@@ -156,7 +171,7 @@ impl Jobs {
                 source,
                 state: JobState::Queued,
                 session: None,
-                frames_done: 0,
+                frames_done,
                 reason: None,
                 stop: Arc::new(StopFlag::default()),
                 disk_bytes,
@@ -199,8 +214,10 @@ impl Jobs {
     pub fn committed_disk_bytes(&self) -> u64 {
         self.pending()
             .map(|r| {
-                let total = r.plan.total_frames.max(1) as u128;
-                let left = r.plan.total_frames.saturating_sub(r.frames_done) as u128;
+                // Of the frames this job takes (a resumed one's from its first missing one).
+                let total = r.plan.frames_to_capture().max(1) as u128;
+                let done = r.frames_done.max(r.plan.first_index);
+                let left = r.plan.total_frames.saturating_sub(done) as u128;
                 (r.disk_bytes as u128 * left / total) as u64
             })
             .sum()
@@ -261,7 +278,7 @@ impl Jobs {
         rec.frames_done = frames_done;
         let interval = rec.clock.step(Instant::now());
         // A replay's pace is the disk's, not the rig's.
-        if let (Some(dt), JobSource::Live) = (interval, &rec.source) {
+        if let (Some(dt), true) = (interval, rec.source.uses_rig()) {
             self.pace.record(dt, rec.spec.settle_ms as f64 / 1000.0);
         }
     }
@@ -305,8 +322,9 @@ impl Jobs {
                 *id,
                 Pending {
                     clock: &r.clock,
-                    frames_done: r.frames_done,
-                    total_frames: r.plan.total_frames,
+                    // The estimate counts the frames this job takes.
+                    frames_done: r.frames_done.saturating_sub(r.plan.first_index),
+                    total_frames: r.plan.frames_to_capture(),
                     settle_s: r.spec.settle_ms as f64 / 1000.0,
                     stage_settle_s: stage_ms.unwrap_or(0) as f64 / 1000.0,
                 },
@@ -382,6 +400,7 @@ mod tests {
                 processing: None,
             }],
             total_frames: frames,
+            first_index: 0,
         }
     }
 

@@ -33,6 +33,7 @@ pub mod pausing;
 pub mod protocol;
 pub mod recorder;
 pub mod replay;
+pub mod resuming;
 pub mod rig_commands;
 pub mod rig_state;
 pub mod schema;

@@ -133,6 +133,11 @@ pub enum Request {
     Resume {
         job_id: u64,
     },
+    /// Queue a new job that takes an interrupted (incomplete, failed or cancelled) session's
+    /// plan on from its first missing frame, linked to it (docs/sessions.md, "Resume").
+    ResumeSession {
+        session: String,
+    },
 }
 
 /// The request kinds this daemon serves, one per [`Request`] variant (`hello` lists them).
@@ -157,6 +162,7 @@ pub const REQUEST_KINDS: &[&str] = &[
     "stop",
     "pause",
     "resume",
+    "resume_session",
 ];
 
 impl Request {
@@ -594,6 +600,10 @@ pub struct SubmitReply {
     pub total_frames: u32,
     /// The job as it will run: every processing default resolved.
     pub job: JobSpec,
+    /// `resume_session`: the session resumed and the first frame this job takes (the
+    /// frames before it are that session's; `total_frames` counts the whole plan).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub resumed_from: Option<crate::daemon::session::ResumedFrom>,
 }
 
 /// `status` without a job id: the daemon's.

@@ -79,6 +79,16 @@ pub enum SessionState {
     Incomplete,
 }
 
+/// A resumed session's link to the one it resumes (`rigd::daemon::resuming`): its frames
+/// before `first_index` are that session's (and, if it was itself resumed, its original's).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
+pub struct ResumedFrom {
+    /// The session resumed (its name under the data root).
+    pub session: String,
+    /// The plan index of the first frame the new session took (the first missing one).
+    pub first_index: u32,
+}
+
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Versions {
     pub rigd: String,
@@ -103,6 +113,9 @@ pub struct Manifest {
     /// The session this one replays, if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub replay_of: Option<String>,
+    /// The interrupted session this one resumes, if any; never written into that one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub resumed_from: Option<ResumedFrom>,
     pub rig: RigInfo,
     /// The interferometer log the session's `interferometer.csv` was read from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -173,14 +186,15 @@ pub struct SessionWriter {
 }
 
 impl SessionWriter {
-    /// Create `<data_root>/<name>` with its manifest in state `running`.
+    /// Create `<data_root>/<name>` with its manifest in state `running`; `links`: the
+    /// session it replays, the session it resumes.
     pub fn create(
         data_root: &Path,
         job_id: u64,
         job: &JobSpec,
         plan: &Plan,
         rig: &RigInfo,
-        replay_of: Option<String>,
+        (replay_of, resumed_from): (Option<String>, Option<ResumedFrom>),
     ) -> Result<SessionWriter, SessionError> {
         fs::create_dir_all(data_root).map_err(io(data_root))?;
         let now = SystemTime::now();
@@ -212,6 +226,7 @@ impl SessionWriter {
             job: job.clone(),
             plan: plan.clone(),
             replay_of,
+            resumed_from,
             rig: rig.clone(),
             interferometer: None,
             versions: Versions {

@@ -61,7 +61,7 @@ pub async fn run(shared: Arc<Shared>, mut rig: Rig) -> Rig {
             }
             continue;
         };
-        if matches!(job.source, JobSource::Live) {
+        if job.source.uses_rig() {
             let fault = {
                 let mut cond = shared.rig();
                 cond.jobs_started += 1;
@@ -120,7 +120,7 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
     // A replay runs on a rig made of the recorded session; a live job on the rig.
     let mut replay;
     let (rig, replay_of): (&mut Rig, Option<String>) = match &job.source {
-        JobSource::Live => (live, None),
+        JobSource::Live | JobSource::Resume(_) => (live, None),
         JobSource::Replay { dir, .. } => match Session::open(dir).and_then(|s| {
             let rig = crate::rig::replay(&s)?;
             Ok((rig, s.manifest.name))
@@ -133,8 +133,12 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
         },
     };
     let root = &shared.settings.data_root;
-    let session = match SessionWriter::create(root, id, &job.spec, &job.plan, &rig.info, replay_of)
-    {
+    let resumed_from = match &job.source {
+        JobSource::Resume(origin) => Some(origin.link.clone()),
+        _ => None,
+    };
+    let links = (replay_of, resumed_from);
+    let session = match SessionWriter::create(root, id, &job.spec, &job.plan, &rig.info, links) {
         Ok(s) => s,
         Err(e) => return end(shared, id, None, failed_setup(format!("disk: {e}"))),
     };
@@ -161,7 +165,7 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
     let outcome = close(session, outcome, &result, &images);
     // A job that failed on a live stage: the controller says whether the rig is in fault,
     // before any client hears of the end (and could submit again).
-    if matches!(job.source, JobSource::Live)
+    if job.source.uses_rig()
         && matches!(outcome, Outcome::Failed(JobError::Hardware { .. }))
     {
         if let Some(f) = probe(rig, job.spec.stages().0) {
@@ -252,11 +256,15 @@ fn job_sink(
     session: SessionWriter,
 ) -> JobSink {
     let processor = job.spec.process.then(|| {
-        let p = Processor::new(
+        let mut p = Processor::new(
             job.plan.runs.clone(),
             rig.info.board.clone(),
             processor_events(shared, job.id),
         );
+        // A resumed job's runs are processed from the original's frames too.
+        if let JobSource::Resume(origin) = &job.source {
+            p = p.with_prior(origin.prior());
+        }
         Threaded::spawn("processor", p, PROCESSOR_QUEUE)
     });
     let recorder = Recorder::new(session, step_recorded(shared, job.id), processor);

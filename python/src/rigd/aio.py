@@ -180,6 +180,10 @@ class AsyncClient:
     async def resume(self, job_id: int) -> Json:
         return await self.request("resume", job_id=job_id)
 
+    async def resume_session(self, session: str) -> Json:
+        """As `Client.resume_session`."""
+        return await self.request("resume_session", session=session)
+
     async def snap(
         self, *, scale: Optional[float] = None, crop: Optional[tuple[int, int, int, int]] = None
     ) -> Json:

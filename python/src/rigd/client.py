@@ -164,6 +164,12 @@ class Client:
     def replay(self, session: str, **processing: Any) -> Json:
         return self.request("replay", session=session, processing=processing or None)
 
+    def resume_session(self, session: str) -> Json:
+        """Queue a new job that takes an interrupted (incomplete, failed or cancelled)
+        session's plan on from its first missing frame. The reply is a submit's, with
+        `resumed_from` (`session`, `first_index`); `total_frames` counts the whole plan."""
+        return self.request("resume_session", session=session)
+
     def unlock(self, stage: Optional[str] = None) -> Json:
         return self.request("unlock", stage=stage)
 
