@@ -182,8 +182,22 @@ fn a_failed_session_resumes_with_exactly_its_missing_frames_and_one_result() {
     }
     assert!(result["study"].is_object(), "{result}");
 
+    // A replay of the resumed session replays its own frames, at their plan indices.
+    let (_, ev) = run_request(
+        &mut c,
+        &Request::Replay {
+            session: b.manifest.name.clone(),
+            processing: Default::default(),
+        },
+    );
+    assert_finished(&ev);
+    let idx: Vec<u32> = reported_steps(&ev).iter().map(|s| s.0).collect();
+    assert_eq!(idx, (kept..FRAMES).collect::<Vec<_>>());
+
     // The same job uninterrupted (the stall was once): the same runs, the same offsets
-    // within the sim's noise.
+    // within the sim's capture-to-capture scatter (4 frames at k = 4 on 300x200 frames of
+    // 774 µm px: up to about 5 µm seen; a run missing half its frames or registered
+    // wrongly is off by more, or has no result).
     let (_, ev) = run_job(&mut c, job());
     assert_finished(&ev);
     let whole = Session::open(&d.data.join(session_name(&ev))).unwrap();
@@ -195,7 +209,7 @@ fn a_failed_session_resumes_with_exactly_its_missing_frames_and_one_result() {
         assert!(!p.is_empty(), "run {run}: no target");
         for (u, v) in p.iter().zip(q) {
             assert!(
-                (u.0 - v.0).abs() < 5.0 && (u.1 - v.1).abs() < 5.0,
+                (u.0 - v.0).abs() < 10.0 && (u.1 - v.1).abs() < 10.0,
                 "run {run}: {u:?} uninterrupted, {v:?} resumed"
             );
         }

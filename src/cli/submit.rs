@@ -2,7 +2,7 @@
 
 use crate::acquisition::study::JobResult;
 use crate::acquisition::{JobRegistration, JobSpec, PaperCase, Processing, StageKind};
-use crate::cli::client::{follow, report_end, Client, SocketArg};
+use crate::cli::client::{report_end, Client, SocketArg};
 use crate::cli::results::results_table;
 use crate::daemon::protocol::Request;
 use crate::pipeline::{Combine, Estimator};

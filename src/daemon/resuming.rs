@@ -154,7 +154,6 @@ fn check_rig(s: &Session, rig: &RigInfo) -> Result<(), ResumeError> {
              {now}"
         ))
     };
-    let text = |v: &dyn serde::Serialize| serde_json::to_string(v).unwrap_or_default();
     if was.mode != rig.mode {
         return Err(differs("mode", text(&was.mode), text(&rig.mode)));
     }
@@ -185,6 +184,11 @@ fn check_rig(s: &Session, rig: &RigInfo) -> Result<(), ResumeError> {
         return Err(differs("board", board(&was.board), board(&rig.board)));
     }
     Ok(())
+}
+
+/// A value as the manifest writes it.
+fn text<T: serde::Serialize>(v: &T) -> String {
+    serde_json::to_string(v).unwrap_or_default()
 }
 
 /// This rig expands the recorded job into the recorded positions, or the resumed frames
