@@ -116,7 +116,10 @@ fn a_failed_session_resumes_with_exactly_its_missing_frames_and_one_result() {
     let d = start(dir.path(), vec![Fault::CameraTimeout(STALL_AT_GRAB)]);
     let mut c = d.subscribed();
     let (id, ev) = run_job(&mut c, job());
-    assert!(matches!(ev.last(), Some(EventBody::Failed { .. })), "{ev:?}");
+    assert!(
+        matches!(ev.last(), Some(EventBody::Failed { .. })),
+        "{ev:?}"
+    );
     let a = d.session(&ev);
     let a_name = a.manifest.name.clone();
     assert_eq!(a.manifest.state, SessionState::Failed);
@@ -162,12 +165,18 @@ fn a_failed_session_resumes_with_exactly_its_missing_frames_and_one_result() {
     all.sort();
     assert_eq!(all, (0..FRAMES).collect::<Vec<_>>());
     // The original is not written to.
-    assert_eq!(std::fs::read(a.dir.join("manifest.json")).unwrap(), a_manifest);
+    assert_eq!(
+        std::fs::read(a.dir.join("manifest.json")).unwrap(),
+        a_manifest
+    );
     assert_eq!(std::fs::read(a.dir.join("steps.csv")).unwrap(), a_steps);
     assert!(!a.frame_path(kept).exists());
     // The frames the job took are counted over the plan.
     let st = c.request(&Request::Status { job_id: Some(rid) }).unwrap();
-    assert_eq!((st["frames_done"].as_u64(), st["total_frames"].as_u64()), (Some(12), Some(12)));
+    assert_eq!(
+        (st["frames_done"].as_u64(), st["total_frames"].as_u64()),
+        (Some(12), Some(12))
+    );
 
     // One result for every run, each from all 4 of its frames: run 0 from the original's
     // alone, run 1 from both sessions' (frames 4, 5 then 6, 7), run 2 from the new ones.
@@ -251,8 +260,10 @@ fn sessions_that_cannot_be_resumed_are_refused_naming_why() {
     });
     let e = resume(&mut c, &other).unwrap_err();
     assert!(
-        e.starts_with("rigd: rejected: session other-scale was recorded on another rig: its \
-             scale was 700 µm/px, this rig's is "),
+        e.starts_with(
+            "rigd: rejected: session other-scale was recorded on another rig: its \
+             scale was 700 µm/px, this rig's is "
+        ),
         "{e}"
     );
     // A replay is not resumed.

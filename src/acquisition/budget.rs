@@ -29,8 +29,10 @@ fn kept_images(plan: &Plan, rig: &RigInfo) -> Vec<u64> {
 /// The disk a job writes: its frames ([`estimated_bytes`]; a resumed job's from its first
 /// missing one) and its reconstructions' PNGs (every run's).
 pub fn disk_bytes(plan: &Plan, rig: &RigInfo) -> u64 {
-    reconstruction_bytes(plan, rig)
-        .saturating_add(estimated_bytes(plan.frames_to_capture() as u64, rig.frame_size))
+    reconstruction_bytes(plan, rig).saturating_add(estimated_bytes(
+        plan.frames_to_capture() as u64,
+        rig.frame_size,
+    ))
 }
 
 /// The disk the reconstructions' PNGs take (about their raw 16-bit size).

@@ -74,7 +74,11 @@ pub fn resume_job(
 ) -> Result<(JobSpec, Plan, Origin), ResumeError> {
     let s = open(dir)?;
     // The link names the folder (what `list` shows and clients pass).
-    let name = dir.file_name().unwrap_or_default().to_string_lossy().into_owned();
+    let name = dir
+        .file_name()
+        .unwrap_or_default()
+        .to_string_lossy()
+        .into_owned();
     check_state(&s)?;
     check_rig(&s, rig)?;
     let spec = s.manifest.job.clone();
@@ -167,7 +171,11 @@ fn check_rig(s: &Session, rig: &RigInfo) -> Result<(), ResumeError> {
     }
     if was.frame_size != rig.frame_size {
         let px = |(w, h): (u32, u32)| format!("{w}x{h} px");
-        return Err(differs("frame size", px(was.frame_size), px(rig.frame_size)));
+        return Err(differs(
+            "frame size",
+            px(was.frame_size),
+            px(rig.frame_size),
+        ));
     }
     if was.axis_dir != rig.axis_dir || was.piezo_dir != rig.piezo_dir {
         return Err(differs(
@@ -265,8 +273,7 @@ fn kept_frames(
     for row in &s.steps {
         let i = kept.len();
         let planned = plan.get(i).copied();
-        if row.index as usize != i || planned != Some(row.position_um) || !has_frame(&s.dir, i)
-        {
+        if row.index as usize != i || planned != Some(row.position_um) || !has_frame(&s.dir, i) {
             break;
         }
         kept.push((s.dir.clone(), row.clone()));

@@ -165,9 +165,7 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
     let outcome = close(session, outcome, &result, &images);
     // A job that failed on a live stage: the controller says whether the rig is in fault,
     // before any client hears of the end (and could submit again).
-    if job.source.uses_rig()
-        && matches!(outcome, Outcome::Failed(JobError::Hardware { .. }))
-    {
+    if job.source.uses_rig() && matches!(outcome, Outcome::Failed(JobError::Hardware { .. })) {
         if let Some(f) = probe(rig, job.spec.stages().0) {
             tracing::warn!(device = %f.device, reason = %f.reason, "the rig is in fault");
             shared.rig().fault = Some(f);
