@@ -266,6 +266,14 @@ fn sessions_that_cannot_be_resumed_are_refused_naming_why() {
         ),
         "{e}"
     );
+    // A session whose manifest cannot be read.
+    let unreadable = copy_session(&d.data, &a, "unreadable", |_| {});
+    std::fs::write(d.data.join(&unreadable).join("manifest.json"), "{").unwrap();
+    let e = resume(&mut c, &unreadable).unwrap_err();
+    assert!(
+        e.starts_with("rigd: rejected: session unreadable cannot be read: "),
+        "{e}"
+    );
     // A replay is not resumed.
     let replayed = copy_session(&d.data, &a, "a-replay", |m| {
         m["replay_of"] = a.manifest.name.clone().into();

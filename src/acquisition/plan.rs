@@ -364,15 +364,6 @@ impl Plan {
         self.total_frames.saturating_sub(self.first_index)
     }
 
-    /// (plan index, run, position in the run) of every frame, in plan order.
-    pub fn frames(&self) -> impl Iterator<Item = (u32, &RunPlan, usize)> + '_ {
-        self.runs
-            .iter()
-            .flat_map(|r| (0..r.positions_um.len()).map(move |i| (r, i)))
-            .enumerate()
-            .map(|(n, (r, i))| (n as u32, r, i))
-    }
-
     /// This plan for a replay of a session that holds `frames` frames from the plan's
     /// `first_index` on (a resumed session's are its own): cut to them, `k` and processing
     /// overridden, every run's options rebuilt and checked as at submit.

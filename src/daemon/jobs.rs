@@ -405,6 +405,26 @@ mod tests {
     }
 
     #[test]
+    fn a_resumed_plan_counts_the_originals_frames_done_and_commits_only_its_own() {
+        let mut jobs = Jobs::new(JobIds::in_memory(1));
+        let resumed = Plan {
+            first_index: 6,
+            ..plan(12)
+        };
+        let (id, _) = jobs
+            .submit(JobSpec::default(), resumed, JobSource::Live, 600)
+            .unwrap();
+        assert_eq!(jobs.get(id).unwrap().frames_done, 6);
+        // Its 600 bytes are for the 6 frames it takes: all still to write.
+        assert_eq!(jobs.committed_disk_bytes(), 600);
+        jobs.start_next().unwrap();
+        jobs.step_recorded(id, 9);
+        assert_eq!(jobs.committed_disk_bytes(), 300);
+        let st = jobs.get(id).unwrap().status();
+        assert_eq!((st.frames_done, st.total_frames), (9, 12));
+    }
+
+    #[test]
     fn a_finished_job_keeps_its_frame_count_but_not_its_positions() {
         let mut jobs = Jobs::new(JobIds::in_memory(1));
         let spec = JobSpec::default();
