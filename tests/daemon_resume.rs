@@ -305,8 +305,49 @@ fn sessions_that_cannot_be_resumed_are_refused_naming_why() {
         let idx: Vec<u32> = b.steps.iter().map(|r| r.index).collect();
         assert_eq!(idx, (first..FRAMES).collect::<Vec<_>>(), "{name}");
     }
+    // `rigctl resume SESSION` follows the new job as submit does and ends with the session's
+    // path; a job id resumes a paused job instead (no --detach there).
+    let (ok, out, err) = rigctl(&d.bg.socket, &["resume", &a.manifest.name]);
+    assert!(ok, "{out}{err}");
+    assert!(
+        err.contains(&format!(
+            "resuming session {} from frame 3",
+            a.manifest.name
+        )),
+        "{err}"
+    );
+    assert!(
+        out.contains("(no measurements: the job was not processed)"),
+        "{out}"
+    );
+    assert!(
+        out.contains(&format!("session: {}", d.data.display())),
+        "{out}"
+    );
+    let (ok, _, err) = rigctl(&d.bg.socket, &["resume", "nope"]);
+    assert!(!ok && err.contains("no session nope"), "{err}");
+    let (ok, _, err) = rigctl(&d.bg.socket, &["resume", "7", "--detach"]);
+    assert!(
+        !ok && err.contains("--detach is for resuming a session"),
+        "{err}"
+    );
     // The daemon keeps serving.
     c.request(&Request::Hello {}).unwrap();
+}
+
+/// `rigctl ARGS --socket SOCKET`: success, stdout, stderr.
+fn rigctl(socket: &Path, args: &[&str]) -> (bool, String, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args(args)
+        .arg("--socket")
+        .arg(socket)
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
 }
 
 /// A copy of session `s` under the data root as `name`, its manifest changed by `f`.
