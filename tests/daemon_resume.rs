@@ -366,3 +366,50 @@ fn copy_session(data: &Path, s: &Session, name: &str, f: impl FnOnce(&mut Value)
     std::fs::write(to.join("manifest.json"), serde_json::to_vec(&m).unwrap()).unwrap();
     name.to_string()
 }
+
+#[test]
+fn a_session_left_incomplete_by_kill_9_resumes_after_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let (socket, data) = (dir.path().join("s.sock"), dir.path().join("data"));
+    let mut child = RigdProcess::spawn_sim(&socket, &data);
+    let mut c = Client::connect(&socket).unwrap();
+    subscribe(&mut c);
+    let id = submit(&mut c, capture_job(50.0, 20, 20));
+    let (mut name, mut reported) = (String::new(), 0);
+    while reported < 3 {
+        let e = c.next_event().unwrap();
+        match e.body {
+            EventBody::Started { session, .. } if e.job_id == id => name = session,
+            EventBody::Step { .. } if e.job_id == id => reported += 1,
+            other => assert!(!other.is_terminal(), "{other:?}"),
+        }
+    }
+    child.kill_9();
+    let _child = RigdProcess::spawn_sim(&socket, &data);
+    let a = Session::open(&data.join(&name)).unwrap();
+    assert_eq!(a.manifest.state, SessionState::Incomplete);
+    let kept = a.steps.len() as u32;
+    assert!((3..20).contains(&kept), "{kept} frames kept");
+    let mut c = Client::connect(&socket).unwrap();
+    subscribe(&mut c);
+    let r = resume(&mut c, &name).unwrap();
+    assert_eq!(r["resumed_from"]["first_index"], kept);
+    let ev = events_until_end(&mut c, job_id(&r));
+    assert_finished(&ev);
+    let b = session_of(&data, &ev);
+    let mut all: Vec<(u32, f64)> = a
+        .steps
+        .iter()
+        .chain(&b.steps)
+        .map(|r| (r.index, r.position_um))
+        .collect();
+    all.sort_by_key(|x| x.0);
+    let planned: Vec<(u32, f64)> = a.manifest.plan.runs[0]
+        .positions_um
+        .iter()
+        .enumerate()
+        .map(|(i, &p)| (i as u32, p))
+        .collect();
+    assert_eq!(all, planned);
+    assert_frames_decode(&b, b.manifest.rig.frame_size);
+}
