@@ -18,7 +18,9 @@ fn fnv(bytes: &[u8]) -> u64 {
 fn frames_checksums(cam: CameraModel) -> Vec<u64> {
     let board = Board::paper();
     let origin = origin_centring(&board, &cam, "A");
-    let r = FrameRenderer::new(board, cam, 11).unwrap().with_origin(origin);
+    let r = FrameRenderer::new(board, cam, 11)
+        .unwrap()
+        .with_origin(origin);
     let mut out = vec![
         fnv(r.render_at(0, [0.0, 0.0]).as_raw()),
         fnv(r.render_at(7, [123.4, -56.7]).as_raw()),
@@ -59,7 +61,9 @@ fn the_ideal_camera_renders_as_before() {
     got.extend(frames_checksums(mjpeg));
     got.extend(frames_checksums(m420));
     got.push(expected_checksum(&small));
-    print_or_compare("small raw, mjpeg 4:2:2, 4:2:0, expected", &got,
+    print_or_compare(
+        "small raw, mjpeg 4:2:2, 4:2:0, expected",
+        &got,
         &[
             17091301075724835666,
             13993852524449386604,
@@ -88,7 +92,11 @@ fn the_ideal_camera_renders_full_frames_as_before() {
     print_or_compare(
         "full frame",
         &got,
-        &[4402349043180363053, 1839995572417679844, 18231243525569180832],
+        &[
+            4402349043180363053,
+            1839995572417679844,
+            18231243525569180832,
+        ],
     );
 }
 
@@ -101,5 +109,9 @@ fn the_ideal_crb_is_as_before() {
     let got = [b[0].to_bits(), b[1].to_bits()];
     eprintln!("crb {b:?}");
     // 3.4373871673459604, 3.43779072400179 µm.
-    print_or_compare("crb bits", &got, &[4614922726583011104, 4614923635311813513]);
+    print_or_compare(
+        "crb bits",
+        &got,
+        &[4614922726583011104, 4614923635311813513],
+    );
 }
