@@ -91,7 +91,7 @@ impl Lens {
 
     /// The undistorted image offset of distorted offset `d` (Newton on the radius).
     fn undistort(&self, d: [f64; 2]) -> [f64; 2] {
-        let rd = d[0].hypot(d[1]);
+        let rd = (d[0] * d[0] + d[1] * d[1]).sqrt();
         if rd == 0.0 || (self.k1 == 0.0 && self.k2 == 0.0) {
             return d;
         }

@@ -312,7 +312,8 @@ impl WarpInk {
         for &i in near {
             let d = &self.disks[i];
             let e = [p[0] - d.centre_um[0], p[1] - d.centre_um[1]];
-            let rho = e[0].hypot(e[1]).max(1e-9);
+            // (`hypot` is a slow libm call; the squares cannot overflow here.)
+            let rho = (e[0] * e[0] + e[1] * e[1]).sqrt().max(1e-9);
             let r = d.radius_um
                 + d.rough
                     .and_then(|(t, k)| self.print.edge(t, k))
@@ -321,7 +322,7 @@ impl WarpInk {
             // d(distance)/d(image) = nᵀ·J: µm per px along the steepest direction.
             let gx = nx * j[(0, 0)] + ny * j[(1, 0)];
             let gy = nx * j[(0, 1)] + ny * j[(1, 1)];
-            let k = 1.0 / gx.hypot(gy);
+            let k = 1.0 / (gx * gx + gy * gy).sqrt();
             let dist = (rho - r) * k;
             if dist.abs() < band && n_act < MAX_ACTIVE {
                 near_edge |= dist.abs() < close;
@@ -334,8 +335,7 @@ impl WarpInk {
         for &i in rects {
             let r = &self.rects[i];
             let e = [p[0] - r.centre_um[0], p[1] - r.centre_um[1]];
-            let kx = 1.0 / j[(0, 0)].hypot(j[(0, 1)]);
-            let ky = 1.0 / j[(1, 0)].hypot(j[(1, 1)]);
+            let (kx, ky) = row_scales(j);
             let dx = (e[0].abs() - r.half_um[0]) * kx;
             let dy = (e[1].abs() - r.half_um[1]) * ky;
             if (dx.abs() < band || dy.abs() < band) && dx < band && dy < band && n_r < MAX_ACTIVE {
@@ -355,10 +355,7 @@ impl WarpInk {
             cam.supersample.clamp(1, 3)
         };
         let step = 1.0 / n as f64;
-        let (kx, ky) = (
-            1.0 / j[(0, 0)].hypot(j[(0, 1)]),
-            1.0 / j[(1, 0)].hypot(j[(1, 1)]),
-        );
+        let (kx, ky) = row_scales(j);
         let mut sum = 0.0;
         for sj in 0..n {
             let dv = -0.5 + (sj as f64 + 0.5) * step;
@@ -384,6 +381,13 @@ impl WarpInk {
         }
         sum * step * step
     }
+}
+
+/// Image px per board µm along the board's x and y (rows of the Jacobian).
+#[inline]
+fn row_scales(j: &Matrix2<f64>) -> (f64, f64) {
+    let n = |a: f64, b: f64| 1.0 / (a * a + b * b).sqrt();
+    (n(j[(0, 0)], j[(0, 1)]), n(j[(1, 0)], j[(1, 1)]))
 }
 
 /// One row of expected DN through the lens (see `render::render_rows`).
