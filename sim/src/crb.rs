@@ -115,6 +115,9 @@ pub fn offset_crb_um_raw(
     offset_crb(board, cam, target_index, view, &[0, 1, 2], &observe, &var)
 }
 
+/// What an estimator sees of a rendered ROI (RGB f32, its box): the samples it gets.
+type Observe<'a> = dyn Fn(&[f32], [u32; 4]) -> Vec<f64> + 'a;
+
 /// The bound for samples `observe(rendered RGB of the ROI, roi)` with noise variance
 /// `var(expected sample)`; `channels` are the ink reflectances taken as unknown.
 #[allow(clippy::too_many_arguments)]
@@ -124,7 +127,7 @@ fn offset_crb(
     target_index: usize,
     view: View,
     channels: &[usize],
-    observe: &dyn Fn(&[f32], [u32; 4]) -> Vec<f64>,
+    observe: &Observe,
     var: &dyn Fn(f64) -> f64,
 ) -> [f64; 2] {
     let target = &board.targets[target_index];

@@ -95,7 +95,7 @@ impl InkDensity {
         if cam.ink_density_rms == 0.0 {
             return None;
         }
-        let mut rng = ChaCha8Rng::seed_from_u64(mix(cam.print_seed ^ 0x696e_6b));
+        let mut rng = ChaCha8Rng::seed_from_u64(mix(cam.print_seed ^ 0x0069_6e6b));
         let k = 1.0 / cam.ink_density_corr_um;
         let waves = (0..Self::WAVES)
             .map(|_| {

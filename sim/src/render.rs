@@ -623,8 +623,12 @@ impl SceneRenderer {
                 let y0 = b[2].floor().max(0.0);
                 let x1 = (b[1].ceil() + 1.0).min(fw);
                 let y1 = (b[3].ceil() + 1.0).min(fh);
-                (x1 > x0 && y1 > y0)
-                    .then(|| [x0 as u32, y0 as u32, (x1 - x0) as u32, (y1 - y0) as u32])
+                (x1 > x0 && y1 > y0).then_some([
+                    x0 as u32,
+                    y0 as u32,
+                    (x1 - x0) as u32,
+                    (y1 - y0) as u32,
+                ])
             })
             .collect()
     }
