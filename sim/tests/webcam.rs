@@ -830,6 +830,12 @@ fn the_webcam_cramer_rao_bound_comes_from_the_raw_mosaic() {
     );
     // The ideal camera's raw samples are its RGB (finer quantisation only).
     assert!(raw_ideal[0] <= rgb_ideal[0] && raw_ideal[0] > 0.95 * rgb_ideal[0]);
-    // A webcam's mosaic samples one channel per pixel, at half the conversion gain.
-    assert!(raw_webcam[0] > raw_ideal[0] && raw_webcam[1] > raw_ideal[1]);
+    // A webcam's mosaic samples one channel per pixel, at half the conversion gain, through a
+    // softer lens: 7.06 µm per axis for one frame (deterministic; 5 % either way).
+    let near = |v: f64, want: f64| (v / want - 1.0).abs() < 0.05;
+    assert!(
+        near(raw_webcam[0], 7.06) && near(raw_webcam[1], 7.06),
+        "{raw_webcam:?}"
+    );
+    assert!(near(raw_ideal[0], 2.45), "{raw_ideal:?}");
 }
