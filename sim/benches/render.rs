@@ -1,6 +1,7 @@
 //! Render speed: the paper's whole study (20 experiments x 31 frames of 1280x720) with the
-//! default camera, and the cost of each per-frame effect. `cargo bench -p rigd-sim --bench
-//! render` prints the figures quoted in docs/sim.md.
+//! default camera, and the cost of each per-frame effect, then a frame of each camera profile
+//! (`ideal`, `webcam`, `stress`). `cargo bench -p rigd-sim --bench render` prints the figures
+//! quoted in docs/sim.md; `... -- profiles` times the profiles only.
 
 use rigd_sim::camera::CameraModel;
 use rigd_sim::{Board, FrameRenderer};
@@ -31,6 +32,10 @@ fn time<T>(label: &str, frames: usize, f: impl FnOnce() -> T) -> T {
 fn main() {
     let threads = rayon::current_num_threads();
     println!("rayon threads: {threads}");
+    if std::env::args().any(|a| a == "profiles") {
+        profiles(30);
+        return;
+    }
     let t0 = Instant::now();
     let r = FrameRenderer::new(Board::paper(), CameraModel::default(), 1).unwrap();
     println!(
@@ -92,4 +97,46 @@ fn main() {
             mj.render_at(i, [0.0, 0.0]);
         }
     });
+}
+
+/// A still 1280x720 frame of each profile, and the webcam's stages.
+fn profiles(n: usize) {
+    for name in ["ideal", "webcam", "stress"] {
+        let cam = CameraModel::profile(name).unwrap();
+        let r = FrameRenderer::new(Board::paper(), cam.clone(), 1).unwrap();
+        r.render_at(0, [0.0, 0.0]);
+        time(&format!("{name}: still frame"), n, || {
+            for i in 0..n as u64 {
+                r.render_at(i, [0.0, 0.0]);
+            }
+        });
+        if name != "webcam" {
+            continue;
+        }
+        let view = [rigd_sim::View::at([0.0, 0.0])];
+        time("webcam: expected frame only", n, || {
+            for _ in 0..n {
+                r.scene().expected_frame(&view);
+            }
+        });
+        time("webcam: sensor + ISP (no transport)", n, || {
+            for i in 0..n as u64 {
+                r.scene().expose_lit(&view, 1.0, i, 0.0);
+            }
+        });
+        let yuyv = FrameRenderer::new(
+            Board::paper(),
+            CameraModel {
+                mjpeg_quality: None,
+                ..cam
+            },
+            1,
+        )
+        .unwrap();
+        time("webcam: YUYV instead of MJPEG", n, || {
+            for i in 0..n as u64 {
+                yuyv.render_at(i, [0.0, 0.0]);
+            }
+        });
+    }
 }

@@ -22,8 +22,57 @@ pub enum ChromaSubsampling {
     Yuv420,
 }
 
+/// Colour filter array in front of the sensor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Cfa {
+    /// Every pixel sees all three channels (the ideal camera).
+    #[default]
+    None,
+    /// Bayer RGGB: red at (even x, even y), blue at (odd, odd), green elsewhere.
+    Rggb,
+}
+
+/// How the camera fills in the two channels a Bayer pixel did not see.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Demosaic {
+    /// Average of the nearest samples of the channel.
+    #[default]
+    Bilinear,
+    /// Green along the direction of the smaller gradient, red and blue as bilinear colour
+    /// differences to green (what cheap ISPs do).
+    EdgeAware,
+}
+
+/// The camera's output transfer curve.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Gamma {
+    /// DN proportional to light (the ideal camera).
+    #[default]
+    Linear,
+    /// The sRGB curve (linear toe, 1/2.4 power), as webcams deliver.
+    Srgb,
+}
+
+/// The pixel format of the uncompressed path (`mjpeg_quality` unset).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Uncompressed {
+    /// Full RGB per pixel (the ideal camera).
+    #[default]
+    Rgb,
+    /// YUYV 4:2:2: luma per pixel, chroma per horizontal pair (UVC's uncompressed format).
+    Yuyv,
+}
+
+/// A named set of camera parameters (`[camera] profile = "webcam"`); the table's other
+/// keys override the profile's values.
+pub const PROFILES: [&str; 3] = ["ideal", "webcam", "stress"];
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(default, deny_unknown_fields, remote = "Self")]
 pub struct CameraModel {
     /// Frame width in pixels (video mode 1280x720).
     pub width: u32,
@@ -62,6 +111,69 @@ pub struct CameraModel {
     pub motion_samples: u32,
     /// Driver buffers queued like V4L2: when the ring is full the oldest frame is dropped.
     pub buffer_frames: u32,
+
+    // --- optics and geometry (all off in the ideal camera) ---
+    /// Focal length in px: sets the perspective of a tilted board and normalises the radial
+    /// distortion (1000 px: a ~65° horizontal field at 1280 px).
+    pub focal_length_px: f64,
+    /// Board tilt about the image x axis, degrees: positive puts the bottom edge farther.
+    pub tilt_x_deg: f64,
+    /// Board tilt about the image y axis, degrees: positive puts the right edge farther.
+    pub tilt_y_deg: f64,
+    /// Brown radial distortion `r_d = r_u (1 + k1 r² + k2 r⁴)`, r normalised by the focal
+    /// length (k1 < 0: barrel).
+    pub distortion_k1: f64,
+    pub distortion_k2: f64,
+    /// Lateral colour: magnification of the red image relative to the green (0.0004 = red
+    /// lands 0.04 % farther from the centre).
+    pub lateral_colour_r: f64,
+    /// Lateral colour of the blue image relative to the green.
+    pub lateral_colour_b: f64,
+
+    // --- sensor and image processing ---
+    /// Colour filter array (`"none"` or `"rggb"`).
+    pub cfa: Cfa,
+    /// Colour crosstalk: fraction of each other channel a Bayer pixel picks up.
+    pub crosstalk: f64,
+    /// Demosaicing of the Bayer mosaic (`"bilinear"` or `"edge_aware"`).
+    pub demosaic: Demosaic,
+    /// Output curve (`"linear"` or `"srgb"`).
+    pub gamma: Gamma,
+    /// Unsharp mask on luma: `Y += amount·(Y − blur(Y))` (0 = off).
+    pub sharpen_amount: f64,
+    /// Width of the unsharp mask's Gaussian, px.
+    pub sharpen_sigma_px: f64,
+    /// Fraction of the vignetting the camera's lens-shading correction undoes (a gain after
+    /// the noise, so corners get noisier).
+    pub vignetting_correction: f64,
+
+    // --- transport ---
+    /// Pixel format without MJPEG (`"rgb"` or `"yuyv"`).
+    pub uncompressed: Uncompressed,
+
+    // --- light ---
+    /// Auto-exposure wander: RMS relative gain change from one frame to the next.
+    pub ae_wander_rms: f64,
+    /// Auto-exposure bounds: the gain stays within 1 ± this (it reflects off them).
+    pub ae_gain_range: f64,
+    /// Depth of the light's modulation at `flicker_hz` (mains lighting), relative.
+    pub flicker_band_depth: f64,
+    /// Frequency of the light's modulation, Hz (twice the mains frequency).
+    pub flicker_hz: f64,
+    /// Rolling shutter: time between the exposure starts of successive rows, µs.
+    pub row_time_us: f64,
+
+    // --- printed targets ---
+    /// RMS radial roughness of every printed edge, µm on the board.
+    pub edge_roughness_um: f64,
+    /// Correlation length of the roughness along the edge, µm.
+    pub edge_roughness_corr_um: f64,
+    /// RMS relative variation of the ink's density (low-frequency).
+    pub ink_density_rms: f64,
+    /// Correlation length of the ink density variation, µm.
+    pub ink_density_corr_um: f64,
+    /// Seed of the print's roughness and ink (the print is the same in every frame).
+    pub print_seed: u64,
 }
 
 impl Default for CameraModel {
@@ -85,7 +197,178 @@ impl Default for CameraModel {
             exposure_ms: 10.0,
             motion_samples: 8,
             buffer_frames: 4,
+            focal_length_px: 1000.0,
+            tilt_x_deg: 0.0,
+            tilt_y_deg: 0.0,
+            distortion_k1: 0.0,
+            distortion_k2: 0.0,
+            lateral_colour_r: 0.0,
+            lateral_colour_b: 0.0,
+            cfa: Cfa::None,
+            crosstalk: 0.0,
+            demosaic: Demosaic::Bilinear,
+            gamma: Gamma::Linear,
+            sharpen_amount: 0.0,
+            sharpen_sigma_px: 1.0,
+            vignetting_correction: 0.0,
+            uncompressed: Uncompressed::Rgb,
+            ae_wander_rms: 0.0,
+            ae_gain_range: 0.05,
+            flicker_band_depth: 0.0,
+            flicker_hz: 100.0,
+            row_time_us: 30.0,
+            edge_roughness_um: 0.0,
+            edge_roughness_corr_um: 1000.0,
+            ink_density_rms: 0.0,
+            ink_density_corr_um: 3000.0,
+            print_seed: 1,
         }
+    }
+}
+
+impl CameraModel {
+    /// The camera of a named profile: `"ideal"` (the default: a clean, matched camera),
+    /// `"webcam"` (every webcam effect at a realistic strength) or `"stress"` (strong
+    /// distortion, 3° tilt, MJPEG q50, dim light, a soft lens). docs/sim.md lists the values.
+    pub fn profile(name: &str) -> Result<CameraModel, CameraError> {
+        let ideal = CameraModel::default();
+        match name {
+            "ideal" => Ok(ideal),
+            "webcam" => Ok(CameraModel {
+                psf_sigma_px: 0.8,
+                white_dn: 200.0,
+                vignetting: 0.35,
+                light_gradient: 0.12,
+                gain_e_per_dn: 20.0,
+                read_noise_dn: 1.5,
+                exposure_ms: 8.0,
+                mjpeg_quality: Some(85),
+                mjpeg_chroma: ChromaSubsampling::Yuv420,
+                tilt_x_deg: 1.0,
+                tilt_y_deg: 1.5,
+                distortion_k1: -0.03,
+                distortion_k2: 0.005,
+                lateral_colour_r: 4e-4,
+                lateral_colour_b: -4e-4,
+                cfa: Cfa::Rggb,
+                crosstalk: 0.05,
+                demosaic: Demosaic::EdgeAware,
+                gamma: Gamma::Srgb,
+                sharpen_amount: 0.8,
+                sharpen_sigma_px: 1.0,
+                vignetting_correction: 0.7,
+                uncompressed: Uncompressed::Yuyv,
+                ae_wander_rms: 0.003,
+                ae_gain_range: 0.04,
+                flicker_band_depth: 0.1,
+                edge_roughness_um: 8.0,
+                ink_density_rms: 0.04,
+                ..ideal
+            }),
+            "stress" => Ok(CameraModel {
+                psf_sigma_px: 1.2,
+                white_dn: 110.0,
+                vignetting: 0.45,
+                light_gradient: 0.3,
+                gain_e_per_dn: 8.0,
+                read_noise_dn: 2.5,
+                exposure_ms: 15.0,
+                mjpeg_quality: Some(50),
+                tilt_x_deg: 1.0,
+                tilt_y_deg: 3.0,
+                distortion_k1: -0.1,
+                distortion_k2: 0.03,
+                lateral_colour_r: 1e-3,
+                lateral_colour_b: -1e-3,
+                crosstalk: 0.08,
+                demosaic: Demosaic::Bilinear,
+                sharpen_amount: 1.2,
+                sharpen_sigma_px: 1.5,
+                vignetting_correction: 0.5,
+                ae_wander_rms: 0.01,
+                ae_gain_range: 0.08,
+                flicker_band_depth: 0.25,
+                edge_roughness_um: 15.0,
+                ink_density_rms: 0.08,
+                ..CameraModel::profile("webcam")?
+            }),
+            _ => Err(CameraError {
+                field: "profile",
+                value: name.to_string(),
+                message: "must be one of \"ideal\", \"webcam\", \"stress\"",
+            }),
+        }
+    }
+
+    /// Whether the scene's geometry or print departs from the ideal (tilt, distortion,
+    /// lateral colour, rough edges, uneven ink): such shapes are rendered through `Lens`.
+    pub fn needs_warp(&self) -> bool {
+        self.tilt_x_deg != 0.0
+            || self.tilt_y_deg != 0.0
+            || self.distortion_k1 != 0.0
+            || self.distortion_k2 != 0.0
+            || self.lateral_colour_r != 0.0
+            || self.lateral_colour_b != 0.0
+            || self.edge_roughness_um != 0.0
+            || self.ink_density_rms != 0.0
+    }
+
+    /// Whether frames go through the sensor and image processing of a webcam (Bayer,
+    /// demosaicing, gamma, sharpening, lens-shading correction) rather than straight to 8 bits.
+    pub fn needs_isp(&self) -> bool {
+        self.cfa != Cfa::None
+            || self.gamma != Gamma::Linear
+            || self.sharpen_amount != 0.0
+            || self.vignetting_correction != 0.0
+    }
+}
+
+// `[camera] profile = "webcam"` starts from the profile and the table's other keys override
+// it; without `profile` the table starts from the ideal camera, as before. Serialising writes
+// every field (no profile), so a written config reads back the same camera.
+impl Serialize for CameraModel {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        CameraModel::serialize(self, s)
+    }
+}
+
+impl<'de> Deserialize<'de> for CameraModel {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<CameraModel, D::Error> {
+        use serde::de::Error;
+        let mut table = toml::Table::deserialize(d)?;
+        let base = match table.remove("profile") {
+            None => {
+                return CameraModel::deserialize(toml::Value::Table(table))
+                    .map_err(D::Error::custom)
+            }
+            Some(toml::Value::String(name)) => {
+                CameraModel::profile(&name).map_err(D::Error::custom)?
+            }
+            Some(other) => {
+                return Err(D::Error::custom(format!(
+                    "camera parameter profile = {other}: must be a string"
+                )))
+            }
+        };
+        let mut merged = match toml::Value::try_from(ProfileBase(&base)) {
+            Ok(toml::Value::Table(t)) => t,
+            _ => {
+                return Err(D::Error::custom(
+                    "camera profile does not serialise as a table",
+                ))
+            }
+        };
+        merged.extend(table);
+        CameraModel::deserialize(toml::Value::Table(merged)).map_err(D::Error::custom)
+    }
+}
+
+/// Serialises a camera through the derived (remote) impl.
+struct ProfileBase<'a>(&'a CameraModel);
+
+impl Serialize for ProfileBase<'_> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        CameraModel::serialize(self.0, s)
     }
 }
 
@@ -106,6 +389,14 @@ impl CameraModel {
         // Normalised so the corner (du, dv) = (1, 1) has r² = 1.
         let r2 = (du * du + dv * dv) / 2.0;
         (1.0 - self.vignetting * r2) * (1.0 + 0.5 * self.light_gradient * du)
+    }
+
+    /// Squared distance of pixel (u, v) from the image centre, 1 at the corners (the
+    /// vignetting's radius).
+    pub fn radius2(&self, u: f64, v: f64) -> f64 {
+        let (cx, cy) = (self.width as f64 / 2.0, self.height as f64 / 2.0);
+        let (du, dv) = ((u + 0.5 - cx) / cx, (v + 0.5 - cy) / cy);
+        (du * du + dv * dv) / 2.0
     }
 
     /// Noise variance in DN² for an expected signal in DN (shot + read + quantisation).
@@ -190,6 +481,172 @@ impl CameraModel {
         if !(1..=64).contains(&self.buffer_frames) {
             return Err(bad("buffer_frames", self.buffer_frames, "must be 1..=64"));
         }
+        self.validate_webcam()
+    }
+
+    /// The webcam effects' parameters (see `validate`).
+    fn validate_webcam(&self) -> Result<(), CameraError> {
+        fn bad(field: &'static str, value: f64, message: &'static str) -> CameraError {
+            CameraError {
+                field,
+                value: value.to_string(),
+                message,
+            }
+        }
+        let within = |field, v: f64, lo: f64, hi: f64, message| {
+            if v.is_finite() && v >= lo && v < hi {
+                Ok(())
+            } else {
+                Err(bad(field, v, message))
+            }
+        };
+        within(
+            "focal_length_px",
+            self.focal_length_px,
+            50.0,
+            1e5,
+            "must be in [50, 100000)",
+        )?;
+        within(
+            "tilt_x_deg",
+            self.tilt_x_deg.abs(),
+            0.0,
+            30.0,
+            "must be in (-30, 30)",
+        )?;
+        within(
+            "tilt_y_deg",
+            self.tilt_y_deg.abs(),
+            0.0,
+            30.0,
+            "must be in (-30, 30)",
+        )?;
+        within(
+            "distortion_k1",
+            self.distortion_k1.abs(),
+            0.0,
+            1.0,
+            "must be in (-1, 1)",
+        )?;
+        within(
+            "distortion_k2",
+            self.distortion_k2.abs(),
+            0.0,
+            1.0,
+            "must be in (-1, 1)",
+        )?;
+        // The distortion must stay monotonic out past the frame's corners.
+        let r_corner = (self.width as f64).hypot(self.height as f64) / 2.0 / self.focal_length_px;
+        for i in 0..=100 {
+            let r2 = (1.3 * r_corner * i as f64 / 100.0).powi(2);
+            if 1.0 + 3.0 * self.distortion_k1 * r2 + 5.0 * self.distortion_k2 * r2 * r2 < 0.2 {
+                return Err(bad(
+                    "distortion_k1",
+                    self.distortion_k1,
+                    "folds the image over within the frame (with distortion_k2 and focal_length_px)",
+                ));
+            }
+        }
+        let lat = "must be in (-0.01, 0.01)";
+        within(
+            "lateral_colour_r",
+            self.lateral_colour_r.abs(),
+            0.0,
+            0.01,
+            lat,
+        )?;
+        within(
+            "lateral_colour_b",
+            self.lateral_colour_b.abs(),
+            0.0,
+            0.01,
+            lat,
+        )?;
+        within("crosstalk", self.crosstalk, 0.0, 0.3, "must be in [0, 0.3)")?;
+        within(
+            "sharpen_amount",
+            self.sharpen_amount,
+            0.0,
+            5.0,
+            "must be in [0, 5)",
+        )?;
+        within(
+            "sharpen_sigma_px",
+            self.sharpen_sigma_px,
+            0.3,
+            5.0,
+            "must be in [0.3, 5)",
+        )?;
+        within(
+            "vignetting_correction",
+            self.vignetting_correction,
+            0.0,
+            1.0001,
+            "must be in [0, 1]",
+        )?;
+        within(
+            "ae_wander_rms",
+            self.ae_wander_rms,
+            0.0,
+            0.1,
+            "must be in [0, 0.1)",
+        )?;
+        within(
+            "ae_gain_range",
+            self.ae_gain_range,
+            0.0,
+            0.5,
+            "must be in [0, 0.5)",
+        )?;
+        within(
+            "flicker_band_depth",
+            self.flicker_band_depth,
+            0.0,
+            1.0,
+            "must be in [0, 1)",
+        )?;
+        within(
+            "flicker_hz",
+            self.flicker_hz,
+            1e-3,
+            1e6,
+            "must be a finite number > 0",
+        )?;
+        within(
+            "row_time_us",
+            self.row_time_us,
+            0.0,
+            1e5,
+            "must be in [0, 100000)",
+        )?;
+        within(
+            "edge_roughness_um",
+            self.edge_roughness_um,
+            0.0,
+            1e4,
+            "must be in [0, 10000)",
+        )?;
+        within(
+            "edge_roughness_corr_um",
+            self.edge_roughness_corr_um,
+            1.0,
+            1e6,
+            "must be in [1, 1e6)",
+        )?;
+        within(
+            "ink_density_rms",
+            self.ink_density_rms,
+            0.0,
+            0.5,
+            "must be in [0, 0.5)",
+        )?;
+        within(
+            "ink_density_corr_um",
+            self.ink_density_corr_um,
+            1.0,
+            1e7,
+            "must be in [1, 1e7)",
+        )?;
         Ok(())
     }
 }

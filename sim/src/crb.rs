@@ -70,14 +70,84 @@ pub fn offset_crb_um_channels(
     view: View,
     channels: &[usize],
 ) -> [f64; 2] {
-    let target = &board.targets[target_index];
     assert!(channels.iter().all(|&c| c < 3), "channels must be 0..3");
+    let observe = |rgb: &[f32], _roi: [u32; 4]| -> Vec<f64> {
+        rgb.iter()
+            .enumerate()
+            .filter(|(i, _)| channels.contains(&(i % 3)))
+            .map(|(_, &v)| v as f64)
+            .collect()
+    };
+    let var = |m: f64| cam.noise_var_dn2(m);
+    offset_crb(board, cam, target_index, view, channels, &observe, &var)
+}
+
+/// The bound from the sensor's own samples, before any processing: one Bayer sample per
+/// pixel (with the camera's colour crosstalk) for an RGGB sensor, all three channels
+/// otherwise; shot and read noise, quantisation of the 10-bit raw. Whatever the camera does
+/// afterwards (demosaicing, gamma, sharpening, MJPEG) only loses information, so this bounds
+/// every estimator working on the delivered frames, for any camera profile. The lens
+/// (tilt, distortion, lateral colour) and the print's roughness are rendered but taken as
+/// known (not nuisance parameters): the bound is for an estimator that knows its lens.
+pub fn offset_crb_um_raw(
+    board: &Board,
+    cam: &CameraModel,
+    target_index: usize,
+    view: View,
+) -> [f64; 2] {
+    let bayer = crate::isp::bayer(cam);
+    let c = cam.crosstalk as f32;
+    let observe = |rgb: &[f32], roi: [u32; 4]| -> Vec<f64> {
+        if !bayer {
+            return rgb.iter().map(|&v| v as f64).collect();
+        }
+        let [x0, y0, w, _] = roi;
+        rgb.chunks(3)
+            .enumerate()
+            .map(|(i, p)| {
+                let (x, y) = (x0 as usize + i % w as usize, y0 as usize + i / w as usize);
+                crate::isp::mixed(p, crate::isp::cfa_channel(x, y), c) as f64
+            })
+            .collect()
+    };
+    let q = (crate::isp::RAW_STEP_DN as f64).powi(2) / 12.0;
+    let var = |m: f64| cam.noise_var_dn2(m) - 1.0 / 12.0 + q;
+    offset_crb(board, cam, target_index, view, &[0, 1, 2], &observe, &var)
+}
+
+/// What an estimator sees of a rendered ROI (RGB f32, its box): the samples it gets.
+type Observe<'a> = dyn Fn(&[f32], [u32; 4]) -> Vec<f64> + 'a;
+
+/// The bound for samples `observe(rendered RGB of the ROI, roi)` with noise variance
+/// `var(expected sample)`; `channels` are the ink reflectances taken as unknown.
+#[allow(clippy::too_many_arguments)]
+fn offset_crb(
+    board: &Board,
+    cam: &CameraModel,
+    target_index: usize,
+    view: View,
+    channels: &[usize],
+    observe: &Observe,
+    var: &dyn Fn(f64) -> f64,
+) -> [f64; 2] {
+    let target = &board.targets[target_index];
     // Render only this target, in a window that holds all of its blurred edges.
     let mut base = board.clone();
     base.targets = vec![target.clone()];
     base.clutter.clear();
-    let c = view.board_to_image(cam, target.centre_um);
-    let half = target.outer.outer_radius_um() / cam.scale_um_per_px + 5.0 * cam.psf_sigma_px + 3.0;
+    let (c, grow) = if cam.needs_warp() {
+        let lens = crate::optics::Lens::new(cam);
+        (
+            view.project(cam, 1, target.centre_um),
+            lens.max_scale_ratio(cam),
+        )
+    } else {
+        (view.board_to_image(cam, target.centre_um), 1.0)
+    };
+    let half = grow * target.outer.outer_radius_um() / cam.scale_um_per_px
+        + 5.0 * cam.psf_sigma_px
+        + 3.0
+        + if grow > 1.0 { 2.0 } else { 0.0 };
     let x0 = (c[0] - half).floor().max(0.0) as u32;
     let y0 = (c[1] - half).floor().max(0.0) as u32;
     let x1 = ((c[0] + half).ceil() as u32).min(cam.width.saturating_sub(1));
@@ -105,7 +175,7 @@ pub fn offset_crb_um_channels(
     params.extend(channels.iter().map(|&c| Param::Ink(c)));
 
     let render = |b: &Board, cm: &CameraModel, light: f64| expected_rgb(b, cm, &view, roi, light);
-    let mu = render(&base, cam, 1.0);
+    let mu = observe(&render(&base, cam, 1.0), roi);
     let step_um = 0.02 * cam.scale_um_per_px;
     // Derivatives of every pixel's channels, per unit of each parameter (µm for lengths).
     let derivs: Vec<Vec<f64>> = params
@@ -116,11 +186,11 @@ pub fn offset_crb_um_channels(
                 Param::Light => (1.0 + h, 1.0 - h),
                 _ => (1.0, 1.0),
             };
-            let a = render(&plus.0, &plus.1, lp);
-            let b = render(&minus.0, &minus.1, lm);
+            let a = observe(&render(&plus.0, &plus.1, lp), roi);
+            let b = observe(&render(&minus.0, &minus.1, lm), roi);
             a.iter()
                 .zip(&b)
-                .map(|(&a, &b)| (a as f64 - b as f64) / (2.0 * h))
+                .map(|(&a, &b)| (a - b) / (2.0 * h))
                 .collect()
         })
         .collect();
@@ -129,10 +199,7 @@ pub fn offset_crb_um_channels(
     let mut fisher = DMatrix::<f64>::zeros(n, n);
     let mut row = vec![0.0; n];
     for (i, &m) in mu.iter().enumerate() {
-        if !channels.contains(&(i % 3)) {
-            continue;
-        }
-        let w = 1.0 / cam.noise_var_dn2(m as f64);
+        let w = 1.0 / var(m);
         for (r, d) in row.iter_mut().zip(&derivs) {
             *r = d[i];
         }

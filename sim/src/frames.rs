@@ -5,7 +5,7 @@
 //! whichever thread renders it and whenever, given the same line-of-sight samples.
 
 use crate::board::Board;
-use crate::camera::{CameraError, CameraModel, ChromaSubsampling};
+use crate::camera::{CameraError, CameraModel, ChromaSubsampling, Uncompressed};
 use crate::render::{SceneRenderer, View};
 use image::codecs::jpeg::JpegEncoder;
 use image::RgbImage;
@@ -22,6 +22,10 @@ pub struct FrameEffects {
     pub jitter_um: [f64; 2],
     /// Seed of the frame's shot and read noise.
     pub noise_seed: u64,
+    /// Auto-exposure gain (1 without AE wander; `light::ae_gain`).
+    pub ae_gain: f64,
+    /// Phase of the mains flicker when the exposure starts, rad (`light::flicker_phase`).
+    pub flicker_phase: f64,
 }
 
 /// SplitMix64 finaliser: decorrelates (seed, sequence) pairs into independent seeds.
@@ -47,6 +51,10 @@ impl FrameEffects {
             light: (1.0 + cam.flicker_rms * flicker).max(0.05),
             jitter_um: [cam.vibration_um * jx, cam.vibration_um * jy],
             noise_seed: mix(frame_seed),
+            // Hashed from (seed, sequence) apart from the stream above, so they leave the
+            // other draws as they were.
+            ae_gain: crate::light::ae_gain(cam, seed, sequence),
+            flicker_phase: crate::light::flicker_phase(cam, seed, sequence),
         }
     }
 }
@@ -181,11 +189,20 @@ impl FrameRenderer {
         let cam = self.camera();
         let fx = FrameEffects::draw(cam, self.seed, sequence);
         let views = self.views(sequence, los_um);
-        let px = self.scene.expose(&views, fx.light, fx.noise_seed);
-        let img = RgbImage::from_raw(cam.width, cam.height, px).expect("frame-sized buffer");
-        match cam.mjpeg_quality {
-            Some(q) => mjpeg_round_trip(&img, q, cam.mjpeg_chroma),
-            None => img,
+        let px = self.scene.expose_lit(
+            &views,
+            fx.light * fx.ae_gain,
+            fx.noise_seed,
+            fx.flicker_phase,
+        );
+        let mut img = RgbImage::from_raw(cam.width, cam.height, px).expect("frame-sized buffer");
+        match (cam.mjpeg_quality, cam.uncompressed) {
+            (Some(q), _) => mjpeg_round_trip(&img, q, cam.mjpeg_chroma),
+            (None, Uncompressed::Rgb) => img,
+            (None, Uncompressed::Yuyv) => {
+                subsample_chroma(&mut img, ChromaSubsampling::Yuv422);
+                img
+            }
         }
     }
 }
@@ -207,7 +224,7 @@ mod tests {
             ..cam
         };
         let b = FrameEffects::draw(&still, 7, 3);
-        assert_eq!((b.light, b.jitter_um), (1.0, [0.0, 0.0]));
+        assert_eq!((b.light, b.jitter_um, b.ae_gain), (1.0, [0.0, 0.0], 1.0));
         assert_eq!(b.noise_seed, a.noise_seed);
     }
 

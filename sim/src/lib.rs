@@ -10,11 +10,16 @@ pub mod crb;
 pub mod frames;
 pub mod gcs;
 pub mod grbl;
+pub mod isp;
+pub mod light;
 pub mod motion;
+pub mod optics;
+pub mod print;
 pub mod pty;
 pub mod render;
 pub mod rig;
 pub mod serve;
+pub mod warp;
 pub mod xl80;
 
 // The boards live in rigd-core (the pipeline reads them too); `rigd_sim::board` stays a path.

@@ -47,6 +47,58 @@ impl Default for AxisParams {
     }
 }
 
+/// A leadscrew's periodic error: the carriage is where the screw's angle puts it, off by
+/// `error_um·sin(2π·x/pitch + phase)` at nominal position x (a bent or eccentric screw, a
+/// wobbling nut). The controller does not see it; the camera and the interferometer do.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Leadscrew {
+    /// Amplitude of the periodic error, µm (0: none).
+    pub error_um: f64,
+    /// The screw's pitch (the error's period), mm.
+    pub pitch_mm: f64,
+    /// Phase at position 0, degrees.
+    pub phase_deg: f64,
+}
+
+impl Default for Leadscrew {
+    fn default() -> Self {
+        Leadscrew {
+            error_um: 0.0,
+            pitch_mm: 5.0,
+            phase_deg: 0.0,
+        }
+    }
+}
+
+impl Leadscrew {
+    /// The realistic screw of the `webcam` rig: 2 µm on a 5 mm pitch.
+    pub fn webcam() -> Leadscrew {
+        Leadscrew {
+            error_um: 2.0,
+            ..Leadscrew::default()
+        }
+    }
+
+    /// The error at nominal position `x_um`, µm (exactly 0 without one).
+    pub fn error_at_um(&self, x_um: f64) -> f64 {
+        if self.error_um == 0.0 {
+            return 0.0;
+        }
+        let turns = x_um / (self.pitch_mm * 1000.0);
+        self.error_um * (std::f64::consts::TAU * turns + self.phase_deg.to_radians()).sin()
+    }
+
+    /// The true position of a carriage at nominal position `x_um`.
+    pub fn true_um(&self, x_um: f64) -> f64 {
+        if self.error_um == 0.0 {
+            x_um
+        } else {
+            x_um + self.error_at_um(x_um)
+        }
+    }
+}
+
 /// A trapezoidal move from `from_um` to `to_um`, independent of any clock: position as a
 /// function of the seconds since the move began. The real-time `Axis` and `sim-session`'s
 /// virtual clock both plan with it.
@@ -155,6 +207,7 @@ struct State {
 /// A simulated linear axis.
 pub struct Axis {
     params: AxisParams,
+    leadscrew: Leadscrew,
     state: Mutex<State>,
 }
 
@@ -173,6 +226,7 @@ impl Axis {
         let rng = ChaCha8Rng::seed_from_u64(params.seed);
         Axis {
             params,
+            leadscrew: Leadscrew::default(),
             state: Mutex::new(State {
                 segment: None,
                 rest_um: 0.0,
@@ -184,6 +238,16 @@ impl Axis {
 
     pub fn params(&self) -> &AxisParams {
         &self.params
+    }
+
+    /// The axis driven by a leadscrew with a periodic error (`position_at` carries it).
+    pub fn with_leadscrew(mut self, leadscrew: Leadscrew) -> Axis {
+        self.leadscrew = leadscrew;
+        self
+    }
+
+    pub fn leadscrew(&self) -> &Leadscrew {
+        &self.leadscrew
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, State> {
@@ -259,9 +323,11 @@ impl Axis {
         }
     }
 
-    /// True position at instant `t` (what an interferometer sees).
+    /// True position at instant `t` (what an interferometer sees): the carriage's position
+    /// plus the leadscrew's periodic error there.
     pub fn position_at(&self, t: Instant) -> f64 {
-        Self::position_locked(&self.lock(), t)
+        self.leadscrew
+            .true_um(Self::position_locked(&self.lock(), t))
     }
 
     /// The controller's position: the last commanded target once motion is done, the

@@ -8,10 +8,12 @@
 
 use crate::board::{Board, ClutterShape, Shape};
 use crate::camera::CameraModel;
+use crate::warp::{Print, WarpInk};
 use image::RgbImage;
 use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// Where the camera looks: the board point (µm) seen at the top-left corner of pixel (0, 0)
 /// when the roll is zero, and a roll of the board about the image centre.
@@ -41,6 +43,16 @@ impl View {
         let qy = -sn * dx + cs * dy + cy;
         [qx - 0.5, qy - 0.5]
     }
+
+    /// Image coordinates of a board point through the camera's whole lens (tilt, distortion)
+    /// in `channel` (0 R, 1 G, 2 B: lateral colour); `board_to_image` for an ideal lens.
+    pub fn project(&self, cam: &CameraModel, channel: usize, p_um: [f64; 2]) -> [f64; 2] {
+        let mut bare = Board::paper();
+        bare.targets.clear();
+        bare.clutter.clear();
+        let print = Arc::new(Print::new(&bare, cam));
+        WarpInk::new(&bare, cam, self, print).to_image(channel, p_um)
+    }
 }
 
 /// A circle edge in image coordinates: ink inside `radius_px` of `centre`.
@@ -59,10 +71,12 @@ struct Rect {
     half: [f64; 2],
 }
 
-/// Everything inked on the board, in image coordinates for one view.
+/// Everything inked on the board, in image coordinates for one view (or, through a real
+/// lens or with an imperfect print, on the board: `warp`).
 struct Ink {
     disks: Vec<Disk>,
     rects: Vec<Rect>,
+    warp: Option<WarpInk>,
 }
 
 fn shape_disks(out: &mut Vec<Disk>, centre: [f64; 2], shape: &Shape, s: f64) {
@@ -91,7 +105,18 @@ fn shape_disks(out: &mut Vec<Disk>, centre: [f64; 2], shape: &Shape, s: f64) {
 }
 
 impl Ink {
-    fn new(board: &Board, cam: &CameraModel, view: &View) -> Ink {
+    /// The ink of `view`; `print` is the board's cached print when the camera warps.
+    fn new(board: &Board, cam: &CameraModel, view: &View, print: Option<&Arc<Print>>) -> Ink {
+        if cam.needs_warp() {
+            let print = print
+                .cloned()
+                .unwrap_or_else(|| Arc::new(Print::new(board, cam)));
+            return Ink {
+                disks: Vec::new(),
+                rects: Vec::new(),
+                warp: Some(WarpInk::new(board, cam, view, print)),
+            };
+        }
         let s = cam.scale_um_per_px;
         let mut disks = Vec::new();
         let mut rects = Vec::new();
@@ -126,7 +151,11 @@ impl Ink {
                 }),
             }
         }
-        Ink { disks, rects }
+        Ink {
+            disks,
+            rects,
+            warp: None,
+        }
     }
 }
 
@@ -160,7 +189,7 @@ impl EdgeTable {
     }
 
     #[inline]
-    fn at(&self, d: f64) -> f64 {
+    pub(crate) fn at(&self, d: f64) -> f64 {
         if d <= -self.reach {
             return 1.0;
         }
@@ -298,6 +327,9 @@ fn render_rows(
     line: &mut [f32],
     light: f64,
 ) {
+    if let Some(warp) = &ink.warp {
+        return crate::warp::render_row(board, cam, warp, edge, x0, w, v, line, light);
+    }
     let margin = 5.0 * cam.psf_sigma_px + 2.0;
     // Shapes whose reach covers this row.
     let near: Vec<usize> = (0..ink.disks.len())
@@ -346,7 +378,7 @@ pub fn expected_rgb(
     light: f64,
 ) -> Vec<f32> {
     let [x0, y0, w, h] = roi;
-    let ink = Ink::new(board, cam, view);
+    let ink = Ink::new(board, cam, view, None);
     let edge = EdgeTable::new(cam.psf_sigma_px);
     let mut out = vec![0f32; (w * h * 3) as usize];
     if w == 0 {
@@ -419,6 +451,37 @@ fn noise_row(dst: &mut [u8], src: &[f32], light: f32, cam: &CameraModel, seed: u
     }
 }
 
+/// One row of sensor samples from expected DN (RGB) scaled by `light`: one mosaic sample
+/// per pixel (with colour crosstalk) for a Bayer sensor, else RGB; shot and read noise as in
+/// `noise_row`; quantised to `isp::RAW_STEP_DN` (10-bit raw).
+fn raw_row(dst: &mut [f32], src: &[f32], light: f32, cam: &CameraModel, seed: u64, row: usize) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(row as u64);
+    let table = normal_table();
+    let inv_gain = (1.0 / cam.gain_e_per_dn) as f32;
+    let read_var = (cam.read_noise_dn * cam.read_noise_dn) as f32;
+    let bayer = crate::isp::bayer(cam);
+    let c = cam.crosstalk as f32;
+    let top = 255.0 + 1.0 - crate::isp::RAW_STEP_DN;
+    let inv_step = 1.0 / crate::isp::RAW_STEP_DN;
+    for (k4, d4) in dst.chunks_mut(4).enumerate() {
+        let bits = rng.next_u64();
+        for (k, d) in d4.iter_mut().enumerate() {
+            let i = k4 * 4 + k;
+            let expected = if bayer {
+                crate::isp::mixed(&src[i * 3..i * 3 + 3], crate::isp::cfa_channel(i, row), c)
+            } else {
+                src[i]
+            };
+            let s = expected * light;
+            let z = table[((bits >> (16 * k)) & 0xffff) as usize];
+            let var = s.max(0.0) * inv_gain + read_var;
+            let q = ((s + var.sqrt() * z).clamp(0.0, top) * inv_step + 0.5).floor();
+            *d = q * crate::isp::RAW_STEP_DN;
+        }
+    }
+}
+
 /// Render one full noisy 8-bit frame (no flicker, vibration or compression: see `frames`).
 pub fn render_frame(
     board: &Board,
@@ -448,6 +511,8 @@ pub struct SceneRenderer {
     edge: EdgeTable,
     /// Expected DN of bare paper, RGB f32, full frame, at light 1.
     background: Vec<f32>,
+    /// The print's rough edges and ink, built once (when the camera has them or a lens).
+    print: Option<Arc<Print>>,
 }
 
 impl SceneRenderer {
@@ -466,11 +531,13 @@ impl SceneRenderer {
                 }
             });
         let edge = EdgeTable::new(cam.psf_sigma_px);
+        let print = cam.needs_warp().then(|| Arc::new(Print::new(&board, &cam)));
         SceneRenderer {
             board,
             cam,
             edge,
             background,
+            print,
         }
     }
 
@@ -485,6 +552,9 @@ impl SceneRenderer {
     /// Pixel boxes `[x0, y0, w, h]` that hold every inked shape for any of `views`, clipped
     /// to the frame (boxes of shapes out of view are left out).
     pub fn ink_rois(&self, views: &[View]) -> Vec<[u32; 4]> {
+        if let Some(print) = &self.print {
+            return self.warped_rois(views, print);
+        }
         let cam = &self.cam;
         let s = cam.scale_um_per_px;
         let margin = 5.0 * cam.psf_sigma_px + 2.0;
@@ -525,6 +595,44 @@ impl SceneRenderer {
         rois
     }
 
+    /// `ink_rois` through the lens: each shape's boxes (its boundary mapped through the lens)
+    /// joined over the views.
+    fn warped_rois(&self, views: &[View], print: &Arc<Print>) -> Vec<[u32; 4]> {
+        let mut joined: Vec<[f64; 4]> = Vec::new();
+        for view in views {
+            let ink = WarpInk::new(&self.board, &self.cam, view, Arc::clone(print));
+            let boxes = crate::warp::shape_boxes(&ink, &self.board);
+            if joined.is_empty() {
+                joined = boxes;
+            } else {
+                for (j, b) in joined.iter_mut().zip(boxes) {
+                    *j = [
+                        j[0].min(b[0]),
+                        j[1].max(b[1]),
+                        j[2].min(b[2]),
+                        j[3].max(b[3]),
+                    ];
+                }
+            }
+        }
+        let (fw, fh) = (self.cam.width as f64, self.cam.height as f64);
+        joined
+            .into_iter()
+            .filter_map(|b| {
+                let x0 = b[0].floor().max(0.0);
+                let y0 = b[2].floor().max(0.0);
+                let x1 = (b[1].ceil() + 1.0).min(fw);
+                let y1 = (b[3].ceil() + 1.0).min(fh);
+                (x1 > x0 && y1 > y0).then_some([
+                    x0 as u32,
+                    y0 as u32,
+                    (x1 - x0) as u32,
+                    (y1 - y0) as u32,
+                ])
+            })
+            .collect()
+    }
+
     /// Expected DN (light 1) of `roi`, averaged over `views` (several views = the scene moved
     /// during the exposure: motion blur).
     fn patch(&self, views: &[View], roi: [u32; 4]) -> Patch {
@@ -533,7 +641,7 @@ impl SceneRenderer {
         let mut line = vec![0f32; (w * 3) as usize];
         let weight = 1.0 / views.len() as f32;
         for view in views {
-            let ink = Ink::new(&self.board, &self.cam, view);
+            let ink = Ink::new(&self.board, &self.cam, view, self.print.as_ref());
             for row in 0..h {
                 let v = (y0 + row) as f64;
                 render_rows(
@@ -592,17 +700,56 @@ impl SceneRenderer {
     /// A noisy 8-bit frame (RGB interleaved): the scene seen over `views` (averaged), the
     /// illumination scaled by `light`, shot/read noise seeded by `seed` per row.
     pub fn expose(&self, views: &[View], light: f64, seed: u64) -> Vec<u8> {
+        self.expose_lit(views, light, seed, 0.0)
+    }
+
+    /// `expose` with the light of each row also scaled by the rolling shutter's flicker
+    /// bands (`light::row_gain` at modulation phase `flicker_phase`), and through the camera's
+    /// sensor and processing (`isp`) when it has any.
+    pub fn expose_lit(&self, views: &[View], light: f64, seed: u64, flicker_phase: f64) -> Vec<u8> {
         let patches = self.patches(views);
-        let row_len = self.cam.width as usize * 3;
-        let mut out = vec![0u8; row_len * self.cam.height as usize];
+        let cam = &self.cam;
+        let row_light = |v: usize| light * crate::light::row_gain(cam, flicker_phase, v as u32);
+        if cam.needs_isp() {
+            return self.expose_isp(&patches, &row_light, seed);
+        }
+        let row_len = cam.width as usize * 3;
+        let mut out = vec![0u8; row_len * cam.height as usize];
         out.par_chunks_mut(row_len).enumerate().for_each_init(
             || vec![0f32; row_len],
             |line, (v, dst)| {
                 self.compose_row(&patches, v as u32, line);
-                noise_row(dst, line, light as f32, &self.cam, seed, v as u64);
+                noise_row(dst, line, row_light(v) as f32, cam, seed, v as u64);
             },
         );
         out
+    }
+
+    /// Sensor samples (a Bayer mosaic or RGB) with noise, demosaiced and processed to 8 bits.
+    fn expose_isp(
+        &self,
+        patches: &[Patch],
+        row_light: &(dyn Fn(usize) -> f64 + Sync),
+        seed: u64,
+    ) -> Vec<u8> {
+        let cam = &self.cam;
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let bayer = crate::isp::bayer(cam);
+        let per_px = if bayer { 1 } else { 3 };
+        let mut raw = vec![0f32; w * h * per_px];
+        raw.par_chunks_mut(w * per_px).enumerate().for_each_init(
+            || vec![0f32; w * 3],
+            |line, (v, dst)| {
+                self.compose_row(patches, v as u32, line);
+                raw_row(dst, line, row_light(v) as f32, cam, seed, v);
+            },
+        );
+        let rgb = if bayer {
+            crate::isp::demosaic(&raw, w, h, cam.demosaic)
+        } else {
+            raw
+        };
+        crate::isp::process(rgb, w, h, cam)
     }
 }
 

@@ -9,7 +9,7 @@ use crate::board::{Board, BoardError};
 use crate::camera::{CameraError, CameraModel};
 use crate::camera_clock::FrameClockCamera;
 use crate::frames::FrameRenderer;
-use crate::motion::{Axis, AxisParams, TruePosition};
+use crate::motion::{Axis, AxisParams, Leadscrew, TruePosition};
 use crate::xl80::{LiveLog, LiveOptions, LogFormat, LogSummary, Xl80Error, Xl80Params};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -24,6 +24,8 @@ pub struct SimRigConfig {
     pub camera: CameraModel,
     /// The numerically controlled axis (~2 µm positioning error, as the paper's).
     pub axis: AxisParams,
+    /// The axis' leadscrew: its periodic error (none by default).
+    pub leadscrew: Leadscrew,
     /// The piezo flexure: short travel, fast, closed-loop accurate.
     pub piezo: AxisParams,
     /// Line-of-sight travel (board µm along x, y) per µm of axis travel.
@@ -55,6 +57,7 @@ impl Default for SimRigConfig {
             board_file: None,
             camera: CameraModel::default(),
             axis: AxisParams::default(),
+            leadscrew: Leadscrew::default(),
             piezo: default_piezo(),
             axis_dir: [1.0, 0.0],
             piezo_dir: [1.0, 0.0],
@@ -78,6 +81,21 @@ pub enum RigError {
 }
 
 impl SimRigConfig {
+    /// The default rig with the camera of profile `name` (`CameraModel::profile`); the
+    /// `webcam` and `stress` rigs' axis also has a leadscrew error (`Leadscrew::webcam`).
+    pub fn profile(name: &str) -> Result<SimRigConfig, RigError> {
+        let camera = CameraModel::profile(name)?;
+        let leadscrew = match name {
+            "ideal" => Leadscrew::default(),
+            _ => Leadscrew::webcam(),
+        };
+        Ok(SimRigConfig {
+            camera,
+            leadscrew,
+            ..SimRigConfig::default()
+        })
+    }
+
     /// Parse a TOML sim config; `origin` names the source in errors.
     pub fn parse(text: &str, origin: &str) -> Result<SimRigConfig, RigError> {
         toml::from_str(text).map_err(|e| RigError::Config {
@@ -127,7 +145,7 @@ impl SimRig {
     pub fn start(config: SimRigConfig) -> Result<SimRig, RigError> {
         let board = config.board()?;
         config.xl80.validate()?;
-        let axis = Arc::new(Axis::new(config.axis.clone()));
+        let axis = Arc::new(Axis::new(config.axis.clone()).with_leadscrew(config.leadscrew));
         let piezo = Arc::new(Axis::new(config.piezo.clone()));
         let line_of_sight = Arc::new(LineOfSight {
             axis: Arc::clone(&axis),

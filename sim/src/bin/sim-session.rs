@@ -11,7 +11,7 @@ use clap::{Parser, ValueEnum};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use rigd_sim::motion::{AxisParams, Profile, TruePosition};
+use rigd_sim::motion::{AxisParams, Leadscrew, Profile, TruePosition};
 use rigd_sim::xl80::{write_log, LogFormat, Xl80};
 use rigd_sim::{FrameRenderer, SimRigConfig};
 use std::io::Write;
@@ -91,6 +91,7 @@ struct Script {
     start_um: f64,
     moves: Vec<Move>,
     axis_dir: [f64; 2],
+    leadscrew: Leadscrew,
 }
 
 impl TruePosition for Script {
@@ -100,6 +101,7 @@ impl TruePosition for Script {
             Some(m) => m.at(s),
             None => self.start_um,
         };
+        let x = self.leadscrew.true_um(x);
         [x * self.axis_dir[0], x * self.axis_dir[1]]
     }
 }
@@ -174,6 +176,7 @@ fn main() -> Result<()> {
         start_um: args.start_um,
         moves,
         axis_dir: cfg.axis_dir,
+        leadscrew: cfg.leadscrew,
     };
 
     let n = cfg.camera.motion_samples.max(1);

@@ -1,0 +1,162 @@
+//! The print's imperfections: rough edges (each printed circle's radius perturbed as a
+//! function of angle, seeded per target and edge) and uneven ink (a low-frequency density
+//! variation over the board). Both are fixed to the board: every frame sees the same print.
+
+use crate::camera::CameraModel;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use std::f64::consts::TAU;
+
+/// Samples of a rough edge around the circle.
+const EDGE_SAMPLES: usize = 1024;
+
+/// SplitMix64 finaliser (seeds for independent streams).
+fn mix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// The radius error of one printed circle as a function of angle, µm.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RoughEdge {
+    table: Vec<f32>,
+}
+
+impl RoughEdge {
+    /// The edge of circle `edge` (0 outer hole, 1 outer rim, 2 inner rim, 3 inner hole) of
+    /// target `target` with radius `radius_um`: white noise around the circle smoothed by a
+    /// Gaussian of `edge_roughness_corr_um` arc length, scaled to `edge_roughness_um` RMS.
+    /// `None` when the camera's print has no roughness.
+    pub fn new(cam: &CameraModel, target: usize, edge: usize, radius_um: f64) -> Option<RoughEdge> {
+        if cam.edge_roughness_um == 0.0 || radius_um <= 0.0 {
+            return None;
+        }
+        let seed = mix(mix(cam.print_seed) ^ ((target as u64) << 8 | edge as u64));
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let white: Vec<f64> = (0..EDGE_SAMPLES)
+            .map(|_| StandardNormal.sample(&mut rng))
+            .collect();
+        let arc_um = TAU * radius_um / EDGE_SAMPLES as f64;
+        let sigma = cam.edge_roughness_corr_um / arc_um;
+        let reach = ((4.0 * sigma).ceil() as usize).min(EDGE_SAMPLES / 2);
+        let kernel: Vec<f64> = (0..=reach)
+            .map(|k| (-0.5 * (k as f64 / sigma.max(1e-9)).powi(2)).exp())
+            .collect();
+        let n = EDGE_SAMPLES;
+        let smooth: Vec<f64> = (0..n)
+            .map(|i| {
+                let mut s = kernel[0] * white[i];
+                for (k, w) in kernel.iter().enumerate().skip(1) {
+                    s += w * (white[(i + k) % n] + white[(i + n - k % n) % n]);
+                }
+                s
+            })
+            .collect();
+        let rms = (smooth.iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
+        let scale = cam.edge_roughness_um / rms.max(1e-300);
+        Some(RoughEdge {
+            table: smooth.iter().map(|v| (v * scale) as f32).collect(),
+        })
+    }
+
+    /// Radius error (µm) in the direction `(dx, dy)` from the circle's centre.
+    #[inline]
+    pub fn at(&self, dx: f64, dy: f64) -> f64 {
+        let turns = dy.atan2(dx) / TAU;
+        let x = (turns - turns.floor()) * EDGE_SAMPLES as f64;
+        let i = x as usize % EDGE_SAMPLES;
+        let f = x - x.floor();
+        let a = self.table[i] as f64;
+        let b = self.table[(i + 1) % EDGE_SAMPLES] as f64;
+        a + (b - a) * f
+    }
+
+    /// The tabulated samples (µm), counter-clockwise in image axes from +x.
+    pub fn samples(&self) -> &[f32] {
+        &self.table
+    }
+}
+
+/// The ink's relative density over the board: `1 + ε(p)`, ε a sum of random plane waves
+/// with a Gaussian spectrum (correlation length `ink_density_corr_um`), RMS `ink_density_rms`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InkDensity {
+    waves: Vec<([f64; 2], f64)>,
+    amplitude: f64,
+}
+
+impl InkDensity {
+    const WAVES: usize = 12;
+
+    pub fn new(cam: &CameraModel) -> Option<InkDensity> {
+        if cam.ink_density_rms == 0.0 {
+            return None;
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(mix(cam.print_seed ^ 0x0069_6e6b));
+        let k = 1.0 / cam.ink_density_corr_um;
+        let waves = (0..Self::WAVES)
+            .map(|_| {
+                let kx: f64 = StandardNormal.sample(&mut rng);
+                let ky: f64 = StandardNormal.sample(&mut rng);
+                ([kx * k, ky * k], rng.gen::<f64>() * TAU)
+            })
+            .collect();
+        Some(InkDensity {
+            waves,
+            amplitude: cam.ink_density_rms * (2.0 / Self::WAVES as f64).sqrt(),
+        })
+    }
+
+    /// ε at board point `p_um`.
+    #[inline]
+    pub fn at(&self, p_um: [f64; 2]) -> f64 {
+        self.amplitude
+            * self
+                .waves
+                .iter()
+                .map(|(k, ph)| (k[0] * p_um[0] + k[1] * p_um[1] + ph).cos())
+                .sum::<f64>()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rough_edge_has_the_rms_and_is_seeded_per_edge() {
+        let cam = CameraModel {
+            edge_roughness_um: 10.0,
+            ..CameraModel::default()
+        };
+        let e = RoughEdge::new(&cam, 3, 1, 17_000.0).unwrap();
+        let rms = (e.samples().iter().map(|&v| (v as f64).powi(2)).sum::<f64>() / 1024.0).sqrt();
+        assert!((rms - 10.0).abs() < 1e-3, "{rms}");
+        assert_eq!(Some(e.clone()), RoughEdge::new(&cam, 3, 1, 17_000.0));
+        assert_ne!(Some(e.clone()), RoughEdge::new(&cam, 3, 0, 17_000.0));
+        assert_ne!(Some(e), RoughEdge::new(&cam, 4, 1, 17_000.0));
+        assert!(RoughEdge::new(&CameraModel::default(), 3, 1, 17_000.0).is_none());
+    }
+
+    #[test]
+    fn ink_density_has_about_the_rms() {
+        let cam = CameraModel {
+            ink_density_rms: 0.05,
+            ink_density_corr_um: 1000.0,
+            ..CameraModel::default()
+        };
+        let d = InkDensity::new(&cam).unwrap();
+        let n = 200;
+        let ms = (0..n * n)
+            .map(|i| {
+                d.at([(i % n) as f64 * 997.0, (i / n) as f64 * 1013.0])
+                    .powi(2)
+            })
+            .sum::<f64>()
+            / (n * n) as f64;
+        assert!((ms.sqrt() - 0.05).abs() < 0.01, "{}", ms.sqrt());
+    }
+}

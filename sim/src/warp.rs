@@ -1,0 +1,457 @@
+//! Rendering through a real lens: the board's shapes seen through `optics::Lens` (tilt,
+//! distortion, lateral colour) with the print's imperfections (`print`).
+//!
+//! Same conventions as the ideal renderer (area integration on a sub-sample grid, the
+//! Gaussian edge profile of the signed distance in image pixels), but distances are taken on
+//! the board: each pixel centre is mapped back to the board exactly (per channel when the
+//! channels' magnifications differ), the sub-samples through the local Jacobian (the map's
+//! curvature within one pixel is < 1e-4 px), and a board distance is turned into image pixels
+//! by the local scale along the edge's normal.
+
+use crate::board::{Board, ClutterShape, Shape};
+use crate::camera::CameraModel;
+use crate::optics::Lens;
+use crate::print::{InkDensity, RoughEdge};
+use crate::render::{EdgeTable, View};
+use nalgebra::Matrix2;
+use std::sync::Arc;
+
+/// The print of one board through one camera: rough edges per target and the ink field.
+#[derive(Debug, Clone)]
+pub struct Print {
+    /// Per target: outer hole, outer rim, inner rim, inner hole (`None`: smooth or absent).
+    edges: Vec<[Option<RoughEdge>; 4]>,
+    density: Option<InkDensity>,
+}
+
+impl Print {
+    pub fn new(board: &Board, cam: &CameraModel) -> Print {
+        let edges = board
+            .targets
+            .iter()
+            .enumerate()
+            .map(|(i, t)| {
+                let radii = shape_radii(&t.outer, &t.inner);
+                std::array::from_fn(|e| radii[e].and_then(|r| RoughEdge::new(cam, i, e, r)))
+            })
+            .collect();
+        Print {
+            edges,
+            density: InkDensity::new(cam),
+        }
+    }
+
+    /// The rough edge `edge` (0..4, see `RoughEdge::new`) of target `target`.
+    pub fn edge(&self, target: usize, edge: usize) -> Option<&RoughEdge> {
+        self.edges.get(target)?.get(edge)?.as_ref()
+    }
+
+    pub fn density(&self) -> Option<&InkDensity> {
+        self.density.as_ref()
+    }
+}
+
+/// Radii of a target's edges in `RoughEdge` order.
+fn shape_radii(outer: &Shape, inner: &Shape) -> [Option<f64>; 4] {
+    let (oh, or) = match *outer {
+        Shape::Ring {
+            inner_radius_um,
+            outer_radius_um,
+        } => (Some(inner_radius_um), outer_radius_um),
+        Shape::Disk { radius_um } => (None, radius_um),
+    };
+    let (ir, ih) = match *inner {
+        Shape::Ring {
+            inner_radius_um,
+            outer_radius_um,
+        } => (outer_radius_um, Some(inner_radius_um)),
+        Shape::Disk { radius_um } => (radius_um, None),
+    };
+    [oh, Some(or), Some(ir), ih]
+}
+
+#[derive(Debug, Clone)]
+struct WDisk {
+    centre_um: [f64; 2],
+    radius_um: f64,
+    sign: f64,
+    /// (target, edge) of its roughness in `Print`.
+    rough: Option<(usize, usize)>,
+    /// Image box holding the shape's blurred edge, [x0, x1, y0, y1] px.
+    bbox: [f64; 4],
+}
+
+#[derive(Debug, Clone)]
+struct WRect {
+    centre_um: [f64; 2],
+    half_um: [f64; 2],
+    bbox: [f64; 4],
+}
+
+/// Everything inked on the board for one view, on the board, with the lens that sees it.
+pub(crate) struct WarpInk {
+    lens: Lens,
+    print: Arc<Print>,
+    disks: Vec<WDisk>,
+    rects: Vec<WRect>,
+    /// Board point on the optical axis.
+    axis_um: [f64; 2],
+    /// The roll: a = R·(p − axis), R = [[cs, sn], [−sn, cs]].
+    sn: f64,
+    cs: f64,
+    /// Principal point in image coordinates.
+    pp: [f64; 2],
+    /// Whether the channels see different geometry (lateral colour).
+    per_channel: bool,
+    margin: f64,
+}
+
+/// Image box of the board rectangle `centre ± half` (its boundary mapped through the lens in
+/// every channel), grown by `margin` px.
+fn image_box(w: &WarpInk, centre: [f64; 2], half: [f64; 2], margin: f64) -> [f64; 4] {
+    let mut b = [
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    ];
+    for k in 0..64 {
+        let t = k as f64 / 16.0;
+        let (side, f) = ((t as usize) % 4, 2.0 * t.fract() - 1.0);
+        let (x, y) = match side {
+            0 => (f, -1.0),
+            1 => (1.0, f),
+            2 => (-f, 1.0),
+            _ => (-1.0, -f),
+        };
+        let p = [centre[0] + x * half[0], centre[1] + y * half[1]];
+        for ch in 0..3 {
+            let q = w.to_image(ch, p);
+            b = [
+                b[0].min(q[0]),
+                b[1].max(q[0]),
+                b[2].min(q[1]),
+                b[3].max(q[1]),
+            ];
+        }
+    }
+    [b[0] - margin, b[1] + margin, b[2] - margin, b[3] + margin]
+}
+
+impl WarpInk {
+    pub(crate) fn new(board: &Board, cam: &CameraModel, view: &View, print: Arc<Print>) -> WarpInk {
+        let s = cam.scale_um_per_px;
+        let (cx, cy) = (cam.width as f64 / 2.0, cam.height as f64 / 2.0);
+        let (sn, cs) = view.roll_rad.sin_cos();
+        let mut w = WarpInk {
+            lens: Lens::new(cam),
+            print,
+            disks: Vec::new(),
+            rects: Vec::new(),
+            axis_um: [view.camera_um[0] + s * cx, view.camera_um[1] + s * cy],
+            sn,
+            cs,
+            pp: [cx - 0.5, cy - 0.5],
+            per_channel: cam.lateral_colour_r != 0.0 || cam.lateral_colour_b != 0.0,
+            margin: 5.0 * cam.psf_sigma_px + 2.0,
+        };
+        // Rough edges stray a few RMS from the nominal radius.
+        let slack = 5.0 * cam.edge_roughness_um;
+        for (ti, t) in board.targets.iter().enumerate() {
+            let radii = shape_radii(&t.outer, &t.inner);
+            let signs = [-1.0, 1.0, 1.0, -1.0];
+            for e in 0..4 {
+                let Some(r) = radii[e] else { continue };
+                let centre = if e < 2 {
+                    t.centre_um
+                } else {
+                    t.inner_centre_um()
+                };
+                let bbox = image_box(&w, centre, [r + slack; 2], w.margin);
+                w.disks.push(WDisk {
+                    centre_um: centre,
+                    radius_um: r,
+                    sign: signs[e],
+                    rough: w.print.edge(ti, e).map(|_| (ti, e)),
+                    bbox,
+                });
+            }
+        }
+        for c in &board.clutter {
+            match c.shape {
+                ClutterShape::Disk { radius_um } => {
+                    let bbox = image_box(&w, c.centre_um, [radius_um; 2], w.margin);
+                    w.disks.push(WDisk {
+                        centre_um: c.centre_um,
+                        radius_um,
+                        sign: 1.0,
+                        rough: None,
+                        bbox,
+                    })
+                }
+                ClutterShape::Rect {
+                    width_um,
+                    height_um,
+                } => {
+                    let half = [width_um / 2.0, height_um / 2.0];
+                    let bbox = image_box(&w, c.centre_um, half, w.margin);
+                    w.rects.push(WRect {
+                        centre_um: c.centre_um,
+                        half_um: half,
+                        bbox,
+                    })
+                }
+            }
+        }
+        w
+    }
+
+    /// Image point (pixel centres at integers) of board point `p_um` in `channel`.
+    pub(crate) fn to_image(&self, channel: usize, p_um: [f64; 2]) -> [f64; 2] {
+        let (dx, dy) = (p_um[0] - self.axis_um[0], p_um[1] - self.axis_um[1]);
+        let a = [self.cs * dx + self.sn * dy, -self.sn * dx + self.cs * dy];
+        let o = self.lens.forward(channel, a);
+        [self.pp[0] + o[0], self.pp[1] + o[1]]
+    }
+
+    /// Board point seen at image point (u, v) in `channel`, and d(board)/d(image) (µm/px).
+    fn to_board(&self, channel: usize, u: f64, v: f64) -> ([f64; 2], Matrix2<f64>) {
+        let (a, j) = self.lens.inverse(channel, [u - self.pp[0], v - self.pp[1]]);
+        // p = axis + Rᵀ·a.
+        let rt = Matrix2::new(self.cs, -self.sn, self.sn, self.cs);
+        let p = [
+            self.axis_um[0] + self.cs * a[0] - self.sn * a[1],
+            self.axis_um[1] + self.sn * a[0] + self.cs * a[1],
+        ];
+        (p, rt * j)
+    }
+
+    /// Indices of the disks and rectangles whose box holds row `v`.
+    pub(crate) fn near_row(&self, v: f64) -> (Vec<usize>, Vec<usize>) {
+        let d = (0..self.disks.len())
+            .filter(|&i| v >= self.disks[i].bbox[2] && v <= self.disks[i].bbox[3])
+            .collect();
+        let r = (0..self.rects.len())
+            .filter(|&i| v >= self.rects[i].bbox[2] && v <= self.rects[i].bbox[3])
+            .collect();
+        (d, r)
+    }
+
+    /// Those of `near` whose box holds column `u`.
+    pub(crate) fn near_col(
+        &self,
+        near: &[usize],
+        rects: &[usize],
+        u: f64,
+        out: &mut Vec<usize>,
+        out_r: &mut Vec<usize>,
+    ) {
+        out.clear();
+        out.extend(
+            near.iter()
+                .copied()
+                .filter(|&i| u >= self.disks[i].bbox[0] && u <= self.disks[i].bbox[1]),
+        );
+        out_r.clear();
+        out_r.extend(
+            rects
+                .iter()
+                .copied()
+                .filter(|&i| u >= self.rects[i].bbox[0] && u <= self.rects[i].bbox[1]),
+        );
+    }
+
+    /// Ink coverage of pixel (u, v) per channel, and the ink's relative density there.
+    pub(crate) fn coverage(
+        &self,
+        near: &[usize],
+        rects: &[usize],
+        u: f64,
+        v: f64,
+        cam: &CameraModel,
+        edge: &EdgeTable,
+    ) -> ([f64; 3], f64) {
+        let (p, j) = self.to_board(1, u, v);
+        let green = self.channel_coverage(near, rects, p, &j, cam, edge);
+        let density = match self.print.density() {
+            Some(d) if green > 0.0 || self.per_channel => 1.0 + d.at(p),
+            _ => 1.0,
+        };
+        if !self.per_channel {
+            return ([green; 3], density);
+        }
+        let mut cov = [green; 3];
+        for ch in [0, 2] {
+            let (p, j) = self.to_board(ch, u, v);
+            cov[ch] = self.channel_coverage(near, rects, p, &j, cam, edge);
+        }
+        (cov, density)
+    }
+
+    /// Coverage of the pixel whose centre sees board point `p` with Jacobian `j`.
+    fn channel_coverage(
+        &self,
+        near: &[usize],
+        rects: &[usize],
+        p: [f64; 2],
+        j: &Matrix2<f64>,
+        cam: &CameraModel,
+        edge: &EdgeTable,
+    ) -> f64 {
+        const MAX_ACTIVE: usize = 8;
+        let sigma = cam.psf_sigma_px.max(1e-3);
+        let band = 5.0 * sigma + 0.75;
+        let close = 2.0 * sigma + 0.1;
+        // Active disks: (index, offset from centre, effective radius, px per µm on the normal).
+        let mut act = [(0usize, [0.0f64; 2], 0.0f64, 0.0f64); MAX_ACTIVE];
+        let mut n_act = 0;
+        let mut act_r = [(0usize, [0.0f64; 2]); MAX_ACTIVE];
+        let mut n_r = 0;
+        let mut flat = 0.0;
+        let mut near_edge = false;
+        for &i in near {
+            let d = &self.disks[i];
+            let e = [p[0] - d.centre_um[0], p[1] - d.centre_um[1]];
+            // (`hypot` is a slow libm call; the squares cannot overflow here.)
+            let rho = (e[0] * e[0] + e[1] * e[1]).sqrt().max(1e-9);
+            let r = d.radius_um
+                + d.rough
+                    .and_then(|(t, k)| self.print.edge(t, k))
+                    .map_or(0.0, |re| re.at(e[0], e[1]));
+            let (nx, ny) = (e[0] / rho, e[1] / rho);
+            // d(distance)/d(image) = nᵀ·J: µm per px along the steepest direction.
+            let gx = nx * j[(0, 0)] + ny * j[(1, 0)];
+            let gy = nx * j[(0, 1)] + ny * j[(1, 1)];
+            let k = 1.0 / (gx * gx + gy * gy).sqrt();
+            let dist = (rho - r) * k;
+            if dist.abs() < band && n_act < MAX_ACTIVE {
+                near_edge |= dist.abs() < close;
+                act[n_act] = (i, e, r, k);
+                n_act += 1;
+            } else if dist < 0.0 {
+                flat += d.sign;
+            }
+        }
+        for &i in rects {
+            let r = &self.rects[i];
+            let e = [p[0] - r.centre_um[0], p[1] - r.centre_um[1]];
+            let (kx, ky) = row_scales(j);
+            let dx = (e[0].abs() - r.half_um[0]) * kx;
+            let dy = (e[1].abs() - r.half_um[1]) * ky;
+            if (dx.abs() < band || dy.abs() < band) && dx < band && dy < band && n_r < MAX_ACTIVE {
+                near_edge |= dx.abs() < close || dy.abs() < close;
+                act_r[n_r] = (i, e);
+                n_r += 1;
+            } else if dx < 0.0 && dy < 0.0 {
+                flat += 1.0;
+            }
+        }
+        if n_act == 0 && n_r == 0 {
+            return flat.clamp(0.0, 1.0);
+        }
+        let n = if near_edge {
+            cam.supersample.max(1)
+        } else {
+            cam.supersample.clamp(1, 3)
+        };
+        let step = 1.0 / n as f64;
+        let (kx, ky) = row_scales(j);
+        let mut sum = 0.0;
+        for sj in 0..n {
+            let dv = -0.5 + (sj as f64 + 0.5) * step;
+            for si in 0..n {
+                let du = -0.5 + (si as f64 + 0.5) * step;
+                // Board offset of this sub-sample from the pixel centre's board point.
+                let ox = j[(0, 0)] * du + j[(0, 1)] * dv;
+                let oy = j[(1, 0)] * du + j[(1, 1)] * dv;
+                let mut c = flat;
+                for &(i, e, r, k) in &act[..n_act] {
+                    let (x, y) = (e[0] + ox, e[1] + oy);
+                    let rho = (x * x + y * y).sqrt();
+                    c += self.disks[i].sign * edge.at((rho - r) * k);
+                }
+                for &(i, e) in &act_r[..n_r] {
+                    let rc = &self.rects[i];
+                    let ex = edge.at(((e[0] + ox).abs() - rc.half_um[0]) * kx);
+                    let ey = edge.at(((e[1] + oy).abs() - rc.half_um[1]) * ky);
+                    c += ex * ey;
+                }
+                sum += c.clamp(0.0, 1.0);
+            }
+        }
+        sum * step * step
+    }
+}
+
+/// Image px per board µm along the board's x and y (rows of the Jacobian).
+#[inline]
+fn row_scales(j: &Matrix2<f64>) -> (f64, f64) {
+    let n = |a: f64, b: f64| 1.0 / (a * a + b * b).sqrt();
+    (n(j[(0, 0)], j[(0, 1)]), n(j[(1, 0)], j[(1, 1)]))
+}
+
+/// One row of expected DN through the lens (see `render::render_rows`).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn render_row(
+    board: &Board,
+    cam: &CameraModel,
+    ink: &WarpInk,
+    edge: &EdgeTable,
+    x0: u32,
+    w: u32,
+    v: f64,
+    line: &mut [f32],
+    light: f64,
+) {
+    let (near, near_r) = ink.near_row(v);
+    let (mut nx, mut nr) = (
+        Vec::with_capacity(near.len()),
+        Vec::with_capacity(near_r.len()),
+    );
+    for col in 0..w {
+        let u = (x0 + col) as f64;
+        ink.near_col(&near, &near_r, u, &mut nx, &mut nr);
+        let (cov, density) = if nx.is_empty() && nr.is_empty() {
+            ([0.0; 3], 1.0)
+        } else {
+            ink.coverage(&nx, &nr, u, v, cam, edge)
+        };
+        let lum = cam.white_dn * light * cam.illumination(u, v);
+        for c in 0..3 {
+            let depth = (board.paper_rgb[c] - board.ink_rgb[c]) * density;
+            let refl = board.paper_rgb[c] - depth * cov[c];
+            line[(col * 3) as usize + c] = (lum * refl) as f32;
+        }
+    }
+}
+
+/// Image box [x0, x1, y0, y1] of every shape of the board (targets by their outer edge,
+/// clutter), in px, grown by the blur's margin: the boxes `SceneRenderer` re-renders.
+pub(crate) fn shape_boxes(ink: &WarpInk, board: &Board) -> Vec<[f64; 4]> {
+    let mut out = Vec::new();
+    let mut k = 0;
+    for t in &board.targets {
+        let n = shape_radii(&t.outer, &t.inner).iter().flatten().count();
+        let boxes = &ink.disks[k..k + n];
+        out.push(boxes.iter().fold(
+            [
+                f64::INFINITY,
+                f64::NEG_INFINITY,
+                f64::INFINITY,
+                f64::NEG_INFINITY,
+            ],
+            |b, d| {
+                [
+                    b[0].min(d.bbox[0]),
+                    b[1].max(d.bbox[1]),
+                    b[2].min(d.bbox[2]),
+                    b[3].max(d.bbox[3]),
+                ]
+            },
+        ));
+        k += n;
+    }
+    out.extend(ink.disks[k..].iter().map(|d| d.bbox));
+    out.extend(ink.rects.iter().map(|r| r.bbox));
+    out
+}
