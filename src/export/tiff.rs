@@ -128,12 +128,16 @@ mod tests {
         let r = pixels_per_cm(774.0);
         assert!(
             (f64::from(r.n) / f64::from(r.d) - 1e4 / 774.0).abs() < 1e-6,
-            "{r:?}"
+            "{}/{}",
+            r.n,
+            r.d
         );
         let r = pixels_per_cm(0.05);
         assert!(
             (f64::from(r.n) / f64::from(r.d) - 2e5).abs() < 1e-3,
-            "{r:?}"
+            "{}/{}",
+            r.n,
+            r.d
         );
     }
 }
