@@ -14,6 +14,7 @@
 //! - `xl80`: Renishaw XL-80 interferometer logs (CSV export, CARTO .rtx), following and alignment.
 //! - `config`: the rig's TOML configuration.
 //! - `daemon`: protocol, server, job runner, sessions, replay.
+//! - `export`: sessions as OME-TIFF and OME-Zarr.
 //! - `cli`: the `rigctl` subcommands; the binaries in `src/bin` are thin.
 
 pub mod acquisition;
@@ -21,6 +22,7 @@ pub mod atomic_file;
 pub mod cli;
 pub mod config;
 pub mod daemon;
+pub mod export;
 pub mod folder;
 pub mod hw;
 pub mod lock;

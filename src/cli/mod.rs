@@ -4,6 +4,7 @@ pub mod cancel;
 pub mod client;
 #[cfg(feature = "sim")]
 pub mod demo;
+pub mod export;
 pub mod fetch;
 pub mod hw;
 pub mod list;
@@ -55,6 +56,8 @@ pub enum Command {
     Fetch(fetch::FetchArgs),
     /// Run a recorded session again, optionally with other processing settings.
     Replay(replay::ReplayArgs),
+    /// Write a recorded session as OME-Zarr or OME-TIFF (units, positions, times), offline.
+    Export(export::ExportArgs),
     /// Measure target offsets in a folder of frames (frames/*.png + steps.csv), offline.
     Process(process::ProcessArgs),
     /// Talk to the configured hardware directly (bring-up; only when no daemon holds it).
@@ -99,6 +102,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::List(a) => list::run(a),
         Command::Fetch(a) => fetch::run(a),
         Command::Replay(a) => replay::run(a),
+        Command::Export(a) => export::run(a),
         Command::Process(a) => process::run(a),
         Command::Hw(a) => hw::run(a),
         Command::Unlock(a) => rig::run(RigAction::Unlock, a),

@@ -8,6 +8,7 @@
 //! - `worker`: takes jobs off the queue onto a blocking thread and runs each through the
 //!   step engine (`acquisition`) with the recorder and processor as its sinks;
 //! - `recorder`: the session as a step sink; `session`: the crash-safe session folder;
+//!   `frame_png`: a frame's PNG with its scale, position and time in it;
 //! - `replay`: a session's job run again (on `rig::replay`); `events`: the event bus;
 //! - `rig_state`: the rig's `ready`/`busy`/`fault` state; `rig_commands`: `unlock`, `home`,
 //!   `reconnect`, run by the worker beside the job queue; `manual`: `position`, `move`,
@@ -21,6 +22,7 @@ pub mod accept;
 pub mod commands;
 pub mod connection;
 pub mod events;
+pub mod frame_png;
 pub mod job_ids;
 pub mod jobs;
 pub mod listing;

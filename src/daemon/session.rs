@@ -16,6 +16,7 @@ use crate::acquisition::outcome::EndDetail;
 use crate::acquisition::plan::Plan;
 use crate::acquisition::JobSpec;
 use crate::atomic_file::{self, AtomicWriteError};
+use crate::daemon::frame_png;
 use crate::daemon::protocol::PROTOCOL_VERSION;
 use crate::nofollow::{self, Access};
 use crate::rig::{LogSample, LogSource, RigInfo};
@@ -257,17 +258,17 @@ impl SessionWriter {
         &self.manifest.name
     }
 
-    /// Record a captured frame: PNG, then its steps.csv and interferometer rows. When this
-    /// returns, the frame is on disk and may be reported captured.
+    /// Record a captured frame: PNG (with its metadata: [`frame_png`]), then its steps.csv
+    /// row. When this returns, the frame is on disk and may be reported captured.
     pub fn record(&mut self, row: StepRow, image: &RgbImage) -> Result<(), SessionError> {
         let path = self.dir.join("frames").join(frame_name(row.index));
-        let mut png = Vec::with_capacity(image.as_raw().len() / 2);
-        image::DynamicImage::ImageRgb8(image.clone())
-            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-            .map_err(|e| SessionError::Format {
-                path: path.display().to_string(),
-                message: format!("PNG encoding: {e}"),
-            })?;
+        // The frame carries its own scale, position and time (pHYs and tEXt chunks).
+        let scale = self.manifest.rig.scale_um_per_px;
+        let text = frame_png::text_chunks(&self.manifest.name, &row, scale);
+        let png = frame_png::encode(image, scale, text).map_err(|e| SessionError::Format {
+            path: path.display().to_string(),
+            message: format!("PNG encoding: {e}"),
+        })?;
         write_atomic(&path, &png)?;
         self.append_step(&row)?;
         self.manifest.frames_captured += 1;
