@@ -142,7 +142,9 @@ impl Chart {
         mesh.x_desc(&self.x_label)
             .y_desc(&self.y_label)
             .label_style((FAMILY, 13))
-            .axis_desc_style((FAMILY, 15));
+            .axis_desc_style((FAMILY, 15))
+            .x_label_formatter(&tick)
+            .y_label_formatter(&tick);
         if self.x_names.is_some() {
             mesh.x_labels(names.len() * 2 + 1).x_label_formatter(&name_of);
         }
@@ -154,13 +156,20 @@ impl Chart {
             chart
                 .configure_series_labels()
                 .label_font((FAMILY, 13))
-                .background_style(WHITE.mix(0.85))
+                // See-through: a legend of many targets may lie over data.
+                .background_style(WHITE.mix(0.6))
                 .border_style(BLACK)
                 .position(SeriesLabelPosition::UpperRight)
                 .draw()?;
         }
         root.present()
     }
+}
+
+/// A tick's number without the noise of its float: `2`, `0.5`, `-12.5`.
+fn tick(v: &f64) -> String {
+    let r = (v * 1e6).round() / 1e6;
+    format!("{}", if r == 0.0 { 0.0 } else { r })
 }
 
 fn finite(p: &&(f64, f64)) -> bool {

@@ -211,10 +211,10 @@ mod tests {
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines[0], HEADER.join(","));
         assert_eq!(lines.len(), 1 + 4, "{text}");
-        // 1000.1 - 1000 is 0.10000000000000142 in f64: written so it reads back the same.
+        // 1000.1 - 1000 is 0.10000000000002274 in f64: written so it reads back the same.
         assert_eq!(
             lines[1],
-            "0,case3,0,B,1000.1,-0.1,0.3,0.25,1000.0,0.0,0.10000000000000142,-0.1,20,10,fit,mean,interferometer"
+            "0,case3,0,B,1000.1,-0.1,0.3,0.25,1000.0,0.0,0.10000000000002274,-0.1,20,10,fit,mean,interferometer"
         );
         assert_eq!(
             lines[2],

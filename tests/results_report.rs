@@ -157,16 +157,19 @@ fn check_report(session: &Path, tmp: &Path) {
         ("residuals", (900, 500), &["frame (index in the session)", "displacement − commanded (µm)", "image − commanded", "interferometer − commanded", "axis (reported) − commanded"]),
     ];
     for (stem, size, texts) in figures {
-        let png = image::open(out.join(format!("{stem}.png")))
+        let rgb = image::open(out.join(format!("{stem}.png")))
             .unwrap_or_else(|e| panic!("{stem}.png: {e}"))
-            .to_luma8();
-        assert_eq!(png.dimensions(), size, "{stem}");
-        let n = png.len() as f64;
-        let mean = png.iter().map(|&v| v as f64).sum::<f64>() / n;
-        let var = png.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
-        // A white page with a few lines has a variance of a few hundred; axes, text, a grid
-        // and the data give thousands.
-        assert!(var > 1000.0, "{stem}.png: pixel variance {var:.0}");
+            .to_rgb8();
+        assert_eq!(rgb.dimensions(), size, "{stem}");
+        let grey = image::DynamicImage::ImageRgb8(rgb.clone()).to_luma8();
+        let n = grey.len() as f64;
+        let mean = grey.iter().map(|&v| v as f64).sum::<f64>() / n;
+        let var = grey.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
+        // A blank page has none; the axes, grid, text and data of these charts give 900+.
+        assert!(var > 300.0, "{stem}.png: pixel variance {var:.0}");
+        // The data are drawn: the first series' colour (blue) on many pixels.
+        let blue = rgb.pixels().filter(|p| p.0 == [31, 119, 180]).count();
+        assert!(blue > 100, "{stem}.png: {blue} pixels of the first series");
         let svg = std::fs::read_to_string(out.join(format!("{stem}.svg"))).unwrap();
         for t in texts {
             assert!(svg.contains(t), "{stem}.svg lacks {t:?}");
