@@ -62,15 +62,17 @@ pub fn figure5(st: &StudyStats) -> Chart {
             .collect(),
         style: Style::Lines,
     }];
-    series.extend(names.iter().map(|&n| Series {
-        label: format!("target {n}"),
-        points: st
-            .cases
-            .iter()
-            .enumerate()
-            .filter_map(|(i, c)| Some((x(i), c.targets.iter().find(|t| t.name == n)?.std_um)))
-            .collect(),
-        style: Style::Points,
+    series.extend(names.iter().map(|&n| {
+        Series {
+            label: format!("target {n}"),
+            points: st
+                .cases
+                .iter()
+                .enumerate()
+                .filter_map(|(i, c)| Some((x(i), c.targets.iter().find(|t| t.name == n)?.std_um)))
+                .collect(),
+            style: Style::Points,
+        }
     }));
     Chart {
         title: "Figure 5: standard deviation over repeats per averaging case".into(),
@@ -104,7 +106,9 @@ pub fn residuals(runs: &[RunResult], steps: &[StepRow]) -> Chart {
         let piezo_dir = o.piezo_dir.unwrap_or(dir);
         let norm2 = dir[0] * dir[0] + dir[1] * dir[1];
         for st in &r.steps {
-            let Some(row) = rows.get(st.index) else { continue };
+            let Some(row) = rows.get(st.index) else {
+                continue;
+            };
             let x = row.index as f64;
             let commanded = row.position_um - first.position_um;
             // The image shift less the piezo's part, along the stage's direction, in µm.
@@ -147,10 +151,12 @@ pub fn residuals(runs: &[RunResult], steps: &[StepRow]) -> Chart {
 /// A file name from a case's name: letters, digits, `-` and `_` kept, the rest `-`.
 fn file_stem(name: &str) -> String {
     name.chars()
-        .map(|c| match c.is_ascii_alphanumeric() || c == '-' || c == '_' {
-            true => c,
-            false => '-',
-        })
+        .map(
+            |c| match c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                true => c,
+                false => '-',
+            },
+        )
         .collect()
 }
 
@@ -159,7 +165,10 @@ pub fn charts(result: &JobResult, steps: &[StepRow]) -> Vec<(String, Chart)> {
     let mut out = Vec::new();
     if let Some(study) = &result.study {
         for (i, c) in study.stats.cases.iter().enumerate() {
-            out.push((format!("figure4-{}", file_stem(&c.name)), figure4(&study.stats, i)));
+            out.push((
+                format!("figure4-{}", file_stem(&c.name)),
+                figure4(&study.stats, i),
+            ));
         }
         out.push(("figure5".to_string(), figure5(&study.stats)));
     }

@@ -349,7 +349,8 @@ pub fn write_outputs(
         staged.push(atomic_file::stage(&fin, &png).map_err(atomic)?);
     }
     // The flat table (docs/sessions.md's results.csv): one run, no case, no repeat.
-    let table = crate::results_csv::to_bytes(&crate::results_csv::rows_of((0, "", 0), result, None));
+    let table =
+        crate::results_csv::to_bytes(&crate::results_csv::rows_of((0, "", 0), result, None));
     let csv_path = out.join(crate::results_csv::FILE);
     staged.push(atomic_file::stage(&csv_path, &table).map_err(atomic)?);
     let json = serde_json::to_string_pretty(result).expect("results serialise");

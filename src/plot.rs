@@ -101,7 +101,12 @@ impl Chart {
     /// The data's extent, a little wider so marks at the ends are whole; (0, 1) on an axis
     /// with no finite value, one unit either side of a single value.
     fn bounds(&self) -> ((f64, f64), (f64, f64)) {
-        let pts = || self.series.iter().flat_map(|s| &s.points).filter(|p| finite(p));
+        let pts = || {
+            self.series
+                .iter()
+                .flat_map(|s| &s.points)
+                .filter(|p| finite(p))
+        };
         let range = |v: &mut dyn Iterator<Item = f64>| {
             let (lo, hi) = v.fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)));
             match (lo <= hi, hi - lo) {
@@ -146,7 +151,8 @@ impl Chart {
             .x_label_formatter(&tick)
             .y_label_formatter(&tick);
         if self.x_names.is_some() {
-            mesh.x_labels(names.len() * 2 + 1).x_label_formatter(&name_of);
+            mesh.x_labels(names.len() * 2 + 1)
+                .x_label_formatter(&name_of);
         }
         mesh.draw()?;
         for (i, s) in self.series.iter().enumerate() {
@@ -176,7 +182,8 @@ fn finite(p: &&(f64, f64)) -> bool {
     p.0.is_finite() && p.1.is_finite()
 }
 
-type Cartesian = Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>;
+type Cartesian =
+    Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>;
 
 /// One series and its legend entry: a line for [`Style::Lines`], a mark for points.
 fn draw_series<DB: DrawingBackend>(
@@ -240,7 +247,10 @@ mod tests {
         // The first series' colour: its line and marks.
         assert!(count([31, 119, 180]) > 50);
         // Text and axes: many dark pixels, and more than the axes alone would give.
-        let dark = img.pixels().filter(|p| p.0.iter().all(|&v| v < 100)).count();
+        let dark = img
+            .pixels()
+            .filter(|p| p.0.iter().all(|&v| v < 100))
+            .count();
         assert!(dark > 1000, "{dark} dark pixels");
     }
 
@@ -249,7 +259,15 @@ mod tests {
         let mut c = chart();
         c.x_names = Some(vec!["case1".into(), "case2".into()]);
         let svg = c.svg().unwrap();
-        for text in ["A title", "repeat", "offset − nominal (µm)", "A (100 µm)", "scatter", "case1", "case2"] {
+        for text in [
+            "A title",
+            "repeat",
+            "offset − nominal (µm)",
+            "A (100 µm)",
+            "scatter",
+            "case1",
+            "case2",
+        ] {
             assert!(svg.contains(text), "{text} missing");
         }
         // A chart without data still draws its axes.

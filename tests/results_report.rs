@@ -27,7 +27,13 @@ fn csv_rows(path: &Path) -> Vec<HashMap<String, String>> {
          bias_dx_um,bias_dy_um,frames,k,estimator,combine,registration"
     );
     rd.records()
-        .map(|r| heads.iter().cloned().zip(r.unwrap().iter().map(String::from)).collect())
+        .map(|r| {
+            heads
+                .iter()
+                .cloned()
+                .zip(r.unwrap().iter().map(String::from))
+                .collect()
+        })
         .collect()
 }
 
@@ -145,16 +151,59 @@ fn check_residuals(result: &JobResult, s: &rigd::daemon::session::Session) {
 /// blank) and SVG (its axis labels and legend).
 fn check_report(session: &Path, tmp: &Path) {
     let out = tmp.join("report");
-    let o = rigctl(&["report".as_ref(), session.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    let o = rigctl(&[
+        "report".as_ref(),
+        session.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let text = std::fs::read_to_string(out.join("report.txt")).unwrap();
     assert!(text.contains("Table 3") && text.contains("case3"), "{text}");
     let figures: [(&str, (u32, u32), &[&str]); 5] = [
-        ("figure4-case1", (800, 500), &["repeat (experiment number)", "measured offset − nominal (µm)", "H (nominal 2000 µm)", "V (nominal 3000 µm)", "case1"]),
-        ("figure4-case2", (800, 500), &["H (nominal 2000 µm)", "10 frame(s) 100 µm apart, k = 5"]),
-        ("figure4-case3", (800, 500), &["H (nominal 2000 µm)", "20 frame(s) 50 µm apart, k = 10"]),
-        ("figure5", (800, 500), &["averaging case (frames, k)", "standard deviation over repeats (µm)", "RMS over targets", "target H", "case3 (20, k = 10)"]),
-        ("residuals", (900, 500), &["frame (index in the session)", "displacement − commanded (µm)", "image − commanded", "interferometer − commanded", "axis (reported) − commanded"]),
+        (
+            "figure4-case1",
+            (800, 500),
+            &[
+                "repeat (experiment number)",
+                "measured offset − nominal (µm)",
+                "H (nominal 2000 µm)",
+                "V (nominal 3000 µm)",
+                "case1",
+            ],
+        ),
+        (
+            "figure4-case2",
+            (800, 500),
+            &["H (nominal 2000 µm)", "10 frame(s) 100 µm apart, k = 5"],
+        ),
+        (
+            "figure4-case3",
+            (800, 500),
+            &["H (nominal 2000 µm)", "20 frame(s) 50 µm apart, k = 10"],
+        ),
+        (
+            "figure5",
+            (800, 500),
+            &[
+                "averaging case (frames, k)",
+                "standard deviation over repeats (µm)",
+                "RMS over targets",
+                "target H",
+                "case3 (20, k = 10)",
+            ],
+        ),
+        (
+            "residuals",
+            (900, 500),
+            &[
+                "frame (index in the session)",
+                "displacement − commanded (µm)",
+                "image − commanded",
+                "interferometer − commanded",
+                "axis (reported) − commanded",
+            ],
+        ),
     ];
     for (stem, size, texts) in figures {
         let rgb = image::open(out.join(format!("{stem}.png")))
@@ -210,10 +259,20 @@ fn rigctl_process_out_writes_results_csv_with_result_jsons_figures() {
     assert_eq!(rows.len(), r.objects.len());
     assert_eq!(rows.len(), 2);
     for (row, o) in rows.iter().zip(&r.objects) {
-        assert_eq!((row["run"].as_str(), row["case"].as_str(), row["repeat"].as_str()), ("0", "", "0"));
+        assert_eq!(
+            (
+                row["run"].as_str(),
+                row["case"].as_str(),
+                row["repeat"].as_str()
+            ),
+            ("0", "", "0")
+        );
         assert_eq!(Some(row["target"].as_str()), o.name.as_deref());
         assert_row_is(row, o, &r);
-        assert_eq!((row["combine"].as_str(), row["registration"].as_str()), ("interp", "image"));
+        assert_eq!(
+            (row["combine"].as_str(), row["registration"].as_str()),
+            ("interp", "image")
+        );
     }
 }
 

@@ -37,7 +37,8 @@ pub fn read_result(session: &Path) -> anyhow::Result<JobResult> {
             path.display()
         )
     })?;
-    serde_json::from_slice(&text).with_context(|| format!("{}: not a session's result", path.display()))
+    serde_json::from_slice(&text)
+        .with_context(|| format!("{}: not a session's result", path.display()))
 }
 
 /// Write the session's figures (`NAME.png`, `NAME.svg`) and `report.txt` into `out`, each
@@ -53,9 +54,13 @@ pub fn write(session: &Path, out: &Path) -> anyhow::Result<Vec<PathBuf>> {
     };
     let mut written = vec![save("report.txt".into(), text(&result).as_bytes())?];
     for (stem, chart) in figures::charts(&result, &steps) {
-        let png = chart.png().map_err(|e| anyhow::anyhow!("{stem}.png: {e}"))?;
+        let png = chart
+            .png()
+            .map_err(|e| anyhow::anyhow!("{stem}.png: {e}"))?;
         written.push(save(format!("{stem}.png"), &png)?);
-        let svg = chart.svg().map_err(|e| anyhow::anyhow!("{stem}.svg: {e}"))?;
+        let svg = chart
+            .svg()
+            .map_err(|e| anyhow::anyhow!("{stem}.svg: {e}"))?;
         written.push(save(format!("{stem}.svg"), svg.as_bytes())?);
     }
     atomic_file::sync_dir(out)?;
@@ -78,7 +83,11 @@ pub fn text(result: &JobResult) -> String {
     ]);
     for r in &result.runs {
         let (targets, rms, error) = match &r.result {
-            Some(x) => (x.objects.len().to_string(), x.step_summary.rms_residual_um, ""),
+            Some(x) => (
+                x.objects.len().to_string(),
+                x.step_summary.rms_residual_um,
+                "",
+            ),
             None => ("0".into(), [f64::NAN; 2], r.error.as_deref().unwrap_or("")),
         };
         t.row(vec![
