@@ -101,18 +101,16 @@ impl Chart {
     /// The data's extent, a little wider so marks at the ends are whole; (0, 1) on an axis
     /// with no finite value, one unit either side of a single value.
     fn bounds(&self) -> ((f64, f64), (f64, f64)) {
-        let pts = || {
-            self.series
-                .iter()
-                .flat_map(|s| &s.points)
-                .filter(|p| finite(p))
-        };
+        let pts = || self.series.iter().flat_map(|s| &s.points).filter(finite);
         let range = |v: &mut dyn Iterator<Item = f64>| {
             let (lo, hi) = v.fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)));
-            match (lo <= hi, hi - lo) {
-                (false, _) => (0.0, 1.0),
-                (true, d) if d == 0.0 => (lo - 1.0, hi + 1.0),
-                (true, d) => (lo - 0.05 * d, hi + 0.05 * d),
+            let d = hi - lo;
+            if lo > hi {
+                (0.0, 1.0)
+            } else if d == 0.0 {
+                (lo - 1.0, hi + 1.0)
+            } else {
+                (lo - 0.05 * d, hi + 0.05 * d)
             }
         };
         let x = match &self.x_names {
