@@ -324,7 +324,8 @@ fn check_chunks(bytes: &[u8]) -> Result<(), String> {
     }
 }
 
-/// Write the result (`result.json`) and images (`<name>.png`, 16-bit) into `out`:
+/// Write the result (`result.json`, and its flat table `results.csv`) and images
+/// (`<name>.png`, 16-bit) into `out`:
 /// everything to temporary names first, renamed once all are written, the result last.
 pub fn write_outputs(
     out: &Path,
@@ -347,6 +348,11 @@ pub fn write_outputs(
             .map_err(|e| io(&fin, "cannot write", &e))?;
         staged.push(atomic_file::stage(&fin, &png).map_err(atomic)?);
     }
+    // The flat table (docs/sessions.md's results.csv): one run, no case, no repeat.
+    let table =
+        crate::results_csv::to_bytes(&crate::results_csv::rows_of((0, "", 0), result, None));
+    let csv_path = out.join(crate::results_csv::FILE);
+    staged.push(atomic_file::stage(&csv_path, &table).map_err(atomic)?);
     let json = serde_json::to_string_pretty(result).expect("results serialise");
     staged.push(atomic_file::stage(&out.join("result.json"), json.as_bytes()).map_err(atomic)?);
     let written = staged

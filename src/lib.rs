@@ -8,7 +8,8 @@
 //! - `atomic_file`: files written whole or not at all (temporary name, sync, rename).
 //! - `nofollow`: opening files below a folder without following a symlink.
 //! - `lock`: exclusive flock'd lock files that name their holder (one owner per resource).
-//! - `report`: the paper's tables and figures from repeated runs.
+//! - `report`: the paper's tables from repeated runs; `results_csv`: the flat results table
+//!   beside every result.json; `plot` and `figures`: labelled charts (Figures 4, 5, residuals).
 //! - `hw`: hardware drivers (GRBL axis, PI GCS piezo, V4L2 camera) and their options.
 //! - `rig`: the device traits, `Rig`/`RigInfo`, and the rig builders (config, sim, replay).
 //! - `xl80`: Renishaw XL-80 interferometer logs (CSV export, CARTO .rtx), following and alignment.
@@ -23,11 +24,14 @@ pub mod cli;
 pub mod config;
 pub mod daemon;
 pub mod export;
+pub mod figures;
 pub mod folder;
 pub mod hw;
 pub mod lock;
 pub mod nofollow;
+pub mod plot;
 pub mod report;
+pub mod results_csv;
 pub mod rig;
 pub mod xl80;
 

@@ -218,14 +218,13 @@ fn paper_study_full() {
             rigd::report::study_json(st),
         )
         .unwrap();
+        // The same charts `rigctl report` writes for a session (src/figures.rs).
         for c in 0..3 {
-            rigd::report::figure4(st, c)
-                .save(out.join(format!("{label}-figure4-case{}.png", c + 1)))
-                .unwrap();
+            let png = rigd::figures::figure4(st, c).png().unwrap();
+            std::fs::write(out.join(format!("{label}-figure4-case{}.png", c + 1)), png).unwrap();
         }
-        rigd::report::figure5(st)
-            .save(out.join(format!("{label}-figure5.png")))
-            .unwrap();
+        let png = rigd::figures::figure5(st).png().unwrap();
+        std::fs::write(out.join(format!("{label}-figure5.png")), png).unwrap();
     }
     // The Cramér–Rao bound of one frame for each target, at a typical start.
     let board = Board::paper();

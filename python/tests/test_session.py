@@ -82,6 +82,35 @@ def test_offsets_equal_result_json(finished_job: FinishedJob) -> None:
     assert err.max() < 20
 
 
+def test_results_equal_result_json(finished_job: FinishedJob) -> None:
+    s = rigd.Session(finished_job.path)
+    result = json.loads((finished_job.path / "result.json").read_text())
+    run = result["runs"][0]
+    objects = run["result"]["objects"]
+    res = s.results()
+    assert list(res.columns) == rigd.session.RESULTS_COLUMNS
+    assert len(res) == len(objects) == 12
+    assert list(res["target"]) == [o["name"] for o in objects]
+    # The shortest text that reads back to the same float: equal, not close.
+    assert list(res["dx_um"]) == [o["offset_um"][0] for o in objects]
+    assert list(res["u_dy_um"]) == [o["sigma_um"][1] for o in objects]
+    assert list(res["nominal_dx_um"]) == [o["nominal_um"][0] for o in objects]
+    assert list(res["bias_dy_um"]) == [o["offset_um"][1] - o["nominal_um"][1] for o in objects]
+    assert set(res["case"]) == {"scan"} and set(res["k"]) == {2}
+    assert set(res["estimator"]) == {run["result"]["options"]["estimator"]}
+    assert set(res["registration"]) == {s.job["registration"]}
+
+
+def test_a_results_csv_without_nominals_reads_as_nan(tmp_path: Path) -> None:
+    path = tmp_path / "results.csv"
+    path.write_text(
+        ",".join(rigd.session.RESULTS_COLUMNS) + "\n0,,0,#0,1.5,-0.25,,,,,,,3,1,fit,mean,image\n"
+    )
+    res = rigd.session.read_results_csv(path)
+    assert res["case"][0] == "" and res["target"][0] == "#0" and res["dx_um"][0] == 1.5
+    assert math.isnan(res["u_dx_um"][0]) and math.isnan(res["bias_dy_um"][0])
+
+
 def test_to_xarray_has_positions_time_and_pixel_size(finished_job: FinishedJob) -> None:
     s = rigd.Session(finished_job.path)
     da = s.to_xarray()

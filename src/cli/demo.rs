@@ -3,7 +3,7 @@
 //! Starts a simulated rig and a daemon in-process on a temporary socket, submits the study
 //! (20 repeats of case 1: one raw frame; case 2: 10 frames at 100 µm, k = 5; case 3: 20
 //! frames at 50 µm, k = 10; each repeat from a different sub-pixel start), prints Tables 1-3
-//! and writes the session and the report. The frames (~1 GB) and reconstructions are
+//! and writes the session, the report and its figures (`rigctl report`'s). The frames (~1 GB) and reconstructions are
 //! removed afterwards unless `--keep`: a demo user wants the tables, not the pixels.
 
 use crate::acquisition::study::{tables, StudySummary};
@@ -108,7 +108,8 @@ pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
     let dir = a.data_root.join(&session);
     let text = tables(&study);
     std::fs::write(dir.join("report.json"), serde_json::to_vec_pretty(&report)?)?;
-    std::fs::write(dir.join("report.txt"), &text)?;
+    // report.txt and the figures (Figures 4 and 5, the per-step residuals), as `rigctl report`.
+    let figures = crate::cli::report::write(&dir, &dir)?;
     if !a.keep {
         drop_bulk(&dir)?;
     }
@@ -117,8 +118,9 @@ pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
     } else {
         println!("{text}");
         println!(
-            "The paper: 281.5 µm (case 1), 96.6 µm (case 2), 69.9 µm (case 3).\nReport: {} ({runtime_s:.1} s)",
-            dir.join("report.txt").display()
+            "The paper: 281.5 µm (case 1), 96.6 µm (case 2), 69.9 µm (case 3).\nReport: {} ({runtime_s:.1} s); {} figures beside it",
+            dir.join("report.txt").display(),
+            figures.len().saturating_sub(1) / 2
         );
         match a.keep {
             true => println!(

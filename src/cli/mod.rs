@@ -13,6 +13,7 @@ pub mod pause;
 pub mod plan_args;
 pub mod process;
 pub mod replay;
+pub mod report;
 pub mod results;
 pub mod rig;
 pub mod schema;
@@ -60,6 +61,8 @@ pub enum Command {
     Export(export::ExportArgs),
     /// Measure target offsets in a folder of frames (frames/*.png + steps.csv), offline.
     Process(process::ProcessArgs),
+    /// Write a processed session's figures (Figures 4 and 5, per-step residuals) and report.
+    Report(report::ReportArgs),
     /// Talk to the configured hardware directly (bring-up; only when no daemon holds it).
     Hw(hw::HwArgs),
     /// Clear a latched alarm through the daemon (GRBL `$X`; GCS `ERR?` and servo on).
@@ -104,6 +107,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Replay(a) => replay::run(a),
         Command::Export(a) => export::run(a),
         Command::Process(a) => process::run(a),
+        Command::Report(a) => report::run(a),
         Command::Hw(a) => hw::run(a),
         Command::Unlock(a) => rig::run(RigAction::Unlock, a),
         Command::Home(a) => rig::run(RigAction::Home, a),

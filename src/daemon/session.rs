@@ -14,11 +14,14 @@
 
 use crate::acquisition::outcome::EndDetail;
 use crate::acquisition::plan::Plan;
+use crate::acquisition::study::JobResult;
 use crate::acquisition::JobSpec;
 use crate::atomic_file::{self, AtomicWriteError};
 use crate::daemon::frame_png;
+use crate::cli::text::wire_name;
 use crate::daemon::protocol::PROTOCOL_VERSION;
 use crate::nofollow::{self, Access};
+use crate::results_csv;
 use crate::rig::{LogSample, LogSource, RigInfo};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
@@ -330,10 +333,11 @@ impl SessionWriter {
         }
     }
 
-    /// Write the result and its images (before the final state).
+    /// Write the result, its flat table (`results.csv`) and its images (before the final
+    /// state).
     pub fn write_result(
         &mut self,
-        result: &impl Serialize,
+        result: &JobResult,
         images: &[(String, Image16)],
     ) -> Result<(), SessionError> {
         if !images.is_empty() {
@@ -348,6 +352,10 @@ impl SessionWriter {
                 write_atomic(&path, &png)?;
             }
         }
+        // The job's registration names the positions (`commanded`, `interferometer`) the
+        // pipeline knows only as `positions`.
+        let registration = self.manifest.job.registration.map(|r| wire_name(&r));
+        results_csv::write(&self.dir, &result.runs, registration.as_deref())?;
         let bytes = serde_json::to_vec_pretty(result).map_err(|e| self.format_err(e))?;
         write_atomic(&self.dir.join(RESULT), &bytes)
     }

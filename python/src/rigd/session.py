@@ -24,6 +24,29 @@ OFFSET_COLUMNS = [
     "nominal_x_um", "nominal_y_um", "dx_px", "dy_px", "centre_x_px", "centre_y_px", "frames",
 ]  # fmt: skip
 
+#: results.csv's columns (docs/sessions.md), in order: offsets and their standard
+#: uncertainties, the nominal offsets and the bias (measured - nominal) in µm.
+RESULTS_COLUMNS = [
+    "run", "case", "repeat", "target", "dx_um", "dy_um", "u_dx_um", "u_dy_um",
+    "nominal_dx_um", "nominal_dy_um", "bias_dx_um", "bias_dy_um", "frames", "k",
+    "estimator", "combine", "registration",
+]  # fmt: skip
+_RESULTS_TEXT = ["case", "target", "estimator", "combine", "registration"]
+
+
+def read_results_csv(path: str | os.PathLike[str]) -> pd.DataFrame:
+    """A results.csv (a session's, or `rigctl process --out`'s) as a DataFrame: empty cells
+    (a figure not known) are NaN in the number columns and "" in the text ones."""
+    df = pd.read_csv(
+        path, dtype={c: str for c in _RESULTS_TEXT}, keep_default_na=False, na_values=[""]
+    )
+    missing = [c for c in RESULTS_COLUMNS if c not in df.columns]
+    if missing:
+        raise ValueError(f"{path}: not a results.csv (no column {', '.join(missing)})")
+    for c in _RESULTS_TEXT:
+        df[c] = df[c].fillna("")
+    return df
+
 
 def _complete_lines(path: Path) -> str:
     """The file's text without an unterminated last line (a crash mid-append leaves one)."""
@@ -115,6 +138,17 @@ class Session:
             for obj in (run.get("result") or {}).get("objects", []):
                 rows.append(_offset_row(run, obj))
         return pd.DataFrame(rows, columns=OFFSET_COLUMNS)
+
+    def results(self) -> pd.DataFrame:
+        """results.csv: one row per (run, case, repeat, target) with dx_um, dy_um, their
+        standard uncertainties u_dx_um, u_dy_um, nominal_dx_um/nominal_dy_um and
+        bias_dx_um/bias_dy_um (NaN when not known), frames, k and the processing settings
+        (RESULTS_COLUMNS). FileNotFoundError for a session that has none (not processed
+        yet, or written before rigd wrote it: `offsets` reads result.json instead)."""
+        path = self.path / "results.csv"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no results table in this session")
+        return read_results_csv(path)
 
     # -- frames -------------------------------------------------------------------------
 
