@@ -25,6 +25,7 @@ pub mod folder;
 pub mod hw;
 pub mod lock;
 pub mod nofollow;
+pub mod offline;
 pub mod report;
 pub mod rig;
 pub mod xl80;

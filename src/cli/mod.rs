@@ -6,12 +6,14 @@ pub mod client;
 pub mod demo;
 pub mod fetch;
 pub mod hw;
+pub mod index;
 pub mod list;
 pub mod manual;
 pub mod pause;
 pub mod plan_args;
 pub mod process;
 pub mod replay;
+pub mod reprocess;
 pub mod results;
 pub mod rig;
 pub mod schema;
@@ -55,8 +57,15 @@ pub enum Command {
     Fetch(fetch::FetchArgs),
     /// Run a recorded session again, optionally with other processing settings.
     Replay(replay::ReplayArgs),
-    /// Measure target offsets in a folder of frames (frames/*.png + steps.csv), offline.
+    /// Measure target offsets offline: a session run by run as the daemon did, or a folder
+    /// of frames (frames/*.png + steps.csv).
     Process(process::ProcessArgs),
+    /// Process many sessions again without a daemon, into each one's processed/<settings>/.
+    Reprocess(reprocess::ReprocessArgs),
+    /// Query the results index (<data root>/index.sqlite) to CSV on stdout.
+    Results(index::ResultsArgs),
+    /// Rebuild the results index from the sessions, or merge indexes.
+    Index(index::IndexArgs),
     /// Talk to the configured hardware directly (bring-up; only when no daemon holds it).
     Hw(hw::HwArgs),
     /// Clear a latched alarm through the daemon (GRBL `$X`; GCS `ERR?` and servo on).
@@ -99,6 +108,9 @@ pub fn main() -> anyhow::Result<()> {
         Command::Fetch(a) => fetch::run(a),
         Command::Replay(a) => replay::run(a),
         Command::Process(a) => process::run(a),
+        Command::Reprocess(a) => reprocess::run(a),
+        Command::Results(a) => index::results(a),
+        Command::Index(a) => index::run(a),
         Command::Hw(a) => hw::run(a),
         Command::Unlock(a) => rig::run(RigAction::Unlock, a),
         Command::Home(a) => rig::run(RigAction::Home, a),

@@ -103,6 +103,11 @@ pub struct Manifest {
     /// The session this one replays, if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub replay_of: Option<String>,
+    /// A replay's frames are not copied: the session (a sibling folder under the data root)
+    /// whose `frames/` holds them, the first recorded one of a chain of replays. Absent: the
+    /// frames are in this session's own `frames/` (replays written before rigd 0.2 too).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frames_from: Option<String>,
     pub rig: RigInfo,
     /// The interferometer log the session's `interferometer.csv` was read from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -162,6 +167,25 @@ pub fn frame_name(index: u32) -> String {
     format!("{index:06}.png")
 }
 
+/// What a replay's session records of the session it replays: its name, and the session
+/// whose `frames/` holds the frames (a replay's frames are referenced, never copied).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ReplayOf {
+    pub name: String,
+    pub frames_from: String,
+}
+
+impl ReplayOf {
+    /// A replay of `s`: its frames are where `s` reads them from.
+    pub fn of(s: &Session) -> ReplayOf {
+        let m = &s.manifest;
+        ReplayOf {
+            name: m.name.clone(),
+            frames_from: m.frames_from.clone().unwrap_or_else(|| m.name.clone()),
+        }
+    }
+}
+
 /// Writes one session as a job runs.
 pub struct SessionWriter {
     dir: PathBuf,
@@ -180,7 +204,7 @@ impl SessionWriter {
         job: &JobSpec,
         plan: &Plan,
         rig: &RigInfo,
-        replay_of: Option<String>,
+        replay_of: Option<ReplayOf>,
     ) -> Result<SessionWriter, SessionError> {
         fs::create_dir_all(data_root).map_err(io(data_root))?;
         let now = SystemTime::now();
@@ -199,7 +223,14 @@ impl SessionWriter {
                 Err(e) => return Err(io(&d)(e)),
             }
         };
-        fs::create_dir(dir.join("frames")).map_err(io(&dir))?;
+        // A replay's frames stay in the session they were recorded in.
+        if replay_of.is_none() {
+            fs::create_dir(dir.join("frames")).map_err(io(&dir))?;
+        }
+        let (replay_of, frames_from) = match replay_of {
+            Some(r) => (Some(r.name), Some(r.frames_from)),
+            None => (None, None),
+        };
         let manifest = Manifest {
             format: FORMAT.into(),
             name,
@@ -212,6 +243,7 @@ impl SessionWriter {
             job: job.clone(),
             plan: plan.clone(),
             replay_of,
+            frames_from,
             rig: rig.clone(),
             interferometer: None,
             versions: Versions {
@@ -238,13 +270,26 @@ impl SessionWriter {
     pub fn dir(&self) -> &Path {
         &self.dir
     }
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
     pub fn name(&self) -> &str {
         &self.manifest.name
     }
 
     /// Record a captured frame: PNG, then its steps.csv and interferometer rows. When this
-    /// returns, the frame is on disk and may be reported captured.
+    /// returns, the frame is on disk and may be reported captured. A replay writes the row
+    /// only: its frame is already on disk, in the session it replays (`frames_from`).
     pub fn record(&mut self, row: StepRow, image: &RgbImage) -> Result<(), SessionError> {
+        if self.manifest.frames_from.is_none() {
+            self.write_frame(&row, image)?;
+        }
+        self.append_step(&row)?;
+        self.manifest.frames_captured += 1;
+        Ok(())
+    }
+
+    fn write_frame(&mut self, row: &StepRow, image: &RgbImage) -> Result<(), SessionError> {
         let path = self.dir.join("frames").join(frame_name(row.index));
         let mut png = Vec::with_capacity(image.as_raw().len() / 2);
         image::DynamicImage::ImageRgb8(image.clone())
@@ -253,10 +298,7 @@ impl SessionWriter {
                 path: path.display().to_string(),
                 message: format!("PNG encoding: {e}"),
             })?;
-        write_atomic(&path, &png)?;
-        self.append_step(&row)?;
-        self.manifest.frames_captured += 1;
-        Ok(())
+        write_atomic(&path, &png)
     }
 
     /// The job has an interferometer log: record its source in the manifest and start
@@ -398,8 +440,40 @@ impl Session {
         })
     }
 
+    /// Where frame `index` is: the folder to read it from (this session's, or for a replay
+    /// the sibling session named by `frames_from`) and its path below it, for
+    /// [`nofollow::read_in`]. A `frames_from` that is not a plain folder name is refused.
+    pub fn frame_file(&self, index: u32) -> Result<(PathBuf, PathBuf), SessionError> {
+        let rel = Path::new("frames").join(frame_name(index));
+        let Some(from) = &self.manifest.frames_from else {
+            return Ok((self.dir.clone(), rel));
+        };
+        let plain = matches!(
+            Path::new(from).components().collect::<Vec<_>>()[..],
+            [std::path::Component::Normal(_)]
+        );
+        let parent = self.dir.parent().filter(|_| plain && !from.starts_with('.'));
+        match parent {
+            Some(root) => Ok((root.join(from), rel)),
+            None => Err(SessionError::Format {
+                path: self.dir.join(MANIFEST).display().to_string(),
+                message: format!("frames_from `{from}` is not a session name"),
+            }),
+        }
+    }
+
+    /// The path of frame `index` (for people and tests; read it with [`Session::read_frame`]).
     pub fn frame_path(&self, index: u32) -> PathBuf {
-        self.dir.join("frames").join(frame_name(index))
+        match self.frame_file(index) {
+            Ok((dir, rel)) => dir.join(rel),
+            Err(_) => self.dir.join("frames").join(frame_name(index)),
+        }
+    }
+
+    /// The bytes of frame `index`'s PNG, read without following a symlink ([`nofollow`]).
+    pub fn read_frame(&self, index: u32) -> Result<Vec<u8>, SessionError> {
+        let (dir, rel) = self.frame_file(index)?;
+        nofollow::read_in(&dir, &rel).map_err(io(&dir.join(&rel)))
     }
 
     /// The interferometer samples recorded (`interferometer.csv`), oldest first; empty when
