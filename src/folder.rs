@@ -175,9 +175,7 @@ pub fn read_interferometer(path: &Path, frames: usize) -> Result<Vec<f64>, Folde
         let line = rec.position().map(|p| p.line()).unwrap_or(0);
         let v = rec.get(col).unwrap_or("");
         let x = v.parse::<f64>().ok().filter(|v| v.is_finite());
-        out.push(x.ok_or_else(|| {
-            err(line, format!("interferometer_um `{v}` is not a reading"))
-        })?);
+        out.push(x.ok_or_else(|| err(line, format!("interferometer_um `{v}` is not a reading")))?);
     }
     Ok(out)
 }

@@ -265,7 +265,10 @@ fn replay_feeds_the_recorded_frames_and_positions_through_the_job_path() {
             (b.position_um, b.axis_um, b.interferometer_um, b.sequence)
         );
         assert_eq!(rs.frame_path(b.index), live_s.frame_path(a.index));
-        assert_eq!(rs.read_frame(b.index).unwrap(), live_s.read_frame(a.index).unwrap());
+        assert_eq!(
+            rs.read_frame(b.index).unwrap(),
+            live_s.read_frame(a.index).unwrap()
+        );
     }
     // Same frames, same positions, same pipeline: the same result.
     let a = c.request(&Request::Result { job_id: live }).unwrap();
@@ -282,15 +285,25 @@ fn replay_feeds_the_recorded_frames_and_positions_through_the_job_path() {
     let ev = events_until_end(&mut c, job_id(&r2));
     assert_finished(&ev);
     let rs2 = d.session(&ev);
-    assert_eq!(rs2.manifest.replay_of.as_deref(), Some(rs.manifest.name.as_str()));
-    assert_eq!(rs2.manifest.frames_from.as_deref(), Some(live_name.as_str()));
+    assert_eq!(
+        rs2.manifest.replay_of.as_deref(),
+        Some(rs.manifest.name.as_str())
+    );
+    assert_eq!(
+        rs2.manifest.frames_from.as_deref(),
+        Some(live_name.as_str())
+    );
     assert!(!rs2.dir.join("frames").exists());
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
         .args(["process", "--json"])
         .arg(&rs2.dir)
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let offline: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(offline["runs"], a["result"]["runs"]);
     // An unknown session or a path outside the data root is refused.

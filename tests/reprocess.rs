@@ -92,7 +92,10 @@ fn offsets(result: &Value) -> BTreeMap<(u64, String), Vec<f64>> {
                 .iter()
                 .flat_map(|p| p.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()))
                 .collect();
-            let key = (r["run"].as_u64().unwrap(), o["name"].as_str().unwrap().into());
+            let key = (
+                r["run"].as_u64().unwrap(),
+                o["name"].as_str().unwrap().into(),
+            );
             m.insert(key, v);
         }
     }
@@ -120,7 +123,11 @@ fn process_on_a_study_session_gives_the_daemons_result_run_by_run() {
         .iter()
         .map(|r| {
             let frames = r["result"]["frames"].as_u64().unwrap();
-            (r["case"].as_str().unwrap(), r["k"].as_u64().unwrap(), frames)
+            (
+                r["case"].as_str().unwrap(),
+                r["k"].as_u64().unwrap(),
+                frames,
+            )
         })
         .collect();
     assert_eq!(
@@ -132,7 +139,11 @@ fn process_on_a_study_session_gives_the_daemons_result_run_by_run() {
     assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
     for (key, want) in &a {
         for (x, y) in want.iter().zip(&b[key]) {
-            assert!((x - y).abs() <= 1e-9 * x.abs().max(1.0), "{key:?}: {want:?} vs {:?}", b[key]);
+            assert!(
+                (x - y).abs() <= 1e-9 * x.abs().max(1.0),
+                "{key:?}: {want:?} vs {:?}",
+                b[key]
+            );
         }
     }
     // The board's names (from the manifest) and the study's tables.
@@ -152,10 +163,7 @@ fn process_on_a_study_session_gives_the_daemons_result_run_by_run() {
     let want: Vec<f64> = case3.iter().map(|r| r.position_um).collect();
     assert_eq!(used(&commanded, 2), want);
     let laser = process_json(&s.dir, &["--registration", "interferometer"]);
-    let want: Vec<f64> = case3
-        .iter()
-        .map(|r| r.interferometer_um.unwrap())
-        .collect();
+    let want: Vec<f64> = case3.iter().map(|r| r.interferometer_um.unwrap()).collect();
     assert_eq!(used(&laser, 2), want);
     assert_ne!(used(&laser, 2), used(&commanded, 2));
     assert_eq!(
@@ -163,7 +171,12 @@ fn process_on_a_study_session_gives_the_daemons_result_run_by_run() {
         "positions"
     );
     // k beyond the pipeline's K_RANGE is refused naming the range the daemon uses.
-    let out = rigctl(&["process".as_ref(), s.dir.as_os_str(), "--k".as_ref(), "33".as_ref()]);
+    let out = rigctl(&[
+        "process".as_ref(),
+        s.dir.as_os_str(),
+        "--k".as_ref(),
+        "33".as_ref(),
+    ]);
     let e = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && e.contains("1..=32"), "{e}");
 }
@@ -222,7 +235,9 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
     let mut args: Vec<&std::ffi::OsStr> = vec!["reprocess".as_ref()];
     args.extend(sessions.iter().map(|(s, _)| s.dir.as_os_str()));
     args.push(broken.dir.as_os_str());
-    args.extend(["--k", "3", "--estimator", "fit", "--threads", "2"].map(|s| std::ffi::OsStr::new(s)));
+    args.extend(
+        ["--k", "3", "--estimator", "fit", "--threads", "2"].map(|s| std::ffi::OsStr::new(s)),
+    );
     let out = rigctl(&args);
     let (stdout, stderr) = (
         String::from_utf8_lossy(&out.stdout),
@@ -234,7 +249,10 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
         stderr.contains(&format!("{broken_name}: failed")) && stderr.contains("000001.png"),
         "{stderr}"
     );
-    assert!(stdout.contains("3 sessions reprocessed as fit-k3, 1 failed"), "{stdout}");
+    assert!(
+        stdout.contains("3 sessions reprocessed as fit-k3, 1 failed"),
+        "{stdout}"
+    );
     for ((s, reply), old) in sessions.iter().zip(&before) {
         let now = files(&s.dir);
         let added: Vec<&PathBuf> = now.keys().filter(|p| !old.contains_key(*p)).collect();
@@ -243,27 +261,44 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
             "{added:?}"
         );
         for p in ["result.json", "settings.json"] {
-            assert!(added.contains(&&Path::new("processed/fit-k3").join(p)), "{added:?}");
+            assert!(
+                added.contains(&&Path::new("processed/fit-k3").join(p)),
+                "{added:?}"
+            );
         }
         for (p, bytes) in old {
             assert!(now.get(p) == Some(bytes), "{} changed", p.display());
         }
-        let r: Value = serde_json::from_slice(&now[Path::new("processed/fit-k3/result.json")]).unwrap();
+        let r: Value =
+            serde_json::from_slice(&now[Path::new("processed/fit-k3/result.json")]).unwrap();
         assert_eq!(r["runs"][0]["k"], 3);
         assert_eq!(r["runs"][0]["result"]["options"]["k"], 3);
-        assert_eq!(r["runs"][0]["result"]["objects"].as_array().unwrap().len(), 2);
-        assert_ne!(r["runs"], reply["result"]["runs"], "k = 3, not the recorded 5");
+        assert_eq!(
+            r["runs"][0]["result"]["objects"].as_array().unwrap().len(),
+            2
+        );
+        assert_ne!(
+            r["runs"], reply["result"]["runs"],
+            "k = 3, not the recorded 5"
+        );
         let st: Value =
             serde_json::from_slice(&now[Path::new("processed/fit-k3/settings.json")]).unwrap();
-        assert_eq!(st["overrides"], serde_json::json!({"k": 3, "estimator": "fit"}));
+        assert_eq!(
+            st["overrides"],
+            serde_json::json!({"k": 3, "estimator": "fit"})
+        );
     }
     let after = files(&broken.dir);
     assert!(
-        after.keys().all(|p| broken_before.contains_key(p) || p.starts_with("processed")),
+        after
+            .keys()
+            .all(|p| broken_before.contains_key(p) || p.starts_with("processed")),
         "{:?}",
         after.keys()
     );
-    assert!(!after.keys().any(|p| p.ends_with("result.json") && p.starts_with("processed")));
+    assert!(!after
+        .keys()
+        .any(|p| p.ends_with("result.json") && p.starts_with("processed")));
 
     // The index: the daemon's rows (settings `recorded`) and reprocess's (`fit-k3`).
     let root = d.data.clone();
@@ -274,7 +309,11 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
         csv_rows(&ok(&rigctl(&args)))
     };
     let all = results(&[]);
-    assert_eq!(all.len(), 2 * 4 + 3 * 2, "4 recorded sessions and 3 reprocessed, 2 targets each");
+    assert_eq!(
+        all.len(),
+        2 * 4 + 3 * 2,
+        "4 recorded sessions and 3 reprocessed, 2 targets each"
+    );
     let k3 = results(&["--settings", "fit-k3"]);
     assert_eq!(k3.len(), 6);
     let a = results(&["--label", "a", "--settings", "fit-k3", "--target", "H"]);
@@ -292,7 +331,10 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
         .find(|o| o["name"] == "H")
         .unwrap();
     let row = a.iter().find(|r| r["session"] == name).unwrap_or(first);
-    assert_eq!(row["dx_um"].parse::<f64>().unwrap(), h["offset_um"][0].as_f64().unwrap());
+    assert_eq!(
+        row["dx_um"].parse::<f64>().unwrap(),
+        h["offset_um"][0].as_f64().unwrap()
+    );
     assert_eq!((row["label"].as_str(), row["case"].as_str()), ("a", "scan"));
     assert!(results(&["--since", "2999-01-01"]).is_empty());
     assert_eq!(results(&["--since", "2000-01-01"]).len(), all.len());
@@ -314,10 +356,18 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
         csv_rows(&ok(&rigctl(&args)))
     };
     assert_eq!(from(&rebuilt, &[]), all);
-    let tasks: Vec<PathBuf> = (0..2).map(|i| root.join(format!("task{i}.sqlite"))).collect();
+    let tasks: Vec<PathBuf> = (0..2)
+        .map(|i| root.join(format!("task{i}.sqlite")))
+        .collect();
     for (i, t) in tasks.iter().enumerate() {
         let mut args: Vec<&std::ffi::OsStr> = vec!["reprocess".as_ref()];
-        args.extend(sessions.iter().skip(i).step_by(2).map(|(s, _)| s.dir.as_os_str()));
+        args.extend(
+            sessions
+                .iter()
+                .skip(i)
+                .step_by(2)
+                .map(|(s, _)| s.dir.as_os_str()),
+        );
         args.extend(["--k", "3", "--estimator", "fit", "--index"].map(|s| std::ffi::OsStr::new(s)));
         args.push(t.as_os_str());
         ok(&rigctl(&args));

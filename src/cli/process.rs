@@ -78,7 +78,9 @@ impl ProcessingFlags {
             scale_um_per_px: self.scale_um_per_px.unwrap_or(774.0),
             k,
             estimator: self.estimator.unwrap_or_default(),
-            combine: self.combine.unwrap_or(crate::acquisition::job::combine_for(k)),
+            combine: self
+                .combine
+                .unwrap_or(crate::acquisition::job::combine_for(k)),
             registration: self.registration.unwrap_or_default().pipeline(),
             axis_dir: self.axis_dir.unwrap_or([-1.0, 0.0]),
             piezo_dir: self.piezo_dir,
@@ -162,7 +164,8 @@ fn run_session(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
     let keep = args.out.is_some();
     let done = process_session(&s, &ov, board, args.frames, keep, decoders_for_one_run())?;
     if let Some(out) = &args.out {
-        std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
+        std::fs::create_dir_all(out)
+            .with_context(|| format!("{}: cannot create", out.display()))?;
         let settings = crate::offline::outputs::Settings {
             name: ov.settings_name(),
             overrides: ov,

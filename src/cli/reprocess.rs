@@ -52,9 +52,9 @@ pub fn run(a: ReprocessArgs) -> anyhow::Result<()> {
         Some(p) => Some(crate::board::Board::load(p)?),
         None => None,
     };
-    let threads = a.threads.unwrap_or_else(|| {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    });
+    let threads = a
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let how = Reprocess {
         overrides: a.flags.overrides(),
         board,
@@ -85,7 +85,10 @@ pub fn run(a: ReprocessArgs) -> anyhow::Result<()> {
         failed.len()
     );
     if !failed.is_empty() {
-        let names: Vec<String> = failed.iter().map(|d| d.session.display().to_string()).collect();
+        let names: Vec<String> = failed
+            .iter()
+            .map(|d| d.session.display().to_string())
+            .collect();
         anyhow::bail!("{} sessions failed: {}", failed.len(), names.join(", "));
     }
     Ok(())
@@ -95,10 +98,9 @@ pub fn run(a: ReprocessArgs) -> anyhow::Result<()> {
 fn read_list(path: &std::path::Path) -> anyhow::Result<Vec<PathBuf>> {
     let read: Box<dyn BufRead> = match path.to_str() {
         Some("-") => Box::new(std::io::stdin().lock()),
-        _ => Box::new(std::io::BufReader::new(
-            std::fs::File::open(path)
-                .map_err(|e| anyhow::anyhow!("{}: cannot open: {e}", path.display()))?,
-        )),
+        _ => Box::new(std::io::BufReader::new(std::fs::File::open(path).map_err(
+            |e| anyhow::anyhow!("{}: cannot open: {e}", path.display()),
+        )?)),
     };
     let mut out = Vec::new();
     for line in read.lines() {

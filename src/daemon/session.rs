@@ -452,7 +452,10 @@ impl Session {
             Path::new(from).components().collect::<Vec<_>>()[..],
             [std::path::Component::Normal(_)]
         );
-        let parent = self.dir.parent().filter(|_| plain && !from.starts_with('.'));
+        let parent = self
+            .dir
+            .parent()
+            .filter(|_| plain && !from.starts_with('.'));
         match parent {
             Some(root) => Ok((root.join(from), rel)),
             None => Err(SessionError::Format {

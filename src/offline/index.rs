@@ -43,8 +43,18 @@ CREATE INDEX IF NOT EXISTS results_date ON results (date);
 
 /// The columns, in order: the CSV's header and the table's.
 pub const COLUMNS: [&str; 12] = [
-    "session", "run", "case", "repeat", "target", "dx_um", "dy_um", "sigma_x_um",
-    "sigma_y_um", "settings", "date", "label",
+    "session",
+    "run",
+    "case",
+    "repeat",
+    "target",
+    "dx_um",
+    "dy_um",
+    "sigma_x_um",
+    "sigma_y_um",
+    "settings",
+    "date",
+    "label",
 ];
 
 /// One target of one run. `date`: the session's start, RFC 3339 UTC (`2026-12-02T03:33:58Z`).
@@ -170,7 +180,12 @@ impl Index {
     }
 
     /// Replace `session`'s rows for `settings` with `rows`, in one transaction.
-    pub fn replace(&mut self, session: &str, settings: &str, rows: &[Row]) -> Result<(), IndexError> {
+    pub fn replace(
+        &mut self,
+        session: &str,
+        settings: &str,
+        rows: &[Row],
+    ) -> Result<(), IndexError> {
         let path = self.path.clone();
         let err = |source| IndexError {
             path: path.clone(),
@@ -190,8 +205,18 @@ impl Index {
                 .map_err(err)?;
             for r in rows {
                 ins.execute(params![
-                    r.session, r.run, r.case, r.repeat, r.target, r.dx_um, r.dy_um,
-                    r.sigma_x_um, r.sigma_y_um, r.settings, r.date, r.label
+                    r.session,
+                    r.run,
+                    r.case,
+                    r.repeat,
+                    r.target,
+                    r.dx_um,
+                    r.dy_um,
+                    r.sigma_x_um,
+                    r.sigma_y_um,
+                    r.settings,
+                    r.date,
+                    r.label
                 ])
                 .map_err(err)?;
             }
@@ -245,7 +270,10 @@ impl Index {
         drop(o);
         // ATTACH is refused inside a transaction: attach, copy in one, detach.
         self.conn
-            .execute("ATTACH DATABASE ?1 AS other", params![other.to_string_lossy()])
+            .execute(
+                "ATTACH DATABASE ?1 AS other",
+                params![other.to_string_lossy()],
+            )
             .map_err(oerr)?;
         let copied = self.conn.execute_batch(
             "BEGIN; INSERT OR REPLACE INTO results SELECT * FROM other.results; COMMIT;",
@@ -262,7 +290,9 @@ impl Index {
 
 /// Rows as CSV (header [`COLUMNS`]; an absent value is an empty cell).
 pub fn write_csv(rows: &[Row], out: impl std::io::Write) -> Result<(), csv::Error> {
-    let mut w = csv::WriterBuilder::new().has_headers(false).from_writer(out);
+    let mut w = csv::WriterBuilder::new()
+        .has_headers(false)
+        .from_writer(out);
     w.write_record(COLUMNS)?;
     for r in rows {
         w.serialize(r)?;
@@ -280,7 +310,10 @@ pub fn session_rows(
     let facts = SessionFacts::of(&s.manifest);
     let mut out = Vec::new();
     let mut bad = Vec::new();
-    let mut files = vec![(RECORDED.to_string(), PathBuf::from(crate::daemon::session::RESULT))];
+    let mut files = vec![(
+        RECORDED.to_string(),
+        PathBuf::from(crate::daemon::session::RESULT),
+    )];
     let processed = s.dir.join(super::outputs::PROCESSED);
     if let Ok(rd) = std::fs::read_dir(&processed) {
         let mut names: Vec<String> = rd
@@ -290,7 +323,9 @@ pub fn session_rows(
             .collect();
         names.sort();
         for n in names {
-            let rel = Path::new(super::outputs::PROCESSED).join(&n).join("result.json");
+            let rel = Path::new(super::outputs::PROCESSED)
+                .join(&n)
+                .join("result.json");
             files.push((n, rel));
         }
     }
@@ -320,7 +355,8 @@ pub fn rebuild(
 ) -> Result<(usize, usize, Vec<(PathBuf, String)>), RebuildError> {
     let tmp = into.with_file_name(format!(
         ".{}.tmp",
-        into.file_name().map_or("index".into(), |n| n.to_string_lossy())
+        into.file_name()
+            .map_or("index".into(), |n| n.to_string_lossy())
     ));
     let _ = std::fs::remove_file(&tmp);
     let mut index = Index::open(&tmp)?;

@@ -124,9 +124,6 @@ mod tests {
             axis_dir: Some([-1.0, 0.0]),
             ..Overrides::default()
         };
-        assert_eq!(
-            o.settings_name(),
-            "interferometer-scale770.5-axism1_0"
-        );
+        assert_eq!(o.settings_name(), "interferometer-scale770.5-axism1_0");
     }
 }

@@ -3,8 +3,8 @@
 //! session) and `rigctl reprocess` (each run of each session) share.
 
 use crate::folder::{FolderError, FrameFile, FrameReader};
-use crate::pipeline::PipelineError;
 use crate::pipeline::Pipeline;
+use crate::pipeline::PipelineError;
 use image::RgbImage;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Mutex;
@@ -66,7 +66,10 @@ pub fn push_frames(
                     let reuse = pool.lock().ok().and_then(|mut p| p.pop());
                     let rows = rows_wanted.load(Ordering::Relaxed);
                     // The receiver stops early on the first error: nothing left to do.
-                    if tx.send(reader.read_file_rows(&f.file, reuse, rows)).is_err() {
+                    if tx
+                        .send(reader.read_file_rows(&f.file, reuse, rows))
+                        .is_err()
+                    {
                         return;
                     }
                 }

@@ -114,7 +114,12 @@ fn one(
         let index = &mut all.iter_mut().find(|(p, _)| *p == path).expect("added").1;
         index.replace(&s.manifest.name, &name, &rows)?;
     }
-    let runs_failed = done.result.runs.iter().filter(|r| r.error.is_some()).count();
+    let runs_failed = done
+        .result
+        .runs
+        .iter()
+        .filter(|r| r.error.is_some())
+        .count();
     Ok(Summary {
         out,
         runs: done.result.runs.len(),
@@ -129,7 +134,11 @@ fn index_path(session: &Path, target: &IndexTarget) -> Option<PathBuf> {
         IndexTarget::File(p) => Some(p.clone()),
         IndexTarget::DataRoot => {
             let parent = session.parent().filter(|p| !p.as_os_str().is_empty());
-            Some(parent.unwrap_or(Path::new(".")).join(super::index::INDEX_FILE))
+            Some(
+                parent
+                    .unwrap_or(Path::new("."))
+                    .join(super::index::INDEX_FILE),
+            )
         }
     }
 }

@@ -91,7 +91,10 @@ pub fn session_runs(
                 r.positions_um.len()
             ));
         }
-        let options = r.processing.clone().expect("for_replay sets every run's options");
+        let options = r
+            .processing
+            .clone()
+            .expect("for_replay sets every run's options");
         runs.push(RunInput {
             plan: r,
             options,

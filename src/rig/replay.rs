@@ -110,7 +110,10 @@ impl ReplayCamera {
             .ok_or_else(|| err("no recorded frame left".into()))?;
         // Never through a symlink planted in the session: the frame must be the session's
         // (or, for a replay's replay, the recorded session's its manifest names).
-        let (dir, rel) = self.session.frame_file(row.index).map_err(|e| err(e.to_string()))?;
+        let (dir, rel) = self
+            .session
+            .frame_file(row.index)
+            .map_err(|e| err(e.to_string()))?;
         let path = dir.join(&rel);
         let bytes = crate::nofollow::read_in(&dir, &rel).map_err(|e| err(e.to_string()))?;
         let image = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
