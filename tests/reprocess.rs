@@ -78,7 +78,7 @@ fn ok(out: &Output) -> String {
 
 fn process_json(dir: &Path, extra: &[&str]) -> Value {
     let mut args: Vec<&std::ffi::OsStr> = vec!["process".as_ref(), dir.as_os_str()];
-    args.extend(extra.iter().map(|s| std::ffi::OsStr::new(s)));
+    args.extend(extra.iter().map(std::ffi::OsStr::new));
     args.push("--json".as_ref());
     serde_json::from_str(&ok(&rigctl(&args))).unwrap()
 }
@@ -235,9 +235,7 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
     let mut args: Vec<&std::ffi::OsStr> = vec!["reprocess".as_ref()];
     args.extend(sessions.iter().map(|(s, _)| s.dir.as_os_str()));
     args.push(broken.dir.as_os_str());
-    args.extend(
-        ["--k", "3", "--estimator", "fit", "--threads", "2"].map(|s| std::ffi::OsStr::new(s)),
-    );
+    args.extend(["--k", "3", "--estimator", "fit", "--threads", "2"].map(std::ffi::OsStr::new));
     let out = rigctl(&args);
     let (stdout, stderr) = (
         String::from_utf8_lossy(&out.stdout),
@@ -305,7 +303,7 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
     let results = |extra: &[&str]| -> Vec<BTreeMap<String, String>> {
         let mut args: Vec<&std::ffi::OsStr> =
             vec!["results".as_ref(), "--data-root".as_ref(), root.as_os_str()];
-        args.extend(extra.iter().map(|s| std::ffi::OsStr::new(s)));
+        args.extend(extra.iter().map(std::ffi::OsStr::new));
         csv_rows(&ok(&rigctl(&args)))
     };
     let all = results(&[]);
@@ -352,7 +350,7 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
     let from = |index: &Path, extra: &[&str]| {
         let mut args: Vec<&std::ffi::OsStr> =
             vec!["results".as_ref(), "--index".as_ref(), index.as_os_str()];
-        args.extend(extra.iter().map(|s| std::ffi::OsStr::new(s)));
+        args.extend(extra.iter().map(std::ffi::OsStr::new));
         csv_rows(&ok(&rigctl(&args)))
     };
     assert_eq!(from(&rebuilt, &[]), all);
@@ -368,7 +366,7 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
                 .step_by(2)
                 .map(|(s, _)| s.dir.as_os_str()),
         );
-        args.extend(["--k", "3", "--estimator", "fit", "--index"].map(|s| std::ffi::OsStr::new(s)));
+        args.extend(["--k", "3", "--estimator", "fit", "--index"].map(std::ffi::OsStr::new));
         args.push(t.as_os_str());
         ok(&rigctl(&args));
     }

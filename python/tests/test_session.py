@@ -135,4 +135,5 @@ def test_a_replay_copies_no_frame_and_reads_the_recorded_ones(
     assert replay.frames_dir == finished_job.path / "frames"
     original = rigd.Session(finished_job.path)
     assert np.array_equal(replay.frames(), original.frames())
-    assert replay.result is not None and replay.result["runs"] == original.result["runs"]
+    assert replay.result is not None and original.result is not None
+    assert replay.result["runs"] == original.result["runs"]

@@ -169,7 +169,7 @@ fn run_session(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
         let settings = crate::offline::outputs::Settings {
             name: ov.settings_name(),
             overrides: ov,
-            runs: Vec::new(),
+            runs: done.runs.clone(),
             rigd: env!("CARGO_PKG_VERSION").into(),
             processed_unix_s: crate::daemon::session::unix_s(std::time::SystemTime::now()),
         };

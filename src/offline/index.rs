@@ -148,6 +148,9 @@ pub fn rows_of(facts: &SessionFacts, settings: &str, result: &JobResult) -> Vec<
     rows
 }
 
+/// Files or sessions left out, each with why.
+pub type Skipped = Vec<(PathBuf, String)>;
+
 /// An open index.
 pub struct Index {
     path: PathBuf,
@@ -304,9 +307,7 @@ pub fn write_csv(rows: &[Row], out: impl std::io::Write) -> Result<(), csv::Erro
 /// Every result file of the session in `dir`: its own `result.json` (settings
 /// [`RECORDED`]) and each `processed/<settings>/result.json`, as rows. Files that cannot be
 /// read are returned with why.
-pub fn session_rows(
-    s: &crate::daemon::session::Session,
-) -> (Vec<(String, Vec<Row>)>, Vec<(PathBuf, String)>) {
+pub fn session_rows(s: &crate::daemon::session::Session) -> (Vec<(String, Vec<Row>)>, Skipped) {
     let facts = SessionFacts::of(&s.manifest);
     let mut out = Vec::new();
     let mut bad = Vec::new();
@@ -349,10 +350,7 @@ pub fn session_rows(
 /// Make the index at `into` again from every session under `data_root`: written to a
 /// temporary file and renamed over `into`, so readers see the old index or the new one.
 /// Returns the sessions indexed, the rows, and what was skipped with why.
-pub fn rebuild(
-    data_root: &Path,
-    into: &Path,
-) -> Result<(usize, usize, Vec<(PathBuf, String)>), RebuildError> {
+pub fn rebuild(data_root: &Path, into: &Path) -> Result<(usize, usize, Skipped), RebuildError> {
     let tmp = into.with_file_name(format!(
         ".{}.tmp",
         into.file_name()

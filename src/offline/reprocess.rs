@@ -4,9 +4,9 @@
 //! index. A session that fails is reported by name and the others go on.
 
 use super::index::{rows_of, Index, SessionFacts};
-use super::outputs::{settings_dir, write_outputs, RunSettings, Settings};
+use super::outputs::{settings_dir, write_outputs, Settings};
 use super::overrides::Overrides;
-use super::session_runs::{process_session, session_runs};
+use super::session_runs::process_session;
 use crate::board::Board;
 use crate::daemon::session::{unix_s, Session};
 use rayon::prelude::*;
@@ -90,15 +90,7 @@ fn one(
     let settings = Settings {
         name: name.clone(),
         overrides: how.overrides,
-        runs: session_runs(&s, &how.overrides, None)?
-            .into_iter()
-            .map(|r| RunSettings {
-                run: r.plan.run,
-                case: r.plan.case.name,
-                repeat: r.plan.repeat,
-                options: r.options.into_inner(),
-            })
-            .collect(),
+        runs: done.runs.clone(),
         rigd: env!("CARGO_PKG_VERSION").into(),
         processed_unix_s: unix_s(std::time::SystemTime::now()),
     };

@@ -6,6 +6,7 @@
 //! frames through its own pipeline, and the study's summary over the runs. A multi-run
 //! session gives one result per run, never one scan of all its frames.
 
+use super::outputs::RunSettings;
 use super::overrides::Overrides;
 use super::push::{push_frames, FrameIn, PushError};
 use crate::acquisition::plan::RunPlan;
@@ -132,6 +133,8 @@ fn frame_in(s: &Session, row: &StepRow, reg: JobRegistration) -> Result<FrameIn,
 pub struct Processed {
     pub result: JobResult,
     pub images: Vec<(String, Image16)>,
+    /// Each run's complete options as processed (`settings.json`).
+    pub runs: Vec<RunSettings>,
 }
 
 /// Process every run of `s` (see [`session_runs`]); `board` overrides the rig's;
@@ -146,6 +149,15 @@ pub fn process_session(
     decoders: usize,
 ) -> Result<Processed, SessionProcessError> {
     let runs = session_runs(s, ov, limit)?;
+    let settings = runs
+        .iter()
+        .map(|r| RunSettings {
+            run: r.plan.run,
+            case: r.plan.case.name.clone(),
+            repeat: r.plan.repeat,
+            options: r.options.clone().into_inner(),
+        })
+        .collect();
     let board = board.or_else(|| s.manifest.rig.board.clone());
     let mut results = Vec::with_capacity(runs.len());
     let mut images = Vec::new();
@@ -183,6 +195,7 @@ pub fn process_session(
             study,
         },
         images,
+        runs: settings,
     })
 }
 
