@@ -146,6 +146,40 @@ pub fn read_piezo(path: &Path) -> Result<Option<Vec<f64>>, FolderError> {
         .map(Some)
 }
 
+/// The `interferometer_um` column of `steps.csv` (a session's), for the first `frames`
+/// rows: registration by the interferometer needs a reading for every frame.
+pub fn read_interferometer(path: &Path, frames: usize) -> Result<Vec<f64>, FolderError> {
+    let err = |line: u64, message: String| FolderError::StepsRow {
+        path: path.to_path_buf(),
+        line,
+        message,
+    };
+    let open_err = |e: csv::Error| FolderError::Io {
+        path: path.to_path_buf(),
+        message: format!("cannot read: {e}"),
+    };
+    let mut rdr = csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .from_path(path)
+        .map_err(open_err)?;
+    let headers = rdr.headers().map_err(open_err)?;
+    let Some(col) = headers.iter().position(|h| h == "interferometer_um") else {
+        return Err(err(
+            1,
+            "no interferometer_um column: --registration interferometer needs one".into(),
+        ));
+    };
+    let mut out = Vec::with_capacity(frames);
+    for rec in rdr.records().take(frames) {
+        let rec = rec.map_err(open_err)?;
+        let line = rec.position().map(|p| p.line()).unwrap_or(0);
+        let v = rec.get(col).unwrap_or("");
+        let x = v.parse::<f64>().ok().filter(|v| v.is_finite());
+        out.push(x.ok_or_else(|| err(line, format!("interferometer_um `{v}` is not a reading")))?);
+    }
+    Ok(out)
+}
+
 /// Read `steps.csv`: `index,position_um[,...]`, indices 0, 1, 2... in order.
 pub fn read_steps(path: &Path) -> Result<Vec<f64>, FolderError> {
     let mut rdr = csv::ReaderBuilder::new()
@@ -202,6 +236,36 @@ pub fn read_steps(path: &Path) -> Result<Vec<f64>, FolderError> {
     Ok(out)
 }
 
+/// Where a frame's PNG is: a path (a `rigctl process` folder), or a path below a folder
+/// that is not left through a symlink at any step (a session's frame, read as the daemon
+/// reads it: [`crate::nofollow`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum FrameFile {
+    Path(PathBuf),
+    Below { dir: PathBuf, rel: PathBuf },
+}
+
+impl FrameFile {
+    /// The frame's path, for messages.
+    pub fn path(&self) -> PathBuf {
+        match self {
+            FrameFile::Path(p) => p.clone(),
+            FrameFile::Below { dir, rel } => dir.join(rel),
+        }
+    }
+
+    fn read_into(&self, bytes: &mut Vec<u8>) -> std::io::Result<()> {
+        use std::io::Read;
+        let mut f = match self {
+            FrameFile::Path(p) => std::fs::File::open(p)?,
+            FrameFile::Below { dir, rel } => {
+                crate::nofollow::open_in(dir, rel, crate::nofollow::Access::Read)?
+            }
+        };
+        f.read_to_end(bytes).map(|_| ())
+    }
+}
+
 /// Read one frame: a PNG holding 8-bit RGB.
 pub fn load_frame(path: &Path) -> Result<RgbImage, FolderError> {
     FrameReader::default().read(path, None)
@@ -230,10 +294,19 @@ impl FrameReader {
         reuse: Option<RgbImage>,
         max_rows: u32,
     ) -> Result<(RgbImage, u32), FolderError> {
-        use std::io::Read;
+        self.read_file_rows(&FrameFile::Path(path.to_path_buf()), reuse, max_rows)
+    }
+
+    /// [`FrameReader::read_rows`] of a [`FrameFile`].
+    pub fn read_file_rows(
+        &mut self,
+        file: &FrameFile,
+        reuse: Option<RgbImage>,
+        max_rows: u32,
+    ) -> Result<(RgbImage, u32), FolderError> {
+        let path = &file.path();
         self.bytes.clear();
-        std::fs::File::open(path)
-            .and_then(|mut f| f.read_to_end(&mut self.bytes))
+        file.read_into(&mut self.bytes)
             .map_err(|e| FolderError::Io {
                 path: path.to_path_buf(),
                 message: format!("cannot read: {e}"),

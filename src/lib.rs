@@ -30,6 +30,7 @@ pub mod hw;
 pub mod lock;
 pub mod nofollow;
 pub mod plot;
+pub mod offline;
 pub mod report;
 pub mod results_csv;
 pub mod rig;

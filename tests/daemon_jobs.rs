@@ -255,19 +255,57 @@ fn replay_feeds_the_recorded_frames_and_positions_through_the_job_path() {
     );
     assert_eq!(rs.manifest.rig.mode, rigd::rig::RigMode::Replay);
     assert_eq!(rs.steps.len(), 4);
+    // No frame copied: the replay's frames are the recorded session's.
+    assert!(!rs.dir.join("frames").exists(), "the replay copied frames");
+    let live_name = live_s.manifest.name.clone();
+    assert_eq!(rs.manifest.frames_from.as_deref(), Some(live_name.as_str()));
     for (a, b) in live_s.steps.iter().zip(&rs.steps) {
         assert_eq!(
             (a.position_um, a.axis_um, a.interferometer_um, a.sequence),
             (b.position_um, b.axis_um, b.interferometer_um, b.sequence)
         );
-        let fa = std::fs::read(live_s.frame_path(a.index)).unwrap();
-        let fb = image::open(rs.frame_path(b.index)).unwrap().into_rgb8();
-        assert_eq!(image::load_from_memory(&fa).unwrap().into_rgb8(), fb);
+        assert_eq!(rs.frame_path(b.index), live_s.frame_path(a.index));
+        assert_eq!(
+            rs.read_frame(b.index).unwrap(),
+            live_s.read_frame(a.index).unwrap()
+        );
     }
     // Same frames, same positions, same pipeline: the same result.
     let a = c.request(&Request::Result { job_id: live }).unwrap();
     let b = c.request(&Request::Result { job_id: rid }).unwrap();
     assert_eq!(a["result"]["runs"], b["result"]["runs"]);
+    // A replay of the replay reads the recorded session's frames too, and so does
+    // `rigctl process` on the replay's session.
+    let r2 = c
+        .request(&Request::Replay {
+            session: rs.manifest.name.clone(),
+            processing: Processing::default(),
+        })
+        .unwrap();
+    let ev = events_until_end(&mut c, job_id(&r2));
+    assert_finished(&ev);
+    let rs2 = d.session(&ev);
+    assert_eq!(
+        rs2.manifest.replay_of.as_deref(),
+        Some(rs.manifest.name.as_str())
+    );
+    assert_eq!(
+        rs2.manifest.frames_from.as_deref(),
+        Some(live_name.as_str())
+    );
+    assert!(!rs2.dir.join("frames").exists());
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args(["process", "--json"])
+        .arg(&rs2.dir)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let offline: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(offline["runs"], a["result"]["runs"]);
     // An unknown session or a path outside the data root is refused.
     for bad in ["nope", "../etc", ".hidden"] {
         let e = c

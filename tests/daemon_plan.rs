@@ -136,8 +136,9 @@ fn a_snake_grid_over_the_axis_and_the_piezo_runs_and_registers_in_2d() {
     }
     assert_eq!(result["runs"].as_array().unwrap().len(), 2);
 
-    // `rigctl process` reads the piezo's column too: the positions registration predicts
-    // the y shifts the image shows.
+    // `rigctl process` on the session registers the piezo by its commands too (each run
+    // on its own, as the daemon did): the positions registration predicts the y shifts the
+    // image shows.
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
         .args([
             "process",
@@ -156,7 +157,9 @@ fn a_snake_grid_over_the_axis_and_the_piezo_runs_and_registers_in_2d() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let job: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let r = &job["runs"][0]["result"];
+    assert_eq!(r["options"]["piezo_dir"], serde_json::json!([0.0, -1.0]));
     let last = &r["steps"][5];
     assert_eq!(last["piezo_um"], 254.8);
     let predicted = last["position_shift_px"][1].as_f64().unwrap();

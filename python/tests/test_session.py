@@ -13,7 +13,7 @@ import pandas as pd
 from PIL import Image
 
 import rigd
-from conftest import FinishedJob
+from conftest import Daemon, FinishedJob
 
 
 def _csv_rows(path: Path) -> list[dict[str, str]]:
@@ -146,3 +146,23 @@ def test_a_folder_without_a_manifest_is_refused(tmp_path: Path) -> None:
 
     with pytest.raises(FileNotFoundError, match="no manifest.json"):
         rigd.Session(tmp_path)
+
+
+def test_a_replay_copies_no_frame_and_reads_the_recorded_ones(
+    daemon: Daemon, finished_job: FinishedJob
+) -> None:
+    with daemon.client() as c:
+        c.subscribe()
+        job_id = c.replay(finished_job.path.name)["job_id"]
+        for ev in c.events():
+            if ev.job_id == job_id and ev.terminal:
+                break
+        reply = c.result(job_id)
+    replay = rigd.Session(daemon.data_root / reply["session"])
+    assert replay.manifest["replay_of"] == replay.manifest["frames_from"] == finished_job.path.name
+    assert not (replay.path / "frames").exists()
+    assert replay.frames_dir == finished_job.path / "frames"
+    original = rigd.Session(finished_job.path)
+    assert np.array_equal(replay.frames(), original.frames())
+    assert replay.result is not None and original.result is not None
+    assert replay.result["runs"] == original.result["runs"]

@@ -7,6 +7,7 @@ pub mod demo;
 pub mod export;
 pub mod fetch;
 pub mod hw;
+pub mod index;
 pub mod list;
 pub mod manual;
 pub mod pause;
@@ -14,6 +15,7 @@ pub mod plan_args;
 pub mod process;
 pub mod replay;
 pub mod report;
+pub mod reprocess;
 pub mod results;
 pub mod rig;
 pub mod schema;
@@ -59,10 +61,17 @@ pub enum Command {
     Replay(replay::ReplayArgs),
     /// Write a recorded session as OME-Zarr or OME-TIFF (units, positions, times), offline.
     Export(export::ExportArgs),
-    /// Measure target offsets in a folder of frames (frames/*.png + steps.csv), offline.
+    /// Measure target offsets offline: a session run by run as the daemon did, or a folder
+    /// of frames (frames/*.png + steps.csv).
     Process(process::ProcessArgs),
     /// Write a processed session's figures (Figures 4 and 5, per-step residuals) and report.
     Report(report::ReportArgs),
+    /// Process many sessions again without a daemon, into each one's processed/<settings>/.
+    Reprocess(reprocess::ReprocessArgs),
+    /// Query the results index (<data root>/index.sqlite) to CSV on stdout.
+    Results(index::ResultsArgs),
+    /// Rebuild the results index from the sessions, or merge indexes.
+    Index(index::IndexArgs),
     /// Talk to the configured hardware directly (bring-up; only when no daemon holds it).
     Hw(hw::HwArgs),
     /// Clear a latched alarm through the daemon (GRBL `$X`; GCS `ERR?` and servo on).
@@ -108,6 +117,9 @@ pub fn main() -> anyhow::Result<()> {
         Command::Export(a) => export::run(a),
         Command::Process(a) => process::run(a),
         Command::Report(a) => report::run(a),
+        Command::Reprocess(a) => reprocess::run(a),
+        Command::Results(a) => index::results(a),
+        Command::Index(a) => index::run(a),
         Command::Hw(a) => hw::run(a),
         Command::Unlock(a) => rig::run(RigAction::Unlock, a),
         Command::Home(a) => rig::run(RigAction::Home, a),

@@ -1,46 +1,113 @@
-//! `rigctl process DIR`: measure target offsets in a folder of frames, offline.
-//! The folder contract and the output are documented in docs/folder-format.md.
+//! `rigctl process DIR`: measure target offsets offline, in a folder of frames (the folder
+//! contract: docs/folder-format.md) or in a recorded session, each of whose runs is
+//! processed as the daemon processed it (docs/reprocessing.md).
 
-use crate::folder;
+use crate::acquisition::JobRegistration;
+use crate::board::Board;
+use crate::folder::{self, FrameFile};
+use crate::offline::push::{decoders_for_one_run, push_frames, FrameIn, PushError};
+use crate::offline::session_runs::process_session;
+use crate::offline::Overrides;
 use crate::pipeline::{
-    Combine, Estimator, OptionError, Pipeline, ProcessOptions, Registration, ValidOptions, K_RANGE,
+    Combine, Estimator, OptionError, Pipeline, ProcessOptions, ValidOptions, K_RANGE,
 };
 use anyhow::Context;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
-#[derive(clap::Args)]
-pub struct ProcessArgs {
-    /// Folder holding frames/*.png and steps.csv.
-    pub dir: PathBuf,
-    /// Size of one camera pixel on the board.
-    #[arg(long, default_value_t = 774.0)]
-    pub scale_um_per_px: f64,
-    /// Upsampling factor of the reconstruction (1 = none; at most 32).
-    #[arg(long, default_value_t = 1, value_parser = parse_k)]
-    pub k: u32,
-    /// How target centres are measured in each image.
-    #[arg(long, value_enum, default_value = "fit")]
-    pub estimator: Estimator,
-    /// How frames are combined [default: interp when k > 1, else mean].
+/// The processing flags `process` and `reprocess` share. On a session each one given
+/// overrides the manifest's recorded value for every run; each one left out keeps it.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct ProcessingFlags {
+    /// Size of one camera pixel on the board, µm [folder: 774; session: its rig's].
+    #[arg(long, value_name = "UM")]
+    pub scale_um_per_px: Option<f64>,
+    #[arg(long, value_name = "K", value_parser = parse_k, help = k_help())]
+    pub k: Option<u32>,
+    /// How target centres are measured in each image [folder: fit; session: recorded].
+    #[arg(long, value_enum)]
+    pub estimator: Option<Estimator>,
+    /// How frames are combined [folder: interp when k > 1, else mean; session: recorded].
     #[arg(long, value_enum)]
     pub combine: Option<Combine>,
-    /// Where each frame's displacement comes from.
-    #[arg(long, value_enum, default_value = "image")]
-    pub registration: Registration,
-    /// Image displacement per unit of axis travel, "x,y" (the scene moves against the camera).
-    #[arg(long, value_parser = parse_dir, default_value = "-1,0", allow_hyphen_values = true)]
-    pub axis_dir: [f64; 2],
-    /// The same per unit of piezo travel, for a folder whose steps.csv has the piezo's
-    /// positions (a 2-D plan's session) [default: the axis's].
-    #[arg(long, value_parser = parse_dir)]
+    /// Where each frame's displacement comes from: the image, the commanded positions
+    /// (`positions`: steps.csv's position_um) or the interferometer's readings
+    /// (interferometer_um) [folder: image; session: recorded].
+    #[arg(long, value_enum)]
+    pub registration: Option<JobRegistration>,
+    /// Image displacement per unit of axis travel, "x,y" (the scene moves against the
+    /// camera) [folder: -1,0; session: its rig's].
+    #[arg(long, value_parser = parse_dir, allow_hyphen_values = true, value_name = "X,Y")]
+    pub axis_dir: Option<[f64; 2]>,
+    /// The same per unit of piezo travel, for frames whose steps.csv has the piezo's
+    /// positions (a 2-D plan's session) [folder: the axis's; session: its rig's].
+    #[arg(long, value_parser = parse_dir, allow_hyphen_values = true, value_name = "X,Y")]
     pub piezo_dir: Option<[f64; 2]>,
-    /// Use the first N frames only.
-    #[arg(long)]
-    pub frames: Option<usize>,
-    /// Also reconstruct the whole frame (written with --out).
+    /// Also reconstruct the whole frame [session: recorded].
     #[arg(long)]
     pub whole_frame: bool,
-    /// Board file naming the targets and giving their nominal offsets.
+}
+
+fn k_help() -> String {
+    format!(
+        "Upsampling factor of the reconstruction, {}..={} (the pipeline's K_RANGE, as the \
+         daemon's) [folder: 1; session: each run's recorded k]",
+        K_RANGE.start(),
+        K_RANGE.end()
+    )
+}
+
+impl ProcessingFlags {
+    pub fn overrides(&self) -> Overrides {
+        Overrides {
+            k: self.k,
+            estimator: self.estimator,
+            combine: self.combine,
+            registration: self.registration,
+            whole_frame: self.whole_frame.then_some(true),
+            scale_um_per_px: self.scale_um_per_px,
+            axis_dir: self.axis_dir,
+            piezo_dir: self.piezo_dir,
+        }
+    }
+
+    /// A plain folder's options: the flags, else the folder contract's defaults, checked
+    /// against the pipeline's limits.
+    pub fn folder_options(&self) -> Result<ValidOptions, OptionError> {
+        let k = self.k.unwrap_or(1);
+        ProcessOptions {
+            scale_um_per_px: self.scale_um_per_px.unwrap_or(774.0),
+            k,
+            estimator: self.estimator.unwrap_or_default(),
+            combine: self
+                .combine
+                .unwrap_or(crate::acquisition::job::combine_for(k)),
+            registration: self.registration.unwrap_or_default().pipeline(),
+            axis_dir: self.axis_dir.unwrap_or([-1.0, 0.0]),
+            piezo_dir: self.piezo_dir,
+            whole_frame: self.whole_frame,
+        }
+        .validate()
+    }
+}
+
+#[derive(clap::Args)]
+#[command(
+    after_help = "A session (DIR holds manifest.json) is processed run by run as the daemon \
+                  processed it: its board, scale, directions, runs, cases and repeats, each \
+                  run's recorded options and registration. Flags given override the recorded \
+                  options (--k, --estimator, --combine, --registration, --whole-frame, \
+                  --scale-um-per-px, --axis-dir, --piezo-dir, --board); the output is the \
+                  daemon's result.json document (every run, and the study)."
+)]
+pub struct ProcessArgs {
+    /// A session folder (manifest.json), or a folder holding frames/*.png and steps.csv.
+    pub dir: PathBuf,
+    #[command(flatten)]
+    pub flags: ProcessingFlags,
+    /// Use the first N frames only (of a session: its first N frames, over its runs).
+    #[arg(long, value_name = "N")]
+    pub frames: Option<usize>,
+    /// Board file naming the targets and giving their nominal offsets [session: its rig's].
     #[arg(long)]
     pub board: Option<PathBuf>,
     /// Write result.json and the reconstructions (16-bit PNG) here.
@@ -60,7 +127,7 @@ pub(crate) fn parse_k(s: &str) -> Result<u32, String> {
     Ok(k)
 }
 
-fn parse_dir(s: &str) -> Result<[f64; 2], String> {
+pub(crate) fn parse_dir(s: &str) -> Result<[f64; 2], String> {
     let v: Vec<f64> = s
         .split(',')
         .map(|p| p.trim().parse::<f64>().map_err(|e| format!("`{p}`: {e}")))
@@ -71,98 +138,90 @@ fn parse_dir(s: &str) -> Result<[f64; 2], String> {
     }
 }
 
-impl ProcessArgs {
-    /// The pipeline's options from the flags, checked against its limits.
-    pub fn options(&self) -> Result<ValidOptions, OptionError> {
-        ProcessOptions {
-            scale_um_per_px: self.scale_um_per_px,
-            k: self.k,
-            estimator: self.estimator,
-            combine: self.combine.unwrap_or(if self.k > 1 {
-                Combine::Interp
-            } else {
-                Combine::Mean
-            }),
-            registration: self.registration,
-            axis_dir: self.axis_dir,
-            piezo_dir: self.piezo_dir,
-            whole_frame: self.whole_frame,
-        }
-        .validate()
-    }
+/// Whether `dir` is a recorded session (it has a manifest).
+pub fn is_session(dir: &Path) -> bool {
+    dir.join(crate::daemon::session::MANIFEST).exists()
 }
-
-/// Rows decoded below the last one the pipeline reads: room for the frames decoded ahead
-/// (up to ~2 per decoder) to move down before a frame has to be decoded again.
-const ROWS_MARGIN: u32 = 24;
 
 pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
     if args.frames == Some(0) {
         anyhow::bail!("--frames must be at least 1");
     }
-    // Every option is checked before a frame is read.
-    let options = args.options()?;
     let board = match &args.board {
-        Some(p) => Some(crate::board::Board::load(p)?),
+        Some(p) => Some(Board::load(p)?),
         None => None,
     };
+    match is_session(&args.dir) {
+        true => run_session(&args, board),
+        false => run_folder(&args, board),
+    }
+}
+
+/// A session: every run as the daemon processed it.
+fn run_session(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
+    let ov = args.flags.overrides();
+    let s = crate::daemon::session::Session::open(&args.dir)?;
+    let keep = args.out.is_some();
+    let done = process_session(&s, &ov, board, args.frames, keep, decoders_for_one_run())?;
+    if let Some(out) = &args.out {
+        std::fs::create_dir_all(out)
+            .with_context(|| format!("{}: cannot create", out.display()))?;
+        let settings = crate::offline::outputs::Settings {
+            name: ov.settings_name(),
+            overrides: ov,
+            runs: done.runs.clone(),
+            rigd: env!("CARGO_PKG_VERSION").into(),
+            processed_unix_s: crate::daemon::session::unix_s(std::time::SystemTime::now()),
+        };
+        crate::offline::outputs::write_outputs(out, &done.result, &done.images, &settings)?;
+    }
+    if args.json {
+        println!("{}", serde_json::to_string(&done.result)?);
+        return Ok(());
+    }
+    for r in &done.result.runs {
+        println!(
+            "run {} ({}, repeat {}, {} frames at {} µm, k = {}):",
+            r.run, r.case, r.repeat, r.frames, r.step_um, r.k
+        );
+        match (&r.result, &r.error) {
+            (Some(res), _) => print!("{}", crate::report::result_text(res)),
+            (None, e) => println!("  failed: {}", e.as_deref().unwrap_or("no result")),
+        }
+    }
+    if let (Some(study), true) = (&done.result.study, done.result.runs.len() > 1) {
+        print!("\n{}", crate::acquisition::study::tables(study));
+    }
+    Ok(())
+}
+
+/// A plain folder (docs/folder-format.md): one scan of all its frames.
+fn run_folder(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
+    // Every option is checked before a frame is read.
+    let options = args.flags.folder_options()?;
     let dir = folder::open(&args.dir, args.frames)?;
+    let positions = match args.flags.registration {
+        Some(JobRegistration::Interferometer) => {
+            folder::read_interferometer(&args.dir.join("steps.csv"), dir.frames.len())?
+        }
+        _ => dir.positions_um.clone(),
+    };
+    let frames: Vec<FrameIn> = dir
+        .frames
+        .iter()
+        .enumerate()
+        .map(|(i, p)| FrameIn {
+            file: FrameFile::Path(p.clone()),
+            position_um: positions[i],
+            piezo_um: dir.piezo_um.as_ref().map(|v| v[i]),
+        })
+        .collect();
     let mut pipeline = Pipeline::new(options, board);
     // The reconstructions are written only with --out: otherwise not converted at all.
     pipeline.keep_images(args.out.is_some());
-    // PNG decoding is most of a frame's cost: decoder threads (one per core) take every
-    // W-th frame each and decode ahead while this thread pushes the frames in order (a bad
-    // frame is reported when its turn comes, so the first bad frame in order is named).
-    // Pushed frames go back to a pool whose buffers the decoders reuse. Once frame 0 has
-    // placed the targets, the decoders stop at the last row the pipeline will read (plus
-    // room for the frames decoded ahead to move); a frame that moved further is decoded
-    // again whole.
-    let workers = std::thread::available_parallelism().map_or(1, |n| n.get().min(4));
-    let pool = std::sync::Mutex::new(Vec::<image::RgbImage>::new());
-    let rows_wanted = std::sync::atomic::AtomicU32::new(u32::MAX);
-    std::thread::scope(|scope| -> anyhow::Result<()> {
-        let mut queues = Vec::with_capacity(workers);
-        for w in 0..workers {
-            let (tx, rx) = std::sync::mpsc::sync_channel(1);
-            queues.push(rx);
-            let (frames, pool, rows_wanted) = (&dir.frames, &pool, &rows_wanted);
-            scope.spawn(move || {
-                let mut reader = folder::FrameReader::default();
-                for path in frames.iter().skip(w).step_by(workers) {
-                    let reuse = pool.lock().ok().and_then(|mut p| p.pop());
-                    let rows = rows_wanted.load(std::sync::atomic::Ordering::Relaxed);
-                    // The receiver stops early on the first error: nothing left to do.
-                    if tx.send(reader.read_rows(path, reuse, rows)).is_err() {
-                        return;
-                    }
-                }
-            });
-        }
-        let mut again = folder::FrameReader::default();
-        for (i, (path, &pos)) in dir.frames.iter().zip(&dir.positions_um).enumerate() {
-            let piezo = dir.piezo_um.as_ref().map(|p| p[i]);
-            let (frame, rows) = queues[i % workers]
-                .recv()
-                .context("a frame decoder stopped")??;
-            let ctx = || path.display().to_string();
-            let pushed = pipeline.push_rows_at(&frame, rows, pos, piezo);
-            let (frame, rep) = match pushed.with_context(ctx)? {
-                Some(rep) => (frame, rep),
-                None => {
-                    let whole = again.read(path, Some(frame))?;
-                    let rep = pipeline.push_at(&whole, pos, piezo).with_context(ctx)?;
-                    (whole, rep)
-                }
-            };
-            tracing::debug!(?rep, "frame");
-            if let Some(rows) = pipeline.rows_needed(ROWS_MARGIN) {
-                rows_wanted.store(rows, std::sync::atomic::Ordering::Relaxed);
-            }
-            if let Ok(mut p) = pool.lock() {
-                p.push(frame);
-            }
-        }
-        Ok(())
+    push_frames(&mut pipeline, &frames, decoders_for_one_run()).map_err(|e| match e {
+        PushError::Read(e) => anyhow::Error::new(e),
+        other => anyhow::anyhow!("{other}"),
     })?;
     let done = pipeline
         .finish()

@@ -61,8 +61,7 @@ pub struct SubmitArgs {
 /// a job the rig's `[pipeline]` default, else the protocol's; for a replay the recorded value.
 #[derive(clap::Args, Debug)]
 pub struct ProcessingArgs {
-    /// Upsampling factor of the reconstruction, 1..=32 (a study's cases keep their own).
-    #[arg(long, value_parser = crate::cli::process::parse_k)]
+    #[arg(long, value_parser = crate::cli::process::parse_k, help = k_help())]
     pub k: Option<u32>,
     /// Default: the rig's ([pipeline] estimator), else fit.
     #[arg(long, value_enum)]
@@ -77,6 +76,15 @@ pub struct ProcessingArgs {
     /// Also reconstruct the whole frame (default: the rig's [pipeline] whole_frame).
     #[arg(long)]
     pub whole_frame: bool,
+}
+
+fn k_help() -> String {
+    let r = crate::pipeline::K_RANGE;
+    format!(
+        "Upsampling factor of the reconstruction, {}..={} (a study's cases keep their own)",
+        r.start(),
+        r.end()
+    )
 }
 
 impl ProcessingArgs {

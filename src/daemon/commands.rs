@@ -50,7 +50,8 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
                 dir,
                 overrides: processing,
             };
-            // Checked as a live job is: the replay writes its frames and images again.
+            // Checked as a live job is (the replay's frames are referenced, not written again:
+            // the check overestimates by them).
             let (id, ahead) = queue(shared, spec.clone(), plan.clone(), &s.manifest.rig, source)?;
             Ok(ReplyBody::Submit(announce(shared, id, ahead, spec, &plan)))
         }

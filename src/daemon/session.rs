@@ -120,6 +120,10 @@ pub struct Manifest {
     /// The interrupted session this one resumes, if any; never written into that one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub resumed_from: Option<ResumedFrom>,
+    /// A replay's frames are not copied: the session (a sibling folder under the data root)
+    /// whose `frames/` holds them, the first recorded one of a chain of replays. Absent: the
+    /// frames are in this session's own `frames/` (replays written before rigd 0.2 too).
+    pub frames_from: Option<String>,
     pub rig: RigInfo,
     /// The interferometer log the session's `interferometer.csv` was read from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -179,6 +183,25 @@ pub fn frame_name(index: u32) -> String {
     format!("{index:06}.png")
 }
 
+/// What a replay's session records of the session it replays: its name, and the session
+/// whose `frames/` holds the frames (a replay's frames are referenced, never copied).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ReplayOf {
+    pub name: String,
+    pub frames_from: String,
+}
+
+impl ReplayOf {
+    /// A replay of `s`: its frames are where `s` reads them from.
+    pub fn of(s: &Session) -> ReplayOf {
+        let m = &s.manifest;
+        ReplayOf {
+            name: m.name.clone(),
+            frames_from: m.frames_from.clone().unwrap_or_else(|| m.name.clone()),
+        }
+    }
+}
+
 /// Writes one session as a job runs.
 pub struct SessionWriter {
     dir: PathBuf,
@@ -198,7 +221,7 @@ impl SessionWriter {
         job: &JobSpec,
         plan: &Plan,
         rig: &RigInfo,
-        (replay_of, resumed_from): (Option<String>, Option<ResumedFrom>),
+        (replay_of, resumed_from): (Option<ReplayOf>, Option<ResumedFrom>),
     ) -> Result<SessionWriter, SessionError> {
         fs::create_dir_all(data_root).map_err(io(data_root))?;
         let now = SystemTime::now();
@@ -217,7 +240,14 @@ impl SessionWriter {
                 Err(e) => return Err(io(&d)(e)),
             }
         };
-        fs::create_dir(dir.join("frames")).map_err(io(&dir))?;
+        // A replay's frames stay in the session they were recorded in.
+        if replay_of.is_none() {
+            fs::create_dir(dir.join("frames")).map_err(io(&dir))?;
+        }
+        let (replay_of, frames_from) = match replay_of {
+            Some(r) => (Some(r.name), Some(r.frames_from)),
+            None => (None, None),
+        };
         let manifest = Manifest {
             format: FORMAT.into(),
             name,
@@ -231,6 +261,7 @@ impl SessionWriter {
             plan: plan.clone(),
             replay_of,
             resumed_from,
+            frames_from,
             rig: rig.clone(),
             interferometer: None,
             versions: Versions {
@@ -257,25 +288,36 @@ impl SessionWriter {
     pub fn dir(&self) -> &Path {
         &self.dir
     }
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
     pub fn name(&self) -> &str {
         &self.manifest.name
     }
 
     /// Record a captured frame: PNG (with its metadata: [`frame_png`]), then its steps.csv
-    /// row. When this returns, the frame is on disk and may be reported captured.
+    /// row. When this returns, the frame is on disk and may be reported captured. A replay
+    /// writes the row only: its frame is already on disk, in the session it replays
+    /// (`frames_from`).
     pub fn record(&mut self, row: StepRow, image: &RgbImage) -> Result<(), SessionError> {
+        if self.manifest.frames_from.is_none() {
+            self.write_frame(&row, image)?;
+        }
+        self.append_step(&row)?;
+        self.manifest.frames_captured += 1;
+        Ok(())
+    }
+
+    fn write_frame(&mut self, row: &StepRow, image: &RgbImage) -> Result<(), SessionError> {
         let path = self.dir.join("frames").join(frame_name(row.index));
         // The frame carries its own scale, position and time (pHYs and tEXt chunks).
         let scale = self.manifest.rig.scale_um_per_px;
-        let text = frame_png::text_chunks(&self.manifest.name, &row, scale);
+        let text = frame_png::text_chunks(&self.manifest.name, row, scale);
         let png = frame_png::encode(image, scale, text).map_err(|e| SessionError::Format {
             path: path.display().to_string(),
             message: format!("PNG encoding: {e}"),
         })?;
-        write_atomic(&path, &png)?;
-        self.append_step(&row)?;
-        self.manifest.frames_captured += 1;
-        Ok(())
+        write_atomic(&path, &png)
     }
 
     /// The job has an interferometer log: record its source in the manifest and start
@@ -422,8 +464,43 @@ impl Session {
         })
     }
 
+    /// Where frame `index` is: the folder to read it from (this session's, or for a replay
+    /// the sibling session named by `frames_from`) and its path below it, for
+    /// [`nofollow::read_in`]. A `frames_from` that is not a plain folder name is refused.
+    pub fn frame_file(&self, index: u32) -> Result<(PathBuf, PathBuf), SessionError> {
+        let rel = Path::new("frames").join(frame_name(index));
+        let Some(from) = &self.manifest.frames_from else {
+            return Ok((self.dir.clone(), rel));
+        };
+        let plain = matches!(
+            Path::new(from).components().collect::<Vec<_>>()[..],
+            [std::path::Component::Normal(_)]
+        );
+        let parent = self
+            .dir
+            .parent()
+            .filter(|_| plain && !from.starts_with('.'));
+        match parent {
+            Some(root) => Ok((root.join(from), rel)),
+            None => Err(SessionError::Format {
+                path: self.dir.join(MANIFEST).display().to_string(),
+                message: format!("frames_from `{from}` is not a session name"),
+            }),
+        }
+    }
+
+    /// The path of frame `index` (for people and tests; read it with [`Session::read_frame`]).
     pub fn frame_path(&self, index: u32) -> PathBuf {
-        self.dir.join("frames").join(frame_name(index))
+        match self.frame_file(index) {
+            Ok((dir, rel)) => dir.join(rel),
+            Err(_) => self.dir.join("frames").join(frame_name(index)),
+        }
+    }
+
+    /// The bytes of frame `index`'s PNG, read without following a symlink ([`nofollow`]).
+    pub fn read_frame(&self, index: u32) -> Result<Vec<u8>, SessionError> {
+        let (dir, rel) = self.frame_file(index)?;
+        nofollow::read_in(&dir, &rel).map_err(io(&dir.join(&rel)))
     }
 
     /// The interferometer samples recorded (`interferometer.csv`), oldest first; empty when

@@ -14,8 +14,9 @@ use crate::daemon::protocol::EventBody;
 use crate::daemon::recorder::{disk_error, Recorder};
 use crate::daemon::rig_commands::{self, RigRequest};
 use crate::daemon::rig_state::{probe, probe_all};
-use crate::daemon::session::{Session, SessionState, SessionWriter};
+use crate::daemon::session::{ReplayOf, Session, SessionState, SessionWriter};
 use crate::daemon::Shared;
+use crate::offline::index::SessionFacts;
 use crate::rig::Rig;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -119,11 +120,11 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
     let id = job.id;
     // A replay runs on a rig made of the recorded session; a live job on the rig.
     let mut replay;
-    let (rig, replay_of): (&mut Rig, Option<String>) = match &job.source {
+    let (rig, replay_of): (&mut Rig, Option<ReplayOf>) = match &job.source {
         JobSource::Live | JobSource::Resume(_) => (live, None),
         JobSource::Replay { dir, .. } => match Session::open(dir).and_then(|s| {
             let rig = crate::rig::replay(&s)?;
-            Ok((rig, s.manifest.name))
+            Ok((rig, ReplayOf::of(&s)))
         }) {
             Ok((r, name)) => {
                 replay = r;
@@ -162,7 +163,11 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
     let study = (job.spec.process && !runs.is_empty())
         .then(|| summarize(&runs, &names, rig.info.scale_um_per_px));
     let result = JobResult { runs, study };
+    let facts = session.as_ref().map(|s| SessionFacts::of(s.manifest()));
     let outcome = close(session, outcome, &result, &images);
+    if let (Some(facts), true) = (facts, job.spec.process) {
+        index_job(root, &facts, &result);
+    }
     // A job that failed on a live stage: the controller says whether the rig is in fault,
     // before any client hears of the end (and could submit again).
     if job.source.uses_rig() && matches!(outcome, Outcome::Failed(JobError::Hardware { .. })) {
@@ -172,6 +177,18 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
         }
     }
     end(shared, id, Some(name), outcome);
+}
+
+/// Add a processed job's results to the data root's index (`rigctl results`). The index is
+/// a convenience (`rigctl index rebuild` remakes it from the sessions): a failure is logged.
+fn index_job(root: &std::path::Path, facts: &SessionFacts, result: &JobResult) {
+    use crate::offline::index::{rows_of, Index, INDEX_FILE, RECORDED};
+    let rows = rows_of(facts, RECORDED, result);
+    let added = Index::open(&root.join(INDEX_FILE))
+        .and_then(|mut i| i.replace(&facts.session, RECORDED, &rows));
+    if let Err(e) = added {
+        tracing::warn!(session = %facts.session, "results not indexed: {e}");
+    }
 }
 
 fn failed_setup(message: String) -> Outcome {

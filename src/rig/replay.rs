@@ -9,7 +9,6 @@ use super::devices::{
 use super::{Rig, RigInfo, RigMode};
 use crate::daemon::session::{Session, SessionError, StepRow, INTERFEROMETER};
 use std::collections::VecDeque;
-use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -35,7 +34,7 @@ pub fn replay(session: &Session) -> Result<Rig, SessionError> {
         axis: stage(false),
         piezo: Some(stage(piezo_follows)),
         camera: Box::new(ReplayCamera {
-            dir: session.dir.clone(),
+            session: session.clone(),
             rows: rows.clone(),
             size: session.manifest.rig.frame_size,
         }),
@@ -92,7 +91,7 @@ impl Stage for ReplayStage {
 
 /// Yields the recorded frames in order, with their recorded timestamps and sequences.
 struct ReplayCamera {
-    dir: PathBuf,
+    session: Session,
     rows: Arc<Mutex<VecDeque<StepRow>>>,
     size: (u32, u32),
 }
@@ -109,10 +108,14 @@ impl ReplayCamera {
             .unwrap_or_else(|e| e.into_inner())
             .pop_front()
             .ok_or_else(|| err("no recorded frame left".into()))?;
-        let rel = Path::new("frames").join(crate::daemon::session::frame_name(row.index));
-        let path = self.dir.join(&rel);
-        // Never through a symlink planted in the session: the frame must be the session's.
-        let bytes = crate::nofollow::read_in(&self.dir, &rel).map_err(|e| err(e.to_string()))?;
+        // Never through a symlink planted in the session: the frame must be the session's
+        // (or, for a replay's replay, the recorded session's its manifest names).
+        let (dir, rel) = self
+            .session
+            .frame_file(row.index)
+            .map_err(|e| err(e.to_string()))?;
+        let path = dir.join(&rel);
+        let bytes = crate::nofollow::read_in(&dir, &rel).map_err(|e| err(e.to_string()))?;
         let image = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
             .map_err(|e| err(format!("{}: {e}", path.display())))?
             .into_rgb8();

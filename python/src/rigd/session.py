@@ -160,8 +160,19 @@ class Session:
     def __len__(self) -> int:
         return len(self.steps)
 
+    @property
+    def frames_dir(self) -> Path:
+        """Where the frames are: `frames/`, or for a replay the `frames/` of the session
+        its manifest's `frames_from` names (a sibling folder: replays copy no frame)."""
+        src = self.manifest.get("frames_from")
+        if src is None:
+            return self.path / "frames"
+        if not isinstance(src, str) or src in ("", ".", "..") or "/" in src:
+            raise ValueError(f"{self.path}: frames_from {src!r} is not a session name")
+        return self.path.parent / src / "frames"
+
     def frame_path(self, index: int) -> Path:
-        return self.path / "frames" / f"{index:06d}.png"
+        return self.frames_dir / f"{index:06d}.png"
 
     def frame(self, index: int) -> Frames:
         """Frame `index` (the job's numbering) as an (h, w, 3) uint8 array."""

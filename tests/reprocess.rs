@@ -1,0 +1,379 @@
+//! Offline processing of recorded sessions through the built `rigctl`: `process` on a
+//! study session gives the daemon's result.json run by run (the same code path), with
+//! every registration; `reprocess` writes only `processed/<settings>/` inside each
+//! session, reports a broken session by name while the others succeed, and indexes the
+//! results, which `rigctl results` queries and `rigctl index rebuild|merge` remake.
+
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
+mod support;
+
+use rigd::acquisition::{JobSpec, PaperCase};
+use rigd::daemon::protocol::Request;
+use rigd::daemon::session::Session;
+use rigd::rig::{simulated, SimSettings};
+use rigd::sim::CameraModel;
+use serde_json::Value;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use support::daemon::{assert_finished, run_job, Daemon};
+
+/// A sim rig with the small board (two targets) on 300x200 frames: targets are found.
+fn daemon() -> Daemon {
+    let dir = tempfile::tempdir().unwrap();
+    let board = dir.path().join("small.toml");
+    std::fs::write(&board, support::SMALL_BOARD).unwrap();
+    let rig = simulated(&SimSettings {
+        camera: CameraModel {
+            width: 300,
+            height: 200,
+            supersample: 2,
+            frame_period_ms: 2.0,
+            exposure_ms: 1.0,
+            ..CameraModel::default()
+        },
+        board_file: Some(board),
+        ..SimSettings::default()
+    })
+    .unwrap();
+    Daemon::start_in(rig, dir)
+}
+
+/// Run `job` to its end; its session and the daemon's `result` reply.
+fn recorded(d: &Daemon, job: JobSpec) -> (Session, Value) {
+    let mut c = d.subscribed();
+    let (id, ev) = run_job(&mut c, job);
+    assert_finished(&ev);
+    let reply = c.request(&Request::Result { job_id: id }).unwrap();
+    (d.session(&ev), reply)
+}
+
+fn scan(steps: u32, label: &str) -> JobSpec {
+    JobSpec {
+        step_um: Some(154.8),
+        steps: Some(steps),
+        k: Some(5),
+        settle_ms: 0,
+        label: Some(label.into()),
+        ..JobSpec::default()
+    }
+}
+
+fn rigctl(args: &[&std::ffi::OsStr]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args(args)
+        .output()
+        .expect("rigctl runs")
+}
+
+fn ok(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "rigctl failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout.clone()).unwrap()
+}
+
+fn process_json(dir: &Path, extra: &[&str]) -> Value {
+    let mut args: Vec<&std::ffi::OsStr> = vec!["process".as_ref(), dir.as_os_str()];
+    args.extend(extra.iter().map(std::ffi::OsStr::new));
+    args.push("--json".as_ref());
+    serde_json::from_str(&ok(&rigctl(&args))).unwrap()
+}
+
+/// Every offset of every run, (run, target) -> offset_um and sigma_um.
+fn offsets(result: &Value) -> BTreeMap<(u64, String), Vec<f64>> {
+    let mut m = BTreeMap::new();
+    for r in result["runs"].as_array().unwrap() {
+        for o in r["result"]["objects"].as_array().unwrap() {
+            let v = [&o["offset_um"], &o["sigma_um"]]
+                .iter()
+                .flat_map(|p| p.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()))
+                .collect();
+            let key = (
+                r["run"].as_u64().unwrap(),
+                o["name"].as_str().unwrap().into(),
+            );
+            m.insert(key, v);
+        }
+    }
+    m
+}
+
+/// A study session (three cases, two repeats: six runs) processed offline gives one result
+/// per run, each the daemon's to float tolerance, and the same study; `--registration`
+/// overrides the recorded one with the commanded positions or the interferometer readings.
+#[test]
+fn process_on_a_study_session_gives_the_daemons_result_run_by_run() {
+    let d = daemon();
+    let job = JobSpec {
+        study: Some(PaperCase::ALL.to_vec()),
+        repeats: 2,
+        settle_ms: 0,
+        ..JobSpec::default()
+    };
+    let (s, reply) = recorded(&d, job);
+    let daemon_result = &reply["result"];
+    let offline = process_json(&s.dir, &[]);
+    let runs = offline["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 6, "one result per run, never one merged scan");
+    let cases: Vec<(&str, u64, u64)> = runs
+        .iter()
+        .map(|r| {
+            let frames = r["result"]["frames"].as_u64().unwrap();
+            (
+                r["case"].as_str().unwrap(),
+                r["k"].as_u64().unwrap(),
+                frames,
+            )
+        })
+        .collect();
+    assert_eq!(
+        cases,
+        [("case1", 1, 1), ("case2", 5, 10), ("case3", 10, 20)].repeat(2)
+    );
+    let (a, b) = (offsets(daemon_result), offsets(&offline));
+    assert_eq!(a.len(), 12, "two targets in six runs: {a:?}");
+    assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
+    for (key, want) in &a {
+        for (x, y) in want.iter().zip(&b[key]) {
+            assert!(
+                (x - y).abs() <= 1e-9 * x.abs().max(1.0),
+                "{key:?}: {want:?} vs {:?}",
+                b[key]
+            );
+        }
+    }
+    // The board's names (from the manifest) and the study's tables.
+    assert_eq!(offline["study"]["cases"], daemon_result["study"]["cases"]);
+
+    // Registration by the commanded positions / the interferometer's readings.
+    let used = |v: &Value, run: usize| -> Vec<f64> {
+        v["runs"][run]["result"]["steps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s["position_um"].as_f64().unwrap())
+            .collect()
+    };
+    let case3: Vec<_> = s.steps.iter().filter(|r| r.run == 2).collect();
+    let commanded = process_json(&s.dir, &["--registration", "commanded"]);
+    let want: Vec<f64> = case3.iter().map(|r| r.position_um).collect();
+    assert_eq!(used(&commanded, 2), want);
+    let laser = process_json(&s.dir, &["--registration", "interferometer"]);
+    let want: Vec<f64> = case3.iter().map(|r| r.interferometer_um.unwrap()).collect();
+    assert_eq!(used(&laser, 2), want);
+    assert_ne!(used(&laser, 2), used(&commanded, 2));
+    assert_eq!(
+        laser["runs"][2]["result"]["options"]["registration"],
+        "positions"
+    );
+    // k beyond the pipeline's K_RANGE is refused naming the range the daemon uses.
+    let out = rigctl(&[
+        "process".as_ref(),
+        s.dir.as_os_str(),
+        "--k".as_ref(),
+        "33".as_ref(),
+    ]);
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && e.contains("1..=32"), "{e}");
+}
+
+/// Every file below `dir`, by its path relative to `dir`, with its bytes.
+fn files(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    let mut todo = vec![dir.to_path_buf()];
+    while let Some(d) = todo.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            let p = e.path();
+            if e.file_type().unwrap().is_dir() {
+                todo.push(p);
+            } else {
+                let bytes = std::fs::read(&p).unwrap();
+                out.insert(p.strip_prefix(dir).unwrap().to_path_buf(), bytes);
+            }
+        }
+    }
+    out
+}
+
+fn csv_rows(text: &str) -> Vec<BTreeMap<String, String>> {
+    let mut r = csv::Reader::from_reader(text.as_bytes());
+    let head: Vec<String> = r.headers().unwrap().iter().map(String::from).collect();
+    r.records()
+        .map(|rec| {
+            head.iter()
+                .cloned()
+                .zip(rec.unwrap().iter().map(String::from))
+                .collect()
+        })
+        .collect()
+}
+
+/// `reprocess` of three sessions writes `processed/<settings>/result.json` (and its
+/// settings and images) in each and changes nothing else; a broken fourth is reported by
+/// name, the others succeed, the exit code says one failed. The index then answers
+/// `rigctl results` by label, target, settings and date; a rebuild from the files and a
+/// merge of per-task indexes give the same rows.
+#[test]
+fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
+    let d = daemon();
+    let sessions: Vec<(Session, Value)> = [("a", 4), ("a", 5), ("b", 4)]
+        .iter()
+        .map(|&(label, n)| recorded(&d, scan(n, label)))
+        .collect();
+    let (broken, _) = recorded(&d, scan(3, "b"));
+    // A frame cut short: the session cannot be processed.
+    let f1 = broken.frame_path(1);
+    let bytes = std::fs::read(&f1).unwrap();
+    std::fs::write(&f1, &bytes[..bytes.len() / 2]).unwrap();
+    let before: Vec<_> = sessions.iter().map(|(s, _)| files(&s.dir)).collect();
+    let broken_before = files(&broken.dir);
+
+    let mut args: Vec<&std::ffi::OsStr> = vec!["reprocess".as_ref()];
+    args.extend(sessions.iter().map(|(s, _)| s.dir.as_os_str()));
+    args.push(broken.dir.as_os_str());
+    args.extend(["--k", "3", "--estimator", "fit", "--threads", "2"].map(std::ffi::OsStr::new));
+    let out = rigctl(&args);
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(!out.status.success(), "a failed session fails the command");
+    let broken_name = broken.dir.display().to_string();
+    assert!(
+        stderr.contains(&format!("{broken_name}: failed")) && stderr.contains("000001.png"),
+        "{stderr}"
+    );
+    assert!(
+        stdout.contains("3 sessions reprocessed as fit-k3, 1 failed"),
+        "{stdout}"
+    );
+    for ((s, reply), old) in sessions.iter().zip(&before) {
+        let now = files(&s.dir);
+        let added: Vec<&PathBuf> = now.keys().filter(|p| !old.contains_key(*p)).collect();
+        assert!(
+            added.iter().all(|p| p.starts_with("processed/fit-k3")),
+            "{added:?}"
+        );
+        for p in ["result.json", "settings.json"] {
+            assert!(
+                added.contains(&&Path::new("processed/fit-k3").join(p)),
+                "{added:?}"
+            );
+        }
+        for (p, bytes) in old {
+            assert!(now.get(p) == Some(bytes), "{} changed", p.display());
+        }
+        let r: Value =
+            serde_json::from_slice(&now[Path::new("processed/fit-k3/result.json")]).unwrap();
+        assert_eq!(r["runs"][0]["k"], 3);
+        assert_eq!(r["runs"][0]["result"]["options"]["k"], 3);
+        assert_eq!(
+            r["runs"][0]["result"]["objects"].as_array().unwrap().len(),
+            2
+        );
+        assert_ne!(
+            r["runs"], reply["result"]["runs"],
+            "k = 3, not the recorded 5"
+        );
+        let st: Value =
+            serde_json::from_slice(&now[Path::new("processed/fit-k3/settings.json")]).unwrap();
+        assert_eq!(
+            st["overrides"],
+            serde_json::json!({"k": 3, "estimator": "fit"})
+        );
+    }
+    let after = files(&broken.dir);
+    assert!(
+        after
+            .keys()
+            .all(|p| broken_before.contains_key(p) || p.starts_with("processed")),
+        "{:?}",
+        after.keys()
+    );
+    assert!(!after
+        .keys()
+        .any(|p| p.ends_with("result.json") && p.starts_with("processed")));
+
+    // The index: the daemon's rows (settings `recorded`) and reprocess's (`fit-k3`).
+    let root = d.data.clone();
+    let results = |extra: &[&str]| -> Vec<BTreeMap<String, String>> {
+        let mut args: Vec<&std::ffi::OsStr> =
+            vec!["results".as_ref(), "--data-root".as_ref(), root.as_os_str()];
+        args.extend(extra.iter().map(std::ffi::OsStr::new));
+        csv_rows(&ok(&rigctl(&args)))
+    };
+    let all = results(&[]);
+    assert_eq!(
+        all.len(),
+        2 * 4 + 3 * 2,
+        "4 recorded sessions and 3 reprocessed, 2 targets each"
+    );
+    let k3 = results(&["--settings", "fit-k3"]);
+    assert_eq!(k3.len(), 6);
+    let a = results(&["--label", "a", "--settings", "fit-k3", "--target", "H"]);
+    assert_eq!(a.len(), 2);
+    let first = &a[0];
+    let name = sessions[0].0.manifest.name.clone();
+    let r: Value = serde_json::from_slice(
+        &std::fs::read(sessions[0].0.dir.join("processed/fit-k3/result.json")).unwrap(),
+    )
+    .unwrap();
+    let h = r["runs"][0]["result"]["objects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|o| o["name"] == "H")
+        .unwrap();
+    let row = a.iter().find(|r| r["session"] == name).unwrap_or(first);
+    assert_eq!(
+        row["dx_um"].parse::<f64>().unwrap(),
+        h["offset_um"][0].as_f64().unwrap()
+    );
+    assert_eq!((row["label"].as_str(), row["case"].as_str()), ("a", "scan"));
+    assert!(results(&["--since", "2999-01-01"]).is_empty());
+    assert_eq!(results(&["--since", "2000-01-01"]).len(), all.len());
+
+    // Rebuilt from the files: the same rows. Merged from two per-task indexes: the same.
+    let rebuilt = root.join("rebuilt.sqlite");
+    ok(&rigctl(&[
+        "index".as_ref(),
+        "rebuild".as_ref(),
+        "--data-root".as_ref(),
+        root.as_os_str(),
+        "--into".as_ref(),
+        rebuilt.as_os_str(),
+    ]));
+    let from = |index: &Path, extra: &[&str]| {
+        let mut args: Vec<&std::ffi::OsStr> =
+            vec!["results".as_ref(), "--index".as_ref(), index.as_os_str()];
+        args.extend(extra.iter().map(std::ffi::OsStr::new));
+        csv_rows(&ok(&rigctl(&args)))
+    };
+    assert_eq!(from(&rebuilt, &[]), all);
+    let tasks: Vec<PathBuf> = (0..2)
+        .map(|i| root.join(format!("task{i}.sqlite")))
+        .collect();
+    for (i, t) in tasks.iter().enumerate() {
+        let mut args: Vec<&std::ffi::OsStr> = vec!["reprocess".as_ref()];
+        args.extend(
+            sessions
+                .iter()
+                .skip(i)
+                .step_by(2)
+                .map(|(s, _)| s.dir.as_os_str()),
+        );
+        args.extend(["--k", "3", "--estimator", "fit", "--index"].map(std::ffi::OsStr::new));
+        args.push(t.as_os_str());
+        ok(&rigctl(&args));
+    }
+    let merged = root.join("merged.sqlite");
+    let mut args: Vec<&std::ffi::OsStr> = vec!["index".as_ref(), "merge".as_ref()];
+    args.extend(tasks.iter().map(|t| t.as_os_str()));
+    args.extend(["--into".as_ref(), merged.as_os_str()]);
+    ok(&rigctl(&args));
+    assert_eq!(from(&merged, &[]), k3);
+}
