@@ -19,6 +19,10 @@ struct Due {
     snaps: Vec<SnapWaiter>,
 }
 
+/// The analyser's threads: the targets measured on one while the image is encoded on the
+/// other.
+const THREADS: usize = 2;
+
 pub(super) fn spawn(inner: Arc<Inner>) -> std::thread::JoinHandle<()> {
     std::thread::Builder::new()
         .name("rigd-live-view".into())
@@ -29,37 +33,78 @@ pub(super) fn spawn(inner: Arc<Inner>) -> std::thread::JoinHandle<()> {
 fn run(inner: &Inner) {
     lower_priority();
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
+        .num_threads(THREADS)
         .thread_name(|_| "rigd-live-detect".into())
+        .start_handler(|_| lower_priority())
         .build()
-        .expect("a one-thread pool");
+        .expect("the live view's pool");
+    let timing = std::env::var_os("RIGD_LIVE_TIMING").is_some();
+    let est = match std::env::var("RIGD_LIVE_EST").as_deref() {
+        Ok("paper") => Some(crate::pipeline::Estimator::Paper),
+        Ok("fit") => Some(crate::pipeline::Estimator::Fit),
+        _ => None,
+    };
+    let par = std::env::var_os("RIGD_LIVE_SEQ").is_none();
     while let Some((frame, due)) = next(inner) {
-        let targets = pool.install(|| render::targets(&frame.frame().image, &inner.info));
+        let t0 = std::time::Instant::now();
+        let lag = std::time::SystemTime::now()
+            .duration_since(frame.frame().timestamp)
+            .map(|d| d.as_secs_f64() * 1e3)
+            .unwrap_or(0.0);
         // Each distinct view rendered once, whoever shares it.
-        let mut rendered: Vec<(Shown, Arc<ViewFrame>)> = Vec::new();
-        let mut view = |shown: Shown| -> Arc<ViewFrame> {
-            if let Some((_, v)) = rendered.iter().find(|(s, _)| *s == shown) {
-                return v.clone();
+        let mut shown: Vec<Shown> = Vec::new();
+        for s in due
+            .subs
+            .iter()
+            .map(|(s, _)| *s)
+            .chain(due.snaps.iter().map(|w| w.shown))
+        {
+            if !shown.contains(&s) {
+                shown.push(s);
             }
-            let v = Arc::new(view_frame(&frame, &shown, &targets));
-            rendered.push((shown, v.clone()));
-            v
+        }
+        let img = &frame.frame().image;
+        let estimator = est.unwrap_or(inner.info.job_defaults.estimator.unwrap_or_default());
+        let find = || {
+            let t = std::time::Instant::now();
+            let r = render::targets_by(img, &inner.info, estimator);
+            (r, t.elapsed().as_secs_f64() * 1e3)
         };
-        for (shown, tx) in due.subs {
-            let v = view(shown);
+        let encode_all = || {
+            let t = std::time::Instant::now();
+            let r: Vec<_> = shown.iter().map(|s| render::png_base64(img, s)).collect();
+            (r, t.elapsed().as_secs_f64() * 1e3)
+        };
+        let ((targets, t_ms), (images, p_ms)) = if par {
+            pool.install(|| rayon::join(find, encode_all))
+        } else {
+            pool.install(|| (find(), encode_all()))
+        };
+        let t1 = std::time::Instant::now();
+        let view = |s: Shown| -> ViewFrame {
+            let i = shown.iter().position(|x| *x == s).expect("rendered above");
+            view_frame(&frame, &s, images[i].clone(), &targets)
+        };
+        for (s, tx) in due.subs {
             let line = encode(&ServerLine::Event(Event {
                 v: PROTOCOL_VERSION,
                 job_id: frame.job_id.unwrap_or(0),
-                body: EventBody::Preview(Box::new((*v).clone())),
+                body: EventBody::Preview(Box::new(view(s))),
             }));
             tx.send_replace(Some(line.into()));
         }
-        for s in due.snaps {
-            let v = view(s.shown);
-            let _ = s.reply.send(Ok(SnapReply {
+        for w in due.snaps {
+            let _ = w.reply.send(Ok(SnapReply {
                 job_id: frame.job_id,
-                frame: (*v).clone(),
+                frame: view(w.shown),
             }));
+        }
+        if timing {
+            eprintln!(
+                "live: lag {lag:.1} targets {t_ms:.1} png {p_ms:.1} both {:.1} send {:.1}",
+                (t1 - t0).as_secs_f64() * 1e3,
+                t1.elapsed().as_secs_f64() * 1e3
+            );
         }
     }
 }
@@ -104,9 +149,13 @@ fn next(inner: &Inner) -> Option<(LiveFrame, Due)> {
     }
 }
 
-fn view_frame(frame: &LiveFrame, shown: &Shown, targets: &[ViewTarget]) -> ViewFrame {
+fn view_frame(
+    frame: &LiveFrame,
+    shown: &Shown,
+    (png_base64, width, height): (String, u32, u32),
+    targets: &[ViewTarget],
+) -> ViewFrame {
     let f = frame.frame();
-    let (png_base64, width, height) = render::png_base64(&f.image, shown);
     ViewFrame {
         index: frame.index(),
         t_unix_s: unix_s(f.timestamp),
