@@ -126,7 +126,7 @@ impl Repeats {
 
     /// Whether the `index`-th frame (0-based) is the first of a repeat after the first.
     fn opens_repeat(&self, index: u32) -> bool {
-        index > 0 && index % self.frames.max(1) == 0
+        index > 0 && index.is_multiple_of(self.frames.max(1))
     }
 }
 

@@ -1,9 +1,9 @@
 //! The analyser thread: takes the latest offered frame, works out who is due for it (each
 //! subscriber at most once per its interval of exposure time, each snap waiting for a frame
-//! this recent), finds its targets once and renders it for each. It runs at a lower
-//! priority than the job's threads, with its own one-thread pool for detection, so the
-//! processor's pool and the engine never wait for it; when it is busy, frames offered
-//! meanwhile replace each other and only the latest is seen.
+//! this recent), finds its targets once and renders it for each, the targets found while
+//! the views are encoded. It runs at a lower priority than the job's threads, with its own
+//! niced pool of two, so the processor's pool and the engine never wait for it; when it is
+//! busy, frames offered meanwhile replace each other and only the latest is seen.
 
 use super::render::{self, Shown};
 use super::wire::{SnapReply, ViewFrame, ViewTarget};
@@ -38,19 +38,7 @@ fn run(inner: &Inner) {
         .start_handler(|_| lower_priority())
         .build()
         .expect("the live view's pool");
-    let timing = std::env::var_os("RIGD_LIVE_TIMING").is_some();
-    let est = match std::env::var("RIGD_LIVE_EST").as_deref() {
-        Ok("paper") => Some(crate::pipeline::Estimator::Paper),
-        Ok("fit") => Some(crate::pipeline::Estimator::Fit),
-        _ => None,
-    };
-    let par = std::env::var_os("RIGD_LIVE_SEQ").is_none();
     while let Some((frame, due)) = next(inner) {
-        let t0 = std::time::Instant::now();
-        let lag = std::time::SystemTime::now()
-            .duration_since(frame.frame().timestamp)
-            .map(|d| d.as_secs_f64() * 1e3)
-            .unwrap_or(0.0);
         // Each distinct view rendered once, whoever shares it.
         let mut shown: Vec<Shown> = Vec::new();
         for s in due
@@ -64,23 +52,18 @@ fn run(inner: &Inner) {
             }
         }
         let img = &frame.frame().image;
-        let estimator = est.unwrap_or(inner.info.job_defaults.estimator.unwrap_or_default());
-        let find = || {
-            let t = std::time::Instant::now();
-            let r = render::targets_by(img, &inner.info, estimator);
-            (r, t.elapsed().as_secs_f64() * 1e3)
-        };
-        let encode_all = || {
-            let t = std::time::Instant::now();
-            let r: Vec<_> = shown.iter().map(|s| render::png_base64(img, s)).collect();
-            (r, t.elapsed().as_secs_f64() * 1e3)
-        };
-        let ((targets, t_ms), (images, p_ms)) = if par {
-            pool.install(|| rayon::join(find, encode_all))
-        } else {
-            pool.install(|| (find(), encode_all()))
-        };
-        let t1 = std::time::Instant::now();
+        // The targets found on one thread while the views are encoded on the other.
+        let (targets, images) = pool.install(|| {
+            rayon::join(
+                || render::targets(img, &inner.info),
+                || {
+                    shown
+                        .iter()
+                        .map(|s| render::png_base64(img, s))
+                        .collect::<Vec<_>>()
+                },
+            )
+        });
         let view = |s: Shown| -> ViewFrame {
             let i = shown.iter().position(|x| *x == s).expect("rendered above");
             view_frame(&frame, &s, images[i].clone(), &targets)
@@ -98,13 +81,6 @@ fn run(inner: &Inner) {
                 job_id: frame.job_id,
                 frame: view(w.shown),
             }));
-        }
-        if timing {
-            eprintln!(
-                "live: lag {lag:.1} targets {t_ms:.1} png {p_ms:.1} both {:.1} send {:.1}",
-                (t1 - t0).as_secs_f64() * 1e3,
-                t1.elapsed().as_secs_f64() * 1e3
-            );
         }
     }
 }
