@@ -1,8 +1,10 @@
 //! Issue 13, manual control and pause/resume, over the real socket on sim rigs (rigd's GRBL
 //! driver over a pty to the GRBL emulator): `position`, `move` (limits and the maximum step
 //! refused naming them, nothing moved), `stop` mid-move (the stage left short of its
-//! target), moves refused during a job; `pause`/`resume` mid-run with every frame of the
-//! plan recorded once at its position, a paused job cancelled.
+//! target), moves refused during a job, moves sent while one runs queued in order and a
+//! stop that stops the waiting ones too, the interferometer read by `position` between jobs
+//! without its log growing; `pause`/`resume` mid-run with every frame of the plan recorded
+//! once at its position, a paused job cancelled.
 
 #![cfg(feature = "sim")]
 
@@ -110,13 +112,8 @@ fn a_stop_mid_move_leaves_the_stage_short_of_its_target() {
     // 20 mm at 20 mm/s: about a second, on another connection.
     let mover = std::thread::spawn(move || {
         let mut c = Client::connect(&socket).unwrap();
-        // One rig request at a time: the polls' `position` may hold the worker a moment.
-        loop {
-            match move_to(&mut c, None, Some(20_000.0)) {
-                Err(e) if e.to_string().contains("`position` is already running") => continue,
-                r => return r.unwrap(),
-            }
-        }
+        // Behind a `position` the polls send, it waits its turn.
+        move_to(&mut c, None, Some(20_000.0)).unwrap()
     });
     // Wait (by what position says, not by the clock) until the axis is on its way.
     loop {
@@ -308,4 +305,153 @@ fn moves_are_refused_while_a_job_runs_naming_it_and_how_to_stop_it() {
         .contains(&format!("rigctl cancel {id}")));
     other.request(&Request::Cancel { job_id: id }).unwrap();
     events_until_end(&mut c, id);
+}
+
+/// The rig state `hello` reports now.
+fn rig_state(c: &mut Client) -> serde_json::Value {
+    c.request(&Request::Hello {}).unwrap()["rig_state"].clone()
+}
+
+/// Start a long move (20 mm at 20 mm/s, about a second) on its own connection; return once
+/// `position` sees the axis on its way.
+fn long_move(d: &Daemon, c: &mut Client) -> std::thread::JoinHandle<MoveReply> {
+    move_to(c, Some(1_000.0), None).unwrap();
+    let socket = d.bg.socket.clone();
+    let mover = std::thread::spawn(move || {
+        let mut c = Client::connect(&socket).unwrap();
+        move_to(&mut c, None, Some(20_000.0)).unwrap()
+    });
+    loop {
+        let p = position(c);
+        let a = p.axis.clone().unwrap();
+        if p.source == PositionSource::Move
+            && a.state == Some(MotionState::Moving)
+            && a.position_um.unwrap() > 1_100.0
+        {
+            return mover;
+        }
+        assert!(
+            !mover.is_finished(),
+            "the move ended before it was seen moving"
+        );
+    }
+}
+
+/// Send `move by_um` on a connection of its own; return once the daemon counts it waiting
+/// (`waiting` in the rig state is `n`).
+fn queued_move(
+    d: &Daemon,
+    c: &mut Client,
+    by_um: f64,
+    n: u64,
+) -> std::thread::JoinHandle<anyhow::Result<MoveReply>> {
+    let socket = d.bg.socket.clone();
+    let h = std::thread::spawn(move || {
+        let mut c = Client::connect(&socket).unwrap();
+        move_to(&mut c, None, Some(by_um))
+    });
+    while rig_state(c)["waiting"] != n {
+        assert!(!h.is_finished(), "the move was answered before it waited");
+    }
+    h
+}
+
+#[test]
+fn moves_sent_while_one_runs_wait_their_turn_in_order() {
+    let d = start();
+    let mut c = d.client();
+    let first = long_move(&d, &mut c);
+    let second = queued_move(&d, &mut c, 100.0, 1);
+    let third = queued_move(&d, &mut c, -300.0, 2);
+    let s = rig_state(&mut c);
+    assert_eq!(
+        (s["state"].as_str(), s["request"].as_str()),
+        (Some("busy"), Some("move")),
+        "{s}"
+    );
+    let first = first.join().unwrap();
+    let (second, third) = (
+        second.join().unwrap().unwrap(),
+        third.join().unwrap().unwrap(),
+    );
+    // Each ran after the one before it ended, from where it ended.
+    assert!(
+        !first.stopped && (first.position_um - 21_000.0).abs() < 10.0,
+        "{first:?}"
+    );
+    assert!(!second.stopped, "{second:?}");
+    assert!(
+        (second.target_um - (first.position_um + 100.0)).abs() < 1.0,
+        "{second:?}"
+    );
+    assert!(
+        (third.target_um - (second.position_um - 300.0)).abs() < 1.0,
+        "{third:?}"
+    );
+    assert!((axis_um(&position(&mut c)) - 20_800.0).abs() < 10.0);
+    assert_eq!(rig_state(&mut c), serde_json::json!({"state": "ready"}));
+}
+
+#[test]
+fn a_stop_stops_the_running_move_and_the_waiting_ones_never_start() {
+    let d = start();
+    let mut c = d.client();
+    let first = long_move(&d, &mut c);
+    let waiting = queued_move(&d, &mut c, 5_000.0, 1);
+    // `stop` does not queue behind them.
+    let r = c.request(&Request::Stop {}).unwrap();
+    assert_eq!(r["stopping"], true, "{r}");
+    assert!(
+        r["message"]
+            .as_str()
+            .unwrap()
+            .contains("the move waiting behind it does not run"),
+        "{r}"
+    );
+    let first = first.join().unwrap();
+    assert!(first.stopped && first.position_um < 20_000.0, "{first:?}");
+    let w = waiting.join().unwrap().unwrap();
+    assert!(w.stopped, "{w:?}");
+    assert!(
+        (w.position_um - first.position_um).abs() < 5.0,
+        "it moved: {w:?}"
+    );
+    assert!((axis_um(&position(&mut c)) - first.position_um).abs() < 5.0);
+    // A move sent after the stop runs.
+    let m = move_to(&mut c, None, Some(100.0)).unwrap();
+    assert!(!m.stopped && (m.position_um - (first.position_um + 100.0)).abs() < 10.0);
+}
+
+#[test]
+fn position_reads_the_interferometer_between_jobs_and_its_log_does_not_grow() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("xl80.csv");
+    let text = format!("{RIG}\n[xl80]\npath = \"xl80.csv\"\nformat = \"csv\"\n");
+    let rig = rig_from_toml(dir.path(), &text);
+    let d = Daemon::start_in(rig, dir);
+    let mut c = d.client();
+    let idle_bytes = std::fs::metadata(&log).unwrap().len();
+    let a = position(&mut c);
+    let la = a.interferometer.clone().expect("the sim rig's XL-80");
+    let t = la.t_unix_s.unwrap();
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs_f64();
+    assert!((t - now).abs() < 5.0, "taken at {t}");
+    move_to(&mut c, None, Some(3_000.0)).unwrap();
+    let b = position(&mut c);
+    let (xa, xb) = (
+        la.position_um.unwrap(),
+        b.interferometer.as_ref().unwrap().position_um.unwrap(),
+    );
+    // The laser sees the move the controller reports (its noise is 0.2 µm RMS).
+    let moved = axis_um(&b) - axis_um(&a);
+    assert!((moved - 3_000.0).abs() < 10.0);
+    assert!(
+        ((xb - xa).abs() - moved).abs() < 1.5,
+        "laser {xa} -> {xb}, axis moved {moved}"
+    );
+    // Read on request: the idle log is not written.
+    assert_eq!(std::fs::metadata(&log).unwrap().len(), idle_bytes);
 }

@@ -3,7 +3,7 @@
 
 use crate::acquisition::StageKind;
 use crate::cli::client::{Client, SocketArg};
-use crate::daemon::manual::{MoveReply, PositionReply, StageReading, StopReply};
+use crate::daemon::manual::{LaserReading, MoveReply, PositionReply, StageReading, StopReply};
 use crate::daemon::protocol::Request;
 use anyhow::Context;
 use std::io::{IsTerminal, Read, Write};
@@ -76,6 +76,16 @@ fn position_line(p: &PositionReply) -> String {
     let mut s = format!("axis {}", reading(&p.axis));
     if p.piezo.is_some() {
         s.push_str(&format!("   piezo {}", reading(&p.piezo)));
+    }
+    match &p.interferometer {
+        Some(LaserReading {
+            position_um: Some(x),
+            ..
+        }) => s.push_str(&format!("   xl80 {x:.3} µm")),
+        Some(LaserReading { error: Some(e), .. }) => {
+            s.push_str(&format!("   xl80 unreadable: {e}"))
+        }
+        _ => {}
     }
     if let Some(id) = p.job_id {
         s.push_str(&format!("   (where paused job {id} left it)"));

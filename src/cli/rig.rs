@@ -43,9 +43,13 @@ pub fn describe(s: &RigState) -> String {
         RigState::Busy {
             job_id: Some(id), ..
         } => format!("busy (job {id})"),
-        RigState::Busy { request, .. } => {
-            format!("busy ({})", request.map_or("a request", |r| r.name()))
-        }
+        RigState::Busy {
+            request, waiting, ..
+        } => format!(
+            "busy ({}{})",
+            request.map_or("a request", |r| r.name()),
+            waiting.map_or(String::new(), |n| format!(", {n} waiting"))
+        ),
         RigState::Fault(f) => format!("in fault: {}", f.refusal()),
     }
 }

@@ -69,7 +69,7 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
                     .filter_map(|id| jobs.status(id, &shared.rig_info))
                     .collect(),
                 shutting_down: shared.shutting_down.load(Ordering::SeqCst),
-                rig_state: shared.rig().state(jobs.running()),
+                rig_state: shared.rig_state_with(jobs.running()),
             }))
         }
         Request::Status { job_id: Some(id) } => status(shared, id).map(ReplyBody::JobStatus),

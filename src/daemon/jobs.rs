@@ -5,7 +5,7 @@ use crate::acquisition::plan::Plan;
 use crate::acquisition::{JobSpec, Processing, StopFlag};
 use crate::daemon::job_ids::{JobIdError, JobIds};
 use crate::daemon::resuming::Origin;
-use crate::daemon::timing::{self, JobClock, JobTiming, Pending, RigPace};
+use crate::daemon::timing::{self, JobClock, JobTiming, Pending, Repeats, RigPace};
 use crate::rig::RigInfo;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, VecDeque};
@@ -93,6 +93,18 @@ pub struct JobStatus {
 }
 
 impl JobRecord {
+    /// Its repeats as the timing counts them: frames in each and the interval between them.
+    pub fn repeats(&self) -> Repeats {
+        let count = self
+            .plan
+            .runs
+            .iter()
+            .map(|r| r.repeat + 1)
+            .max()
+            .unwrap_or(1);
+        Repeats::of(self.plan.total_frames, count, self.spec.interval_s)
+    }
+
     /// Its status with the timing it knows alone (start, end, elapsed); the table's
     /// [`Jobs::status`] adds the estimates, which need the queue.
     pub fn status(&self) -> JobStatus {
@@ -276,7 +288,8 @@ impl Jobs {
             return;
         };
         rec.frames_done = frames_done;
-        let interval = rec.clock.step(Instant::now());
+        let repeats = rec.repeats();
+        let interval = rec.clock.step(Instant::now(), frames_done, &repeats);
         // A replay's pace is the disk's, not the rig's.
         if let (Some(dt), true) = (interval, rec.source.uses_rig()) {
             self.pace.record(dt, rec.spec.settle_ms as f64 / 1000.0);
@@ -325,6 +338,7 @@ impl Jobs {
                     // The estimate counts the frames this job takes.
                     frames_done: r.frames_done.saturating_sub(r.plan.first_index),
                     total_frames: r.plan.frames_to_capture(),
+                    repeats: r.repeats(),
                     settle_s: r.spec.settle_ms as f64 / 1000.0,
                     stage_settle_s: stage_ms.unwrap_or(0) as f64 / 1000.0,
                 },

@@ -18,7 +18,7 @@ use crate::daemon::Shared;
 use crate::hw::{HwError, MotionState, StageStatus};
 use crate::rig::Rig;
 use serde::{Deserialize, Serialize};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -62,6 +62,37 @@ impl StageReading {
     }
 }
 
+/// The interferometer read once, outside a job (or why it could not be).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+pub struct LaserReading {
+    /// The laser's reading, µm (its own datum and sign, as in the session's
+    /// `interferometer.csv`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub position_um: Option<f64>,
+    /// When it was taken (s since the epoch, PC clock).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub t_unix_s: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+impl LaserReading {
+    fn of(r: Result<crate::rig::devices::LogSample, String>) -> LaserReading {
+        match r {
+            Ok(s) => LaserReading {
+                position_um: Some(s.position_um),
+                t_unix_s: Some(s.t_unix_s),
+                error: None,
+            },
+            Err(e) => LaserReading {
+                position_um: None,
+                t_unix_s: None,
+                error: Some(e),
+            },
+        }
+    }
+}
+
 /// Where the reading comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
@@ -81,6 +112,10 @@ pub struct PositionReply {
     /// Absent on a rig without a piezo (and when not read).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub piezo: Option<StageReading>,
+    /// The interferometer, read with the controllers (`source` `controllers`); absent on a
+    /// rig without one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub interferometer: Option<LaserReading>,
     pub source: PositionSource,
     /// The paused job, when the reading is where it left its stage.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -107,14 +142,33 @@ pub struct StopReply {
     pub message: String,
 }
 
-/// The daemon's side of manual moves: the stop flag and the running move's last poll.
+/// The daemon's side of manual moves: the stops sent, the moves waiting, the running
+/// move's last poll.
 #[derive(Debug, Default)]
 pub struct ManualState {
-    stop: AtomicBool,
+    /// `stop`s sent so far: a move stops (or never starts) when a stop came after it was sent.
+    stops: AtomicU64,
+    /// Moves queued behind the running rig request.
+    waiting: AtomicUsize,
     last: Mutex<Option<(StageReading, StageReading, StageKind)>>,
 }
 
 impl ManualState {
+    pub fn stops(&self) -> u64 {
+        self.stops.load(Ordering::SeqCst)
+    }
+    /// Whether a stop came after a move sent when `stops()` was `seen`.
+    fn stopped_since(&self, seen: u64) -> bool {
+        self.stops() != seen
+    }
+    pub fn move_queued(&self) {
+        self.waiting.fetch_add(1, Ordering::SeqCst);
+    }
+    pub fn move_dequeued(&self) {
+        let _ = self
+            .waiting
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1));
+    }
     fn set_last(&self, v: Option<(StageReading, StageReading, StageKind)>) {
         *self.last.lock().unwrap_or_else(|e| e.into_inner()) = v;
     }
@@ -148,8 +202,7 @@ pub async fn handle(shared: &Arc<Shared>, req: Request) -> Result<ReplyBody, Pro
             if let Some(f) = shared.rig().fault.clone() {
                 return Err(ProtoError::new(ErrorCode::Rejected, f.refusal()));
             }
-            // A stop sent from here on stops this move.
-            shared.manual.stop.store(false, Ordering::SeqCst);
+            // A stop sent from here on stops this move, running or waiting.
             rig_commands::send(shared, RigAction::Move, Some(stage), Some(target)).await
         }
         Request::Stop {} => Ok(ReplyBody::Stop(stop(shared))),
@@ -203,6 +256,7 @@ async fn position(shared: &Arc<Shared>) -> Result<ReplyBody, ProtoError> {
         return Ok(ReplyBody::Position(PositionReply {
             axis,
             piezo,
+            interferometer: None,
             source: PositionSource::PausedJob,
             job_id: Some(id),
             rig_state: shared.rig_state(),
@@ -212,6 +266,7 @@ async fn position(shared: &Arc<Shared>) -> Result<ReplyBody, ProtoError> {
         return Ok(ReplyBody::Position(PositionReply {
             axis: Some(axis),
             piezo: shared.rig_info.piezo_limits_um.map(|_| piezo),
+            interferometer: None,
             source: PositionSource::Move,
             job_id: None,
             rig_state: shared.rig_state(),
@@ -246,16 +301,26 @@ fn stop(shared: &Shared) -> StopReply {
             ),
         };
     }
-    shared.manual.stop.store(true, Ordering::SeqCst);
-    let request = shared.rig().request;
-    match request {
-        Some(RigAction::Move) => StopReply {
+    shared.manual.stops.fetch_add(1, Ordering::SeqCst);
+    let running = shared.rig().request == Some(RigAction::Move);
+    let waiting = shared.manual.waiting.load(Ordering::SeqCst);
+    let waiting_text = match waiting {
+        0 => String::new(),
+        1 => "; the move waiting behind it does not run".into(),
+        n => format!("; the {n} moves waiting behind it do not run"),
+    };
+    match (running, waiting) {
+        (true, _) => StopReply {
             stopping: true,
-            message: "stopping the manual move".into(),
+            message: format!("stopping the manual move{waiting_text}"),
         },
-        _ => StopReply {
+        (false, 0) => StopReply {
             stopping: false,
             message: "no manual move runs: nothing to stop".into(),
+        },
+        (false, n) => StopReply {
+            stopping: true,
+            message: format!("no manual move runs yet: the {n} waiting do not run"),
         },
     }
 }
@@ -264,9 +329,14 @@ fn stop(shared: &Shared) -> StopReply {
 pub fn read_position(rig: &mut Rig) -> PositionReply {
     let axis = StageReading::of(rig.axis.status());
     let piezo = rig.piezo.as_mut().map(|p| StageReading::of(p.status()));
+    let interferometer = rig
+        .log
+        .as_deref_mut()
+        .map(|l| LaserReading::of(l.reading_now()));
     PositionReply {
         axis: Some(axis),
         piezo,
+        interferometer,
         source: PositionSource::Controllers,
         job_id: None,
         rig_state: RigState::Ready,
@@ -280,6 +350,7 @@ pub fn run_move(
     rig: &mut Rig,
     kind: StageKind,
     target: Target,
+    stops_seen: u64,
 ) -> Result<(f64, StageStatus, bool), HwError> {
     let other = match kind {
         StageKind::Axis => rig.piezo.as_mut().map(|p| StageReading::of(p.status())),
@@ -291,6 +362,15 @@ pub fn run_move(
         error: None,
     });
     let stage = rig.stage(kind)?;
+    if state.stopped_since(stops_seen) {
+        // Stopped while it waited for its turn: it does not start.
+        let st = stage.status()?;
+        let target_um = match target {
+            Target::To(t) => t,
+            Target::By(d) => st.position_um + d,
+        };
+        return Ok((target_um, st, true));
+    }
     let target_um = match target {
         Target::To(t) => {
             stage.move_abs(t)?;
@@ -310,7 +390,7 @@ pub fn run_move(
             StageKind::Axis => (reading, other.clone(), kind),
             StageKind::Piezo => (other.clone(), reading, kind),
         }));
-        if state.stop.swap(false, Ordering::SeqCst) {
+        if state.stopped_since(stops_seen) {
             stage.stop()?;
             break (target_um, stage.status()?, true);
         }

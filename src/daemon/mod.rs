@@ -107,7 +107,18 @@ impl Shared {
     /// The rig state clients see.
     pub fn rig_state(&self) -> RigState {
         let running = self.jobs().running();
-        self.rig().state(running)
+        self.rig_state_with(running)
+    }
+
+    /// The rig state given the running job (for a caller that holds the job table), with
+    /// the rig requests waiting.
+    pub fn rig_state_with(&self, running: Option<u64>) -> RigState {
+        let mut state = self.rig().state(running);
+        if let RigState::Busy { waiting, .. } = &mut state {
+            let n = rig_commands::QUEUE - self.rig_requests.capacity();
+            *waiting = (n > 0).then_some(n);
+        }
+        state
     }
 
     /// The rig requests' receiver, for the worker (once).

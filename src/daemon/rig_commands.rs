@@ -2,8 +2,9 @@
 //! run by the worker on the rig's own blocking thread (the worker owns the rig), answered
 //! through a oneshot. `position` and `move` (`daemon::manual`) use the same channel.
 //!
-//! A request is refused while a job runs, or while another request runs; one that was
-//! sent before a job started and reaches the worker after is refused too. The fault is
+//! A request is refused while a job runs; while another request runs it waits its turn in
+//! a bounded queue ([`QUEUE`]), in the order sent (a `rigctl jog` user's keys queue their
+//! moves). One that was sent before a job started and reaches the worker after is refused. The fault is
 //! cleared only when the controller confirms (its status after the request is not
 //! `Alarm` and it answered); otherwise the fault is what the controller now says.
 
@@ -18,8 +19,9 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use tokio::sync::{mpsc, oneshot};
 
-/// Rig requests waiting for the worker (one runs at a time; more are refused as busy).
-pub const QUEUE: usize = 4;
+/// Rig requests waiting for the worker behind the one running, in order; more are refused
+/// `busy`.
+pub const QUEUE: usize = 8;
 
 /// One rig request on its way to the worker.
 #[derive(Debug)]
@@ -30,6 +32,8 @@ pub struct RigRequest {
     pub jobs_started: u64,
     /// Where a `move` goes.
     pub target: Option<Target>,
+    /// `ManualState`'s stop count when it was sent: a `stop` since then stops the move.
+    pub stops_seen: u64,
     pub reply: oneshot::Sender<Result<ReplyBody, ProtoError>>,
 }
 
@@ -84,20 +88,29 @@ pub async fn send(
     let (tx, rx) = oneshot::channel();
     let req = {
         let cond = shared.rig();
-        if let Some(other) = cond.request {
-            return Err(busy(format!("`{}` is already running", other.name())));
-        }
         let stage = stage.unwrap_or_else(|| default_stage(cond.fault.as_ref()));
         RigRequest {
             action,
             stage,
             jobs_started: cond.jobs_started,
             target,
+            stops_seen: shared.manual.stops(),
             reply: tx,
         }
     };
+    // Counted before it is sent: the worker uncounts it when it takes it.
+    let is_move = action == RigAction::Move;
+    if is_move {
+        shared.manual.move_queued();
+    }
     if shared.rig_requests.try_send(req).is_err() {
-        return Err(busy("rig requests are already waiting".into()));
+        if is_move {
+            shared.manual.move_dequeued();
+        }
+        return Err(busy(format!(
+            "{QUEUE} rig requests are already waiting: send `{}` again once they have run",
+            action.name()
+        )));
     }
     match rx.await {
         Ok(r) => r,
@@ -118,6 +131,9 @@ fn default_stage(fault: Option<&RigFault>) -> StageKind {
 
 /// The worker's side: run the request on the rig (on a blocking thread) and answer it.
 pub async fn serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
+    if req.action == RigAction::Move {
+        shared.manual.move_dequeued();
+    }
     {
         let mut cond = shared.rig();
         if cond.jobs_started != req.jobs_started {
@@ -207,7 +223,7 @@ fn act(rig: &mut Rig, action: RigAction, stage: StageKind) -> Result<StageStatus
 /// `position` and `move` on the rig's blocking thread. A move that fails on the hardware
 /// leaves the fault the controller now says, as the other requests do.
 async fn manual_serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
-    let (stage, target) = (req.stage, req.target);
+    let (stage, target, stops_seen) = (req.stage, req.target, req.stops_seen);
     let sh = shared.clone();
     let handle = tokio::task::spawn_blocking(move || {
         let mut rig = rig;
@@ -215,7 +231,7 @@ async fn manual_serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
             let p = manual::read_position(&mut rig);
             return (rig, Ok(ReplyBody::Position(p)), None);
         };
-        let r = manual::run_move(&sh.manual, &mut rig, stage, t);
+        let r = manual::run_move(&sh.manual, &mut rig, stage, t, stops_seen);
         sh.manual.clear_last();
         let fault = match &r {
             Err(e) if !matches!(e, HwError::Limit { .. }) => probe(&mut rig, stage),

@@ -90,6 +90,9 @@ pub enum RigState {
         /// The rig request running, if that is.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         request: Option<RigAction>,
+        /// Rig requests waiting behind it, in order (absent: none).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        waiting: Option<usize>,
     },
     Fault(RigFault),
 }
@@ -115,7 +118,11 @@ impl RigCondition {
         }
         match (running_job, self.request) {
             (None, None) if !self.starting => RigState::Ready,
-            (job_id, request) => RigState::Busy { job_id, request },
+            (job_id, request) => RigState::Busy {
+                job_id,
+                request,
+                waiting: None,
+            },
         }
     }
 }

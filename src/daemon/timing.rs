@@ -8,6 +8,11 @@
 //! this daemon, a guess from the settings: the job's and the stage's settle plus
 //! [`MOVE_GRAB_GUESS_S`] (`settings`). Medians, so a pause or one slow frame does not
 //! swing the estimate.
+//!
+//! A job with `interval_s` starts each repeat that long after the previous one started (the
+//! engine's rule, `acquisition::engine`), or when the previous one ends if that is later:
+//! the estimate follows the same rule from the current repeat's start. The interval that
+//! holds such a wait is not a frame's time and is not measured.
 
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
@@ -94,12 +99,45 @@ fn push(v: &mut VecDeque<f64>, x: f64) {
     v.push_back(x);
 }
 
+/// A job's repeats as its timing sees them: frames in each, and `interval_s` between their
+/// starts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Repeats {
+    pub frames: u32,
+    pub interval_s: Option<f64>,
+}
+
+impl Repeats {
+    /// Every frame in one repeat, no interval.
+    pub fn one(total_frames: u32) -> Repeats {
+        Repeats {
+            frames: total_frames,
+            interval_s: None,
+        }
+    }
+
+    /// The frames per repeat of a plan of `count` repeats (at least one frame each).
+    pub fn of(total_frames: u32, count: u32, interval_s: Option<f64>) -> Repeats {
+        Repeats {
+            frames: (total_frames / count.max(1)).max(1),
+            interval_s,
+        }
+    }
+
+    /// Whether the `index`-th frame (0-based) is the first of a repeat after the first.
+    fn opens_repeat(&self, index: u32) -> bool {
+        index > 0 && index.is_multiple_of(self.frames.max(1))
+    }
+}
+
 /// One job's clock: when it started and ended, its last step intervals.
 #[derive(Debug, Clone, Default)]
 pub struct JobClock {
     started: Option<(SystemTime, Instant)>,
     ended: Option<SystemTime>,
     last_step: Option<Instant>,
+    /// When the current repeat started, by the engine's rule.
+    repeat_started: Option<Instant>,
     intervals: VecDeque<f64>,
 }
 
@@ -107,20 +145,38 @@ impl JobClock {
     pub fn start(&mut self, now: Instant, wall: SystemTime) {
         self.started = Some((wall, now));
         self.last_step = Some(now);
+        self.repeat_started = Some(now);
     }
 
     pub fn end(&mut self, wall: SystemTime) {
         self.ended.get_or_insert(wall);
     }
 
-    /// A step was recorded at `now`: the interval since the one before (or the start).
-    pub fn step(&mut self, now: Instant) -> Option<f64> {
-        let dt = self.last_step.map(|t| now.duration_since(t).as_secs_f64());
-        self.last_step = Some(now);
-        if let Some(dt) = dt {
-            push(&mut self.intervals, dt);
+    /// The `frames_done`-th step was recorded at `now`: the interval since the one before
+    /// (or the start), `None` when there is none or it holds a wait between repeats.
+    pub fn step(&mut self, now: Instant, frames_done: u32, repeats: &Repeats) -> Option<f64> {
+        let last = self.last_step.replace(now);
+        let index = frames_done.saturating_sub(1);
+        let mut waited = false;
+        if repeats.opens_repeat(index) {
+            // The engine started this repeat `interval_s` after the last one started, or
+            // when the last one ended if that was later.
+            let ended = last.unwrap_or(now);
+            let due = match (self.repeat_started, repeats.interval_s) {
+                (Some(s), Some(i)) => {
+                    waited = true;
+                    (s + Duration::from_secs_f64(i)).max(ended)
+                }
+                _ => ended,
+            };
+            self.repeat_started = Some(due.min(now));
         }
-        dt
+        let dt = last.map(|t| now.duration_since(t).as_secs_f64())?;
+        if waited {
+            return None;
+        }
+        push(&mut self.intervals, dt);
+        Some(dt)
     }
 
     /// The job's own seconds per frame, once two intervals are measured (the first one holds
@@ -136,6 +192,53 @@ impl JobClock {
         self.last_step
             .map_or(0.0, |t| now.saturating_duration_since(t).as_secs_f64())
     }
+
+    /// Seconds since the current repeat started (or the job did).
+    fn since_repeat_start(&self, now: Instant) -> f64 {
+        self.repeat_started
+            .map_or(0.0, |t| now.saturating_duration_since(t).as_secs_f64())
+    }
+}
+
+/// Seconds from now until a job ends, at `frame_s` a frame: `done` of `total` frames
+/// recorded, the last `since_last_s` ago, its current repeat started `since_repeat_s` ago.
+/// Each later repeat starts `interval_s` after the one before started, or when it ends if
+/// that is later.
+fn remaining_s(
+    (done, total): (u32, u32),
+    repeats: &Repeats,
+    frame_s: f64,
+    since_last_s: f64,
+    since_repeat_s: f64,
+) -> f64 {
+    let per = repeats.frames.max(1);
+    let done = done.min(total);
+    let in_repeat = done % per;
+    // The end of the repeat under way, relative to now (the last step, if it ended one).
+    let mut t = -since_last_s;
+    let mut next = done / per;
+    if in_repeat > 0 || done == 0 {
+        t += (per - in_repeat).min(total - done) as f64 * frame_s;
+        next += 1;
+    }
+    let reps_total = total.div_ceil(per);
+    let left = reps_total.saturating_sub(next) as f64;
+    let repeat_s = per as f64 * frame_s;
+    let t = match repeats.interval_s {
+        Some(i) if left > 0.0 => {
+            // The next repeat starts `i` after the current one started, or when it ends;
+            // the ones after it `i` apart, or back to back if a repeat takes longer.
+            let first = (-since_repeat_s + i).max(t);
+            first + (left - 1.0) * i.max(repeat_s) + repeat_s
+        }
+        _ => t + left * repeat_s,
+    };
+    t.max(0.0)
+}
+
+/// Seconds a whole job takes, from its start.
+fn duration_s(total: u32, repeats: &Repeats, frame_s: f64) -> f64 {
+    remaining_s((0, total), repeats, frame_s, 0.0, 0.0)
 }
 
 /// The rig's recent step intervals, less each job's own settle: the part of a frame that is
@@ -168,6 +271,7 @@ pub struct Pending<'a> {
     pub clock: &'a JobClock,
     pub frames_done: u32,
     pub total_frames: u32,
+    pub repeats: Repeats,
     /// Its settle and its stage's, seconds.
     pub settle_s: f64,
     pub stage_settle_s: f64,
@@ -189,8 +293,13 @@ pub fn estimate(
     let mut t = 0.0;
     let running = running.map(|p| {
         let (f, basis) = frame_s(&p);
-        let left = p.total_frames.saturating_sub(p.frames_done) as f64;
-        t = (left * f - p.clock.since_last_step(now)).max(0.0);
+        t = remaining_s(
+            (p.frames_done, p.total_frames),
+            &p.repeats,
+            f,
+            p.clock.since_last_step(now),
+            p.clock.since_repeat_start(now),
+        );
         JobTiming {
             eta_s: Some(t),
             frame_s: Some(f),
@@ -203,7 +312,7 @@ pub fn estimate(
         .map(|p| {
             let (f, basis) = frame_s(p);
             let starts_in = t;
-            t += p.total_frames as f64 * f;
+            t += duration_s(p.total_frames, &p.repeats, f);
             JobTiming {
                 expected_start_at: Some(rfc3339(wall + Duration::from_secs_f64(starts_in))),
                 starts_in_s: Some(starts_in),
@@ -242,17 +351,118 @@ mod tests {
     use super::*;
 
     fn clock_with_steps(t0: Instant, steps_s: &[f64]) -> JobClock {
+        clock_with_repeats(t0, steps_s, &Repeats::one(1000))
+    }
+
+    fn clock_with_repeats(t0: Instant, steps_s: &[f64], repeats: &Repeats) -> JobClock {
         let mut c = JobClock::default();
         c.start(
             t0,
             SystemTime::UNIX_EPOCH + Duration::from_secs(1_764_633_600),
         );
         let mut t = t0;
-        for &s in steps_s {
+        for (i, &s) in steps_s.iter().enumerate() {
             t += Duration::from_secs_f64(s);
-            c.step(t);
+            c.step(t, i as u32 + 1, repeats);
         }
         c
+    }
+
+    fn pending(
+        clock: &JobClock,
+        frames_done: u32,
+        total_frames: u32,
+        repeats: Repeats,
+    ) -> Pending<'_> {
+        Pending {
+            clock,
+            frames_done,
+            total_frames,
+            repeats,
+            settle_s: 0.02,
+            stage_settle_s: 0.0,
+        }
+    }
+
+    /// 3 repeats of 10 frames, 60 s apart (`interval_s`), at 0.5 s a frame.
+    const EVERY_MINUTE: Repeats = Repeats {
+        frames: 10,
+        interval_s: Some(60.0),
+    };
+
+    #[test]
+    fn the_eta_counts_the_waits_between_repeats() {
+        let t0 = Instant::now();
+        let wall = SystemTime::UNIX_EPOCH + Duration::from_secs(1_764_633_600);
+        // The first repeat done (10 frames at 0.5 s), 0.2 s ago.
+        let c = clock_with_repeats(t0, &[0.5; 10], &EVERY_MINUTE);
+        let now = t0 + Duration::from_secs_f64(5.2);
+        let (r, q) = estimate(
+            &RigPace::default(),
+            Some(pending(&c, 10, 30, EVERY_MINUTE)),
+            &[pending(&JobClock::default(), 0, 30, EVERY_MINUTE)],
+            now,
+            wall,
+        );
+        let r = r.unwrap();
+        assert_eq!(r.frame_s, Some(0.5));
+        // The second repeat starts at 60 s, the third at 120 s and takes 5 s: 125 - 5.2.
+        assert!((r.eta_s.unwrap() - 119.8).abs() < 1e-9, "{r:?}");
+        // A queued job of the same plan starts then and takes 2 minutes and 5 s; its frame
+        // time is the rig's, which holds no wait either (none was recorded: the settings').
+        let q = &q[0];
+        assert!((q.starts_in_s.unwrap() - 119.8).abs() < 1e-9, "{q:?}");
+        let f = q.frame_s.unwrap();
+        assert!(
+            (q.eta_s.unwrap() - (119.8 + 120.0 + 10.0 * f)).abs() < 1e-9,
+            "{q:?}"
+        );
+
+        // The first frame of the second repeat, taken after the wait (the engine started the
+        // repeat at 60 s): its 55.5 s interval is not a frame's time.
+        let mut steps = vec![0.5; 10];
+        steps.push(55.5);
+        let c = clock_with_repeats(t0, &steps, &EVERY_MINUTE);
+        assert_eq!(c.measured_frame_s(), Some(0.5));
+        let now = t0 + Duration::from_secs_f64(61.0);
+        let (r, _) = estimate(
+            &RigPace::default(),
+            Some(pending(&c, 11, 30, EVERY_MINUTE)),
+            &[],
+            now,
+            wall,
+        );
+        // 9 frames of the second repeat (4.5 s, the last frame 0.5 s ago), then the third
+        // at 120 s: 125 - 61.
+        assert!((r.unwrap().eta_s.unwrap() - 64.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn repeats_longer_than_their_interval_run_back_to_back() {
+        let t0 = Instant::now();
+        let every_2s = Repeats {
+            frames: 10,
+            interval_s: Some(2.0),
+        };
+        let c = clock_with_repeats(t0, &[0.5; 4], &every_2s);
+        let (r, q) = estimate(
+            &RigPace::default(),
+            Some(pending(&c, 4, 30, every_2s)),
+            &[pending(&JobClock::default(), 0, 30, Repeats::one(30))],
+            t0 + Duration::from_secs_f64(2.0),
+            SystemTime::now(),
+        );
+        // 26 frames left at 0.5 s, no wait anywhere.
+        assert!((r.unwrap().eta_s.unwrap() - 13.0).abs() < 1e-9);
+        assert!((q[0].starts_in_s.unwrap() - 13.0).abs() < 1e-9);
+        // Without `interval_s` a repeat's first interval is a frame's time like any.
+        let c = clock_with_repeats(
+            t0,
+            &[0.5; 10].iter().chain(&[0.7]).copied().collect::<Vec<_>>(),
+            &Repeats::one(10),
+        );
+        assert_eq!(c.measured_frame_s(), Some(0.5));
+        assert_eq!(c.intervals.len(), 11);
     }
 
     #[test]
@@ -278,6 +488,7 @@ mod tests {
                 clock: &run,
                 frames_done: 5,
                 total_frames: 25,
+                repeats: Repeats::one(25),
                 settle_s: 0.02,
                 stage_settle_s: 0.0,
             }),
@@ -285,6 +496,7 @@ mod tests {
                 clock: &queued_clock,
                 frames_done: 0,
                 total_frames: 10,
+                repeats: Repeats::one(10),
                 settle_s: 0.5,
                 stage_settle_s: 0.0,
             }],
@@ -316,6 +528,7 @@ mod tests {
                 clock: &c,
                 frames_done: 0,
                 total_frames: 20,
+                repeats: Repeats::one(20),
                 settle_s: 0.02,
                 stage_settle_s: 0.05,
             }],

@@ -176,6 +176,12 @@ pub trait PositionLog: Send {
     /// The job ended. A log written for the job (the simulated laser's) stops growing; a
     /// real log, written by the laser's own software, is only followed and left alone.
     fn end(&mut self) {}
+    /// One reading now, outside a job (`position`), without waiting: the newest sample of a
+    /// log that is being written, or a single reading taken on request; `Err` says why
+    /// there is none.
+    fn reading_now(&mut self) -> Result<LogSample, String> {
+        Err("this interferometer gives readings only during jobs".into())
+    }
 }
 
 /// One interferometer sample on the PC clock.

@@ -241,6 +241,26 @@ impl PositionLog for FollowedLog {
         std::mem::take(&mut self.pending)
     }
 
+    fn end(&mut self) {
+        // Samples read between jobs (by `reading_now`) belong to no session.
+        self.from_unix_s = f64::INFINITY;
+        self.pending.clear();
+    }
+
+    fn reading_now(&mut self) -> Result<LogSample, String> {
+        self.catch_up();
+        let now = unix_s(SystemTime::now());
+        let path = self.follower.path().display();
+        match self.recent.back() {
+            Some(s) if now - s.t_unix_s <= MAX_GAP_S => Ok(*s),
+            Some(s) => Err(format!(
+                "the xl80 log {path} has not grown for {:.1} s: is the laser's capture running?",
+                now - s.t_unix_s
+            )),
+            None => Err(format!("the xl80 log {path} holds no timed reading yet")),
+        }
+    }
+
     fn source(&self) -> LogSource {
         let log = self.follower.log();
         LogSource {

@@ -1,9 +1,9 @@
 //! The analyser thread: takes the latest offered frame, works out who is due for it (each
 //! subscriber at most once per its interval of exposure time, each snap waiting for a frame
-//! this recent), finds its targets once and renders it for each. It runs at a lower
-//! priority than the job's threads, with its own one-thread pool for detection, so the
-//! processor's pool and the engine never wait for it; when it is busy, frames offered
-//! meanwhile replace each other and only the latest is seen.
+//! this recent), finds its targets once and renders it for each, the targets found while
+//! the views are encoded. It runs at a lower priority than the job's threads, with its own
+//! niced pool of two, so the processor's pool and the engine never wait for it; when it is
+//! busy, frames offered meanwhile replace each other and only the latest is seen.
 
 use super::render::{self, Shown};
 use super::wire::{SnapReply, ViewFrame, ViewTarget};
@@ -19,6 +19,10 @@ struct Due {
     snaps: Vec<SnapWaiter>,
 }
 
+/// The analyser's threads: the targets measured on one while the image is encoded on the
+/// other.
+const THREADS: usize = 2;
+
 pub(super) fn spawn(inner: Arc<Inner>) -> std::thread::JoinHandle<()> {
     std::thread::Builder::new()
         .name("rigd-live-view".into())
@@ -29,36 +33,53 @@ pub(super) fn spawn(inner: Arc<Inner>) -> std::thread::JoinHandle<()> {
 fn run(inner: &Inner) {
     lower_priority();
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
+        .num_threads(THREADS)
         .thread_name(|_| "rigd-live-detect".into())
+        .start_handler(|_| lower_priority())
         .build()
-        .expect("a one-thread pool");
+        .expect("the live view's pool");
     while let Some((frame, due)) = next(inner) {
-        let targets = pool.install(|| render::targets(&frame.frame().image, &inner.info));
         // Each distinct view rendered once, whoever shares it.
-        let mut rendered: Vec<(Shown, Arc<ViewFrame>)> = Vec::new();
-        let mut view = |shown: Shown| -> Arc<ViewFrame> {
-            if let Some((_, v)) = rendered.iter().find(|(s, _)| *s == shown) {
-                return v.clone();
+        let mut shown: Vec<Shown> = Vec::new();
+        for s in due
+            .subs
+            .iter()
+            .map(|(s, _)| *s)
+            .chain(due.snaps.iter().map(|w| w.shown))
+        {
+            if !shown.contains(&s) {
+                shown.push(s);
             }
-            let v = Arc::new(view_frame(&frame, &shown, &targets));
-            rendered.push((shown, v.clone()));
-            v
+        }
+        let img = &frame.frame().image;
+        // The targets found on one thread while the views are encoded on the other.
+        let (targets, images) = pool.install(|| {
+            rayon::join(
+                || render::targets(img, &inner.info),
+                || {
+                    shown
+                        .iter()
+                        .map(|s| render::png_base64(img, s))
+                        .collect::<Vec<_>>()
+                },
+            )
+        });
+        let view = |s: Shown| -> ViewFrame {
+            let i = shown.iter().position(|x| *x == s).expect("rendered above");
+            view_frame(&frame, &s, images[i].clone(), &targets)
         };
-        for (shown, tx) in due.subs {
-            let v = view(shown);
+        for (s, tx) in due.subs {
             let line = encode(&ServerLine::Event(Event {
                 v: PROTOCOL_VERSION,
                 job_id: frame.job_id.unwrap_or(0),
-                body: EventBody::Preview(Box::new((*v).clone())),
+                body: EventBody::Preview(Box::new(view(s))),
             }));
             tx.send_replace(Some(line.into()));
         }
-        for s in due.snaps {
-            let v = view(s.shown);
-            let _ = s.reply.send(Ok(SnapReply {
+        for w in due.snaps {
+            let _ = w.reply.send(Ok(SnapReply {
                 job_id: frame.job_id,
-                frame: (*v).clone(),
+                frame: view(w.shown),
             }));
         }
     }
@@ -104,9 +125,13 @@ fn next(inner: &Inner) -> Option<(LiveFrame, Due)> {
     }
 }
 
-fn view_frame(frame: &LiveFrame, shown: &Shown, targets: &[ViewTarget]) -> ViewFrame {
+fn view_frame(
+    frame: &LiveFrame,
+    shown: &Shown,
+    (png_base64, width, height): (String, u32, u32),
+    targets: &[ViewTarget],
+) -> ViewFrame {
     let f = frame.frame();
-    let (png_base64, width, height) = render::png_base64(&f.image, shown);
     ViewFrame {
         index: frame.index(),
         t_unix_s: unix_s(f.timestamp),

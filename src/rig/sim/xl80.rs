@@ -9,7 +9,7 @@ use crate::rig::devices::{HwError, LogSample, LogSource, PositionLog};
 use crate::rig::FollowedLog;
 use crate::xl80::{Follower, Xl80Format};
 use rigd_sim::motion::TruePosition;
-use rigd_sim::xl80::{LengthUnit, LiveLog, LiveOptions, LogFormat, Xl80Params};
+use rigd_sim::xl80::{LengthUnit, LiveLog, LiveOptions, LogFormat, Xl80, Xl80Params};
 use rigd_sim::SimRig;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -34,6 +34,9 @@ pub struct SimXl80 {
     owned: bool,
     live: Option<LiveLog>,
     log: FollowedLog,
+    /// The laser read once on request between jobs (`position`), with the log's noise,
+    /// datum and beam direction: the idle log does not grow.
+    one_shot: Xl80,
 }
 
 impl SimXl80 {
@@ -70,7 +73,9 @@ impl SimXl80 {
         };
         params.validate().map_err(|e| sim_error(e.to_string()))?;
         let log = FollowedLog::new(Follower::new(&path, format), SIM_POLL);
+        let one_shot = Xl80::new(params.clone()).map_err(|e| sim_error(e.to_string()))?;
         let mut x = SimXl80 {
+            one_shot,
             source: Arc::clone(&rig.line_of_sight) as Arc<dyn TruePosition>,
             params,
             format,
@@ -183,6 +188,19 @@ impl PositionLog for SimXl80 {
         if let Err(e) = self.stop_capture() {
             tracing::warn!("{e}");
         }
+        self.log.end();
+    }
+    fn reading_now(&mut self) -> Result<LogSample, String> {
+        if self.live.is_some() {
+            return self.log.reading_now();
+        }
+        let t = SystemTime::now();
+        let los_um = self.source.true_position_um(std::time::Instant::now());
+        Ok(LogSample {
+            t_unix_s: crate::daemon::session::unix_s(t),
+            position_um: self.one_shot.read_um(los_um),
+            sample: 0,
+        })
     }
 }
 
