@@ -22,7 +22,8 @@ use std::f64::consts::PI;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DetectConfig {
-    /// A pixel is ink when `(R - max(G, B)) / R` is at least this.
+    /// The highest redness threshold: a pixel is ink when `(R - max(G, B)) / R` is at least
+    /// the frame's own threshold ([`redness_threshold`]), which never exceeds this.
     pub min_redness: f64,
     /// ... and its red value is at least this many DN (the ratio of dark pixels is noise).
     pub min_red_dn: u8,
@@ -102,6 +103,9 @@ struct Component {
     mxy: f64,
     bbox: [u32; 4], // x0, y0, x1, y1 inclusive
     touches_edge: bool,
+    /// The labels (1-based) of the mask components it is made of: one, or the pieces of a
+    /// ring broken apart that [`merge_fragments`] put together.
+    pieces: Vec<u32>,
 }
 
 /// Shape of a component judged from its moments.
@@ -155,31 +159,112 @@ impl Component {
     }
 }
 
-/// Ink mask, one byte per pixel (1 = ink), and whether each row has any ink.
-fn ink_mask(img: &RgbImage, cfg: &DetectConfig) -> (Vec<u8>, Vec<bool>) {
+/// Redness of a pixel in 1/256: `256 (R - max(G, B)) / R`, clamped to 0..=255; `None` when
+/// the pixel is too dark for the ratio to mean anything.
+#[inline]
+fn redness_256(p: &[u8], min_r: i32) -> Option<usize> {
+    let (r, g, b) = (p[0] as i32, p[1] as i32, p[2] as i32);
+    (r >= min_r).then(|| (256 * (r - g.max(b)) / r).clamp(0, 255) as usize)
+}
+
+/// The redness threshold (1/256) this frame's ink and paper call for: Otsu's split of the
+/// redness histogram separates paper from ink; the threshold is halfway between the paper's
+/// median and the ink's, i.e. the middle of a blurred edge, so a softer lens, a pinker
+/// webcam colour or dim light do not thin the ring into pieces. Never above
+/// `cfg.min_redness` (today's fixed threshold: a clean frame keeps it) and never within the
+/// paper's noise (median + 8 MAD, at least 0.08).
+pub fn redness_threshold(img: &RgbImage, cfg: &DetectConfig) -> f64 {
+    let min_r = cfg.min_red_dn as i32;
+    let mut hist = [0u64; 256];
+    for p in img.as_raw().chunks_exact(3) {
+        if let Some(q) = redness_256(p, min_r) {
+            hist[q] += 1;
+        }
+    }
+    let ceiling = cfg.min_redness;
+    let n: u64 = hist.iter().sum();
+    if n == 0 {
+        return ceiling;
+    }
+    let split = otsu(&hist);
+    let paper = median_in(&hist, 0, split);
+    let Some(paper) = paper else { return ceiling };
+    let mad = {
+        let mut dev = [0u64; 256];
+        for (q, &c) in hist[..split].iter().enumerate() {
+            dev[(q as f64 - paper).abs().round().min(255.0) as usize] += c;
+        }
+        median_in(&dev, 0, 256).unwrap_or(0.0)
+    };
+    let floor = (paper + 8.0 * mad.max(0.5)).max(0.08 * 256.0);
+    let thr = match median_in(&hist, split, 256) {
+        Some(ink) => (paper + ink) / 2.0,
+        None => ceiling * 256.0,
+    };
+    (thr.max(floor) / 256.0).min(ceiling)
+}
+
+/// Otsu's split of a histogram: the first bin of the upper class.
+fn otsu(hist: &[u64; 256]) -> usize {
+    let n: f64 = hist.iter().map(|&c| c as f64).sum();
+    let total: f64 = hist.iter().enumerate().map(|(q, &c)| q as f64 * c as f64).sum();
+    let (mut w0, mut s0, mut best, mut split) = (0.0, 0.0, -1.0, 128);
+    for (q, &c) in hist.iter().enumerate().take(255) {
+        w0 += c as f64;
+        s0 += q as f64 * c as f64;
+        let w1 = n - w0;
+        if w0 == 0.0 || w1 == 0.0 {
+            continue;
+        }
+        let d = s0 / w0 - (total - s0) / w1;
+        let between = w0 * w1 * d * d;
+        if between > best {
+            best = between;
+            split = q + 1;
+        }
+    }
+    split
+}
+
+/// Median bin of `hist[lo..hi]`, `None` when empty.
+fn median_in(hist: &[u64; 256], lo: usize, hi: usize) -> Option<f64> {
+    let n: u64 = hist[lo..hi].iter().sum();
+    if n == 0 {
+        return None;
+    }
+    let mut acc = 0;
+    for (q, &c) in hist.iter().enumerate().take(hi).skip(lo) {
+        acc += c;
+        if 2 * acc >= n {
+            return Some(q as f64);
+        }
+    }
+    Some((hi - 1) as f64)
+}
+
+/// Ink mask, one byte per pixel (1 = ink), and whether each row has any ink: pixels at
+/// least `threshold` red (see [`redness_threshold`]). No morphological closing: the gap
+/// between a ring and a 5 mm-offset disk is ~2.6 px, which a 3x3 closing would bridge;
+/// a broken ring is put together from its pieces instead ([`merge_fragments`]).
+fn ink_mask(img: &RgbImage, cfg: &DetectConfig, threshold: f64) -> (Vec<u8>, Vec<bool>) {
     let w = img.width() as usize;
     let h = img.height() as usize;
-    let thr = (cfg.min_redness * 256.0).round() as i32;
+    let thr = (threshold * 256.0).round() as i32;
     let min_r = cfg.min_red_dn as i32;
     let mut mask = vec![0u8; w * h];
-    let mut rows = vec![false; h];
     if w == 0 {
-        return (mask, rows);
+        return (mask, vec![false; h]);
     }
     mask.par_chunks_mut(w)
         .zip(img.as_raw().par_chunks(w * 3))
-        .zip(rows.par_iter_mut())
         .with_min_len(16)
-        .for_each(|((m, row), any)| {
-            let mut n = 0u32;
+        .for_each(|(m, row)| {
             for (o, p) in m.iter_mut().zip(row.chunks_exact(3)) {
                 let (r, g, b) = (p[0] as i32, p[1] as i32, p[2] as i32);
-                let ink = (r >= min_r) & (256 * (r - g.max(b)) >= thr * r);
-                *o = ink as u8;
-                n += ink as u32;
+                *o = ((r >= min_r) & (256 * (r - g.max(b)) >= thr * r)) as u8;
             }
-            *any = n > 0;
         });
+    let rows = mask.chunks(w).map(|r| r.iter().any(|&v| v != 0)).collect();
     (mask, rows)
 }
 
@@ -244,9 +329,128 @@ fn components(
                 || bbox[2] as usize == w - 1
                 || bbox[3] as usize == h - 1,
             bbox,
+            pieces: vec![id],
         });
     }
     comps
+}
+
+/// Components whose boxes lie within this many pixels of each other may be pieces of one
+/// ring.
+const FRAGMENT_GAP_PX: u32 = 4;
+
+/// Pieces of a ring broken apart (blur, dim light, chroma subsampling, halos): components of
+/// no round form whose boxes nearly touch are grouped; a group of two or more whose combined
+/// moments make a round ring is appended as one component (its `pieces` the members). Groups
+/// (or single components) with a target's outline that are not round come back as reasons to
+/// skip them ([`looks_like_a_target`]): a target that failed a check is never dropped silently.
+fn merge_fragments(comps: &mut Vec<Component>, tol: f64, cfg: &DetectConfig) -> Vec<Skipped> {
+    let loose: Vec<usize> = (0..comps.len())
+        .filter(|&i| !comps[i].touches_edge && comps[i].area >= 3.0)
+        .filter(|&i| comps[i].form(tol) == Form::Other)
+        .collect();
+    let mut parent: Vec<usize> = (0..loose.len()).collect();
+    fn root(p: &mut [usize], mut i: usize) -> usize {
+        while p[i] != i {
+            p[i] = p[p[i]];
+            i = p[i];
+        }
+        i
+    }
+    let near = |a: &Component, b: &Component| {
+        let g = FRAGMENT_GAP_PX;
+        a.bbox[0] <= b.bbox[2] + g
+            && b.bbox[0] <= a.bbox[2] + g
+            && a.bbox[1] <= b.bbox[3] + g
+            && b.bbox[1] <= a.bbox[3] + g
+    };
+    for a in 0..loose.len() {
+        for b in a + 1..loose.len() {
+            if near(&comps[loose[a]], &comps[loose[b]]) {
+                let (ra, rb) = (root(&mut parent, a), root(&mut parent, b));
+                parent[ra] = rb;
+            }
+        }
+    }
+    let mut groups: std::collections::BTreeMap<usize, Vec<usize>> = Default::default();
+    for a in 0..loose.len() {
+        let r = root(&mut parent, a);
+        groups.entry(r).or_default().push(loose[a]);
+    }
+    let mut skipped = Vec::new();
+    for members in groups.into_values() {
+        let merged = merged_component(comps, &members);
+        match merged.form(tol) {
+            Form::Ring(_, ro)
+                if members.len() >= 2
+                    && ro >= cfg.min_outer_radius_px
+                    && ro <= cfg.max_outer_radius_px =>
+            {
+                comps.push(merged)
+            }
+            _ if looks_like_a_target(&merged, tol, cfg) => {
+                let b = merged.bbox;
+                let what = match members.len() {
+                    1 => "red target-sized region that is not a ring around a disk (ring and inner disk touching, or a ring not closed)".to_string(),
+                    n => format!("red ring split into {n} pieces that do not make a round ring"),
+                };
+                skipped.push(Skipped {
+                    centre_px: [(b[0] + b[2]) as f64 / 2.0, (b[1] + b[3]) as f64 / 2.0],
+                    reason: format!("{what} (box x {}..{}, y {}..{})", b[0], b[2], b[1], b[3]),
+                })
+            }
+            _ => {}
+        }
+    }
+    skipped
+}
+
+/// A region that is not round but has a target's outline: a square box of a ring's size,
+/// mostly empty (a ring with its disk fills ~0.4 of its box; a filled square 1, a disk 0.79).
+fn looks_like_a_target(c: &Component, tol: f64, cfg: &DetectConfig) -> bool {
+    let (bw, bh) = (
+        (c.bbox[2] - c.bbox[0] + 1) as f64,
+        (c.bbox[3] - c.bbox[1] + 1) as f64,
+    );
+    let side = bw.max(bh);
+    (bw - bh).abs() <= tol * side + 2.0
+        && side >= 2.0 * cfg.min_outer_radius_px
+        && side <= 2.0 * cfg.max_outer_radius_px + 2.0
+        && c.area / (bw * bh) < 0.6
+}
+
+/// One component from several: their areas, centroids and second moments combined.
+fn merged_component(comps: &[Component], members: &[usize]) -> Component {
+    let n: f64 = members.iter().map(|&i| comps[i].area).sum();
+    let mean = |k: usize| members.iter().map(|&i| comps[i].area * comps[i].centroid[k]).sum::<f64>() / n;
+    let (cx, cy) = (mean(0), mean(1));
+    let (mut mxx, mut myy, mut mxy) = (0.0, 0.0, 0.0);
+    let mut bbox = [u32::MAX, u32::MAX, 0, 0];
+    let mut pieces = Vec::new();
+    for &i in members {
+        let c = &comps[i];
+        let (dx, dy) = (c.centroid[0] - cx, c.centroid[1] - cy);
+        mxx += c.area * (c.mxx + dx * dx);
+        myy += c.area * (c.myy + dy * dy);
+        mxy += c.area * (c.mxy + dx * dy);
+        bbox = [
+            bbox[0].min(c.bbox[0]),
+            bbox[1].min(c.bbox[1]),
+            bbox[2].max(c.bbox[2]),
+            bbox[3].max(c.bbox[3]),
+        ];
+        pieces.extend_from_slice(&c.pieces);
+    }
+    Component {
+        area: n,
+        centroid: [cx, cy],
+        mxx: mxx / n,
+        myy: myy / n,
+        mxy: mxy / n,
+        bbox,
+        touches_edge: false,
+        pieces,
+    }
 }
 
 /// Find every target in a frame.
@@ -256,10 +460,12 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
     if w == 0 || h == 0 {
         return det;
     }
-    let (mask, rows) = ink_mask(img, cfg);
+    let threshold = redness_threshold(img, cfg);
+    let (mask, rows) = ink_mask(img, cfg, threshold);
     let mut labels = Vec::new();
-    let comps = components(&mask, &rows, w, h, &mut labels);
+    let mut comps = components(&mask, &rows, w, h, &mut labels);
     let tol = cfg.shape_tolerance;
+    det.skipped = merge_fragments(&mut comps, tol, cfg);
     let min_area = PI * cfg.min_outer_radius_px.powi(2) * 0.3;
 
     let forms: Vec<Form> = comps.iter().map(|c| c.form(tol)).collect();
@@ -271,13 +477,21 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
             Form::Ring(_, ro) => ro >= cfg.min_outer_radius_px && ro <= cfg.max_outer_radius_px,
             _ => false,
         })
-        .filter(|&i| {
-            // The hole is paper (or another component) where the centroid is.
-            let c = comps[i].centroid;
-            let (x, y) = (c[0].round() as usize, c[1].round() as usize);
-            x < w && y < h && labels[y * w + x] != i as u32 + 1
-        })
         .collect();
+    // The hole is paper (or another component) where the centroid is; a ring-shaped region
+    // filled there is a ring grown into its disk: reported, not measured.
+    rings.retain(|&i| {
+        let c = comps[i].centroid;
+        let (x, y) = (c[0].round() as usize, c[1].round() as usize);
+        let hole = x < w && y < h && !comps[i].pieces.contains(&labels[y * w + x]);
+        if !hole {
+            det.skipped.push(Skipped {
+                centre_px: c,
+                reason: "red ring-shaped region with ink at its centre: ring and inner disk touch (inner disk not found)".into(),
+            });
+        }
+        hole
+    });
     let ring_rim = |i: usize| match forms[i] {
         Form::Ring(_, ro) => ro,
         _ => 0.0,
@@ -295,7 +509,7 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
         let c = &comps[i];
         // The inner shape: the largest round component inside the hole.
         let inner = (0..comps.len())
-            .filter(|&j| j != i && !used[j])
+            .filter(|&j| j != i && !used[j] && comps[j].pieces.len() == 1)
             .filter(|&j| {
                 let d = &comps[j];
                 d.bbox[0] > c.bbox[0]
@@ -316,10 +530,14 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
             .max_by(|&a, &b| comps[a].area.total_cmp(&comps[b].area));
         let centre = c.centroid;
         let Some(j) = inner else {
+            let split = match c.pieces.len() {
+                1 => String::new(),
+                n => format!(", split into {n} pieces,"),
+            };
             det.skipped.push(Skipped {
                 centre_px: centre,
                 reason: format!(
-                    "red ring (rim radius {rim:.1} px) with no round inner disk or ring in its hole"
+                    "red ring (rim radius {rim:.1} px){split} with no round inner disk or ring in its hole (inner disk not found)"
                 ),
             });
             continue;
