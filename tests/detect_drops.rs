@@ -15,12 +15,13 @@ struct Counts {
     silent: usize,
 }
 
-/// Deterministic board placements: the paper board moved by up to ±`spread_um` per axis.
-fn origin(i: u64, spread_um: f64) -> [f64; 2] {
+/// Deterministic board placements (an R2 sequence): the paper board moved by up to ±250 mm
+/// across and ±150 mm down, so that some targets leave the frame or are cut by its edge.
+fn origin(i: u64) -> [f64; 2] {
     let f = |a: f64| (0.5 + a * (i as f64 + 1.0)).fract() * 2.0 - 1.0;
     [
-        f(0.754_877_666_246_692_8) * spread_um,
-        f(0.569_840_290_998_053_2) * spread_um,
+        f(0.754_877_666_246_692_8) * 250_000.0,
+        f(0.569_840_290_998_053_2) * 150_000.0,
     ]
 }
 
@@ -32,17 +33,12 @@ fn count(cam: &CameraModel, frames: u64, seed: u64, light: f64, with_board: bool
     for i in 0..frames {
         let r = FrameRenderer::new(board.clone(), cam.clone(), seed + i)
             .unwrap()
-            .with_origin(origin(seed * 31 + i, 90_000.0));
+            .with_origin(origin(seed * 31 + i));
         let mut img = r.render_at(i, [0.0, 0.0]);
         if light < 1.0 {
             // Dim light: the whole frame darker (as a shorter exposure would make it).
             img.pixels_mut()
                 .for_each(|p| p.0 = p.0.map(|v| (v as f64 * light).round() as u8));
-        }
-        if i == 4 {
-            if let Ok(dir) = std::env::var("DROPS_DUMP") {
-                img.save(format!("{dir}/{}-{seed}.png", cam.psf_sigma_px)).unwrap();
-            }
         }
         let view = r.views(i, &[[0.0, 0.0]])[0];
         let mut det = detect(&img, &DetectConfig::default());
@@ -67,9 +63,6 @@ fn count(cam: &CameraModel, frames: u64, seed: u64, light: f64, with_board: bool
                 c.skipped += 1;
             } else {
                 c.silent += 1;
-                if std::env::var("DROPS_DEBUG").is_ok() {
-                    eprintln!("silent: frame {i} target {} at {p:?}; skipped {:?}", t.name, det.skipped);
-                }
             }
         }
     }
@@ -88,27 +81,38 @@ fn profile(name: &str) -> CameraModel {
     CameraModel::profile(name).unwrap()
 }
 
-/// Measured with seeds 7 and 101, 20 frames each (docs/method.md, "Detection"): the
-/// counts over targets in view, before issue 11's detection and after.
+/// 20 frames per case, the board placed anew in each (counts in docs/method.md, "No target
+/// dropped silently"). Measured: ideal, soft and webcam 220 of 220 (seed 7) and 220 of 224
+/// (seed 101, 3-4 cut by the edge and skipped); stress 216 of 222 and 216 of 224, the
+/// rest skipped (a 5 mm-offset disk grown into its ring). Before issue 11's detection the
+/// webcam and stress frames gave no target at all, 210-218 dropped silently.
 #[test]
 fn no_target_in_view_is_dropped_silently() {
     let cases = [
-        // (case, camera, light, seed, least measured of the targets in view)
-        ("ideal", CameraModel::default(), 1.0, 7, 240),
-        ("ideal, blur 1.2 px", soft(), 1.0, 101, 240),
-        ("ideal, blur 1.2 px, dim", soft(), 0.5, 7, 240),
-        ("ideal, blur 1.2 px, dim", soft(), 0.5, 101, 240),
-        ("webcam", profile("webcam"), 1.0, 7, 240),
-        ("webcam", profile("webcam"), 1.0, 101, 240),
-        ("stress", profile("stress"), 1.0, 7, 220),
-        ("stress", profile("stress"), 1.0, 101, 220),
+        // (case, camera, light, seed, least share of the targets in view measured)
+        ("ideal", CameraModel::default(), 1.0, 7, 0.98),
+        ("ideal, blur 1.2 px", soft(), 1.0, 101, 0.98),
+        ("ideal, blur 1.2 px, dim", soft(), 0.5, 7, 0.98),
+        ("ideal, blur 1.2 px, dim", soft(), 0.5, 101, 0.98),
+        ("webcam", profile("webcam"), 1.0, 7, 0.98),
+        ("webcam", profile("webcam"), 1.0, 101, 0.98),
+        ("stress", profile("stress"), 1.0, 7, 0.95),
+        ("stress", profile("stress"), 1.0, 101, 0.95),
     ];
     for (name, cam, light, seed, least) in cases {
         for with_board in [false, true] {
             let c = count(&cam, 20, seed, light, with_board);
             eprintln!("{name} (seed {seed}, board {with_board}): {c:?}");
             assert_eq!(c.silent, 0, "{name} seed {seed}: {c:?}");
-            assert!(c.measured >= least, "{name} seed {seed}: {c:?}");
+            let in_view = c.measured + c.skipped + c.silent;
+            assert!(
+                in_view >= 150,
+                "{name} seed {seed}: few targets in view: {c:?}"
+            );
+            assert!(
+                c.measured as f64 >= least * in_view as f64,
+                "{name} seed {seed}: {c:?}"
+            );
         }
     }
 }

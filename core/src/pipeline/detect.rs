@@ -1,16 +1,20 @@
 //! Finding targets with no prior layout: a red outer ring around a red inner disk (or ring).
 //!
 //! 1. Ink mask: a pixel is ink when it is red, i.e. `(R - max(G, B)) / R` is above a
-//!    threshold. The ratio does not depend on the illumination, so vignetting and uneven
-//!    light do not move it; dark pixels (where the ratio is noise) are never ink.
-//! 2. Connected components (8-connected) with their moments.
+//!    threshold taken from the frame's own redness histogram ([`redness_threshold`]). The
+//!    ratio does not depend on the illumination, so vignetting and uneven light do not move
+//!    it; dark pixels (where the ratio is noise) are never ink.
+//! 2. Connected components (8-connected) with their moments; pieces of a ring broken apart
+//!    are put together when their combined moments make a round ring ([`merge_fragments`]).
 //! 3. Shape: an outer ring is a component whose moments fit an annulus (area and mean
 //!    squared radius give both radii), round (isotropic second moments, square bounding box
 //!    of the annulus's size) with a hole where its centroid is. The inner shape is the
 //!    largest component inside that hole, itself a round disk or annulus.
-//! 4. Whatever cannot be measured is reported in `skipped` with the reason: red regions cut
-//!    by the frame edge, rings too near the edge for their ROI, rings with nothing inside.
-//!    Other red clutter (filled disks, rectangles, text) is rejected silently.
+//! 4. Whatever looked like a target and cannot be measured is reported in `skipped` with the
+//!    reason: red regions cut by the frame edge, rings too near the edge for their ROI, rings
+//!    with nothing inside or grown into their disk, pieces that do not make a round ring,
+//!    regions with a target's outline that are not a ring around a disk. Other red clutter
+//!    (filled disks, rectangles, text) is rejected silently.
 
 use super::plane::Roi;
 use super::Skipped;
@@ -207,7 +211,11 @@ pub fn redness_threshold(img: &RgbImage, cfg: &DetectConfig) -> f64 {
 /// Otsu's split of a histogram: the first bin of the upper class.
 fn otsu(hist: &[u64; 256]) -> usize {
     let n: f64 = hist.iter().map(|&c| c as f64).sum();
-    let total: f64 = hist.iter().enumerate().map(|(q, &c)| q as f64 * c as f64).sum();
+    let total: f64 = hist
+        .iter()
+        .enumerate()
+        .map(|(q, &c)| q as f64 * c as f64)
+        .sum();
     let (mut w0, mut s0, mut best, mut split) = (0.0, 0.0, -1.0, 128);
     for (q, &c) in hist.iter().enumerate().take(255) {
         w0 += c as f64;
@@ -373,9 +381,9 @@ fn merge_fragments(comps: &mut Vec<Component>, tol: f64, cfg: &DetectConfig) -> 
         }
     }
     let mut groups: std::collections::BTreeMap<usize, Vec<usize>> = Default::default();
-    for a in 0..loose.len() {
+    for (a, &i) in loose.iter().enumerate() {
         let r = root(&mut parent, a);
-        groups.entry(r).or_default().push(loose[a]);
+        groups.entry(r).or_default().push(i);
     }
     let mut skipped = Vec::new();
     for members in groups.into_values() {
@@ -422,7 +430,13 @@ fn looks_like_a_target(c: &Component, tol: f64, cfg: &DetectConfig) -> bool {
 /// One component from several: their areas, centroids and second moments combined.
 fn merged_component(comps: &[Component], members: &[usize]) -> Component {
     let n: f64 = members.iter().map(|&i| comps[i].area).sum();
-    let mean = |k: usize| members.iter().map(|&i| comps[i].area * comps[i].centroid[k]).sum::<f64>() / n;
+    let mean = |k: usize| {
+        members
+            .iter()
+            .map(|&i| comps[i].area * comps[i].centroid[k])
+            .sum::<f64>()
+            / n
+    };
     let (cx, cy) = (mean(0), mean(1));
     let (mut mxx, mut myy, mut mxy) = (0.0, 0.0, 0.0);
     let mut bbox = [u32::MAX, u32::MAX, 0, 0];

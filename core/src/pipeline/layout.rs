@@ -140,7 +140,7 @@ pub fn unseen_targets(
         if matched.contains(&j) {
             continue;
         }
-        let p = map(t.centre_um);
+        let p = map.apply(t.centre_um);
         if !(p[0] >= 0.0 && p[1] >= 0.0 && p[0] <= w - 1.0 && p[1] <= h - 1.0) {
             continue;
         }
@@ -160,25 +160,49 @@ pub fn unseen_targets(
     out
 }
 
-/// Board µm -> image px from matched (board, image) pairs: least-squares affine, or the mean
-/// translation at the known scale when the pairs cannot fix one. `None` with no pairs.
+/// Board µm -> image px: `image = i0 + m (board - b0)`.
+struct BoardToImage {
+    b0: [f64; 2],
+    i0: [f64; 2],
+    m: [[f64; 2]; 2],
+}
+
+impl BoardToImage {
+    fn apply(&self, p: [f64; 2]) -> [f64; 2] {
+        let (x, y) = (p[0] - self.b0[0], p[1] - self.b0[1]);
+        let m = self.m;
+        [
+            self.i0[0] + m[0][0] * x + m[0][1] * y,
+            self.i0[1] + m[1][0] * x + m[1][1] * y,
+        ]
+    }
+}
+
+/// The map from matched (board, image) pairs: least-squares affine, or the mean translation
+/// at the known scale when the pairs cannot fix one. `None` with no pairs.
 fn fit_board_to_image(
     pairs: &[([f64; 2], [f64; 2])],
     scale_um_per_px: f64,
-) -> Option<Box<dyn Fn([f64; 2]) -> [f64; 2]>> {
+) -> Option<BoardToImage> {
     if pairs.is_empty() {
         return None;
     }
     let n = pairs.len() as f64;
-    let mean = |f: &dyn Fn(&([f64; 2], [f64; 2])) -> f64| pairs.iter().map(f).sum::<f64>() / n;
-    let (bx, by) = (mean(&|p| p.0[0]), mean(&|p| p.0[1]));
-    let (ix, iy) = (mean(&|p| p.1[0]), mean(&|p| p.1[1]));
+    let mean = |side: usize, k: usize| {
+        pairs
+            .iter()
+            .map(|p| if side == 0 { p.0[k] } else { p.1[k] })
+            .sum::<f64>()
+            / n
+    };
+    let b0 = [mean(0, 0), mean(0, 1)];
+    let i0 = [mean(1, 0), mean(1, 1)];
     // Centred normal equations: [sxx sxy; sxy syy] a = [sxu; syu] per image coordinate.
     let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
     let (mut su, mut sv) = ([0.0; 2], [0.0; 2]);
     for (b, i) in pairs {
-        let (x, y) = (b[0] - bx, b[1] - by);
-        let (u, v) = (i[0] - ix, i[1] - iy);
+        let (x, y) = (b[0] - b0[0], b[1] - b0[1]);
+        let (u, v) = (i[0] - i0[0], i[1] - i0[1]);
         sxx += x * x;
         syy += y * y;
         sxy += x * y;
@@ -186,17 +210,19 @@ fn fit_board_to_image(
         sv = [sv[0] + x * v, sv[1] + y * v];
     }
     let det = sxx * syy - sxy * sxy;
-    if pairs.len() >= 3 && det > 1e-6 * (sxx * syy).max(f64::MIN_POSITIVE) {
-        let solve = |r: [f64; 2]| [(syy * r[0] - sxy * r[1]) / det, (sxx * r[1] - sxy * r[0]) / det];
-        let (a, c) = (solve(su), solve(sv));
-        Some(Box::new(move |p: [f64; 2]| {
-            let (x, y) = (p[0] - bx, p[1] - by);
-            [ix + a[0] * x + a[1] * y, iy + c[0] * x + c[1] * y]
-        }))
+    let m = if pairs.len() >= 3 && det > 1e-6 * (sxx * syy).max(f64::MIN_POSITIVE) {
+        let solve = |r: [f64; 2]| {
+            [
+                (syy * r[0] - sxy * r[1]) / det,
+                (sxx * r[1] - sxy * r[0]) / det,
+            ]
+        };
+        [solve(su), solve(sv)]
     } else {
-        let s = scale_um_per_px;
-        Some(Box::new(move |p: [f64; 2]| [ix + (p[0] - bx) / s, iy + (p[1] - by) / s]))
-    }
+        let s = 1.0 / scale_um_per_px;
+        [[s, 0.0], [0.0, s]]
+    };
+    Some(BoardToImage { b0, i0, m })
 }
 
 #[cfg(test)]
@@ -232,17 +258,29 @@ mod tests {
             let c = board.targets[j].centre_um;
             [c[0] / s + 10.0, c[1] / s + 5.0]
         };
-        let found: Vec<[f64; 2]> = (0..board.targets.len()).filter(|&j| j != 3).map(at).collect();
+        let found: Vec<[f64; 2]> = (0..board.targets.len())
+            .filter(|&j| j != 3)
+            .map(at)
+            .collect();
         let unseen = unseen_targets(&found, &[], &board, s, (1280, 720));
         assert_eq!(unseen.len(), 1, "{unseen:?}");
         let want = at(3);
         let got = unseen[0].centre_px;
-        assert!((got[0] - want[0]).hypot(got[1] - want[1]) < 1e-6, "{got:?} vs {want:?}");
-        assert!(unseen[0].reason.contains(&board.targets[3].name), "{}", unseen[0].reason);
+        assert!(
+            (got[0] - want[0]).hypot(got[1] - want[1]) < 1e-6,
+            "{got:?} vs {want:?}"
+        );
+        assert!(
+            unseen[0].reason.contains(&board.targets[3].name),
+            "{}",
+            unseen[0].reason
+        );
         // Already reported (e.g. cut by the edge): not listed twice.
         assert!(unseen_targets(&found, &[want], &board, s, (1280, 720)).is_empty());
         // Out of the frame: not in view, not listed.
-        assert!(unseen_targets(&found, &[], &board, s, (100, 100)).iter().all(|u| u.centre_px[0] < 100.0));
+        assert!(unseen_targets(&found, &[], &board, s, (100, 100))
+            .iter()
+            .all(|u| u.centre_px[0] < 100.0));
     }
 
     #[test]
