@@ -714,6 +714,88 @@ mod tests {
         comps[0].form(DetectConfig::default().shape_tolerance)
     }
 
+    /// A 160x120 frame of paper with `ink` wherever `inside(x, y)` (about the centre).
+    fn frame_of(ink: [u8; 3], inside: impl Fn(f64, f64) -> bool) -> RgbImage {
+        RgbImage::from_fn(160, 120, |x, y| {
+            let on = inside(x as f64 - 80.0, y as f64 - 60.0);
+            image::Rgb(if on { ink } else { [230, 226, 218] })
+        })
+    }
+
+    /// A ring (16..22 px) around a disk (7 px) offset by `off` px, cut by `cuts` radial gaps
+    /// 3 px wide.
+    fn target(off: f64, cuts: usize) -> impl Fn(f64, f64) -> bool {
+        move |x: f64, y: f64| {
+            let r = x.hypot(y);
+            let gap = (0..cuts).any(|k| {
+                let a = 2.0 * PI * k as f64 / cuts as f64 + 0.3;
+                let along = x * a.cos() + y * a.sin();
+                along > 0.0 && (x * a.sin() - y * a.cos()).abs() < 1.5
+            });
+            (r >= 16.0 && r < 22.0 && !gap) || (x - off).hypot(y) < 7.0
+        }
+    }
+
+    #[test]
+    fn the_threshold_follows_the_ink_and_never_exceeds_the_fixed_one() {
+        let cfg = DetectConfig::default();
+        // Deep red ink (redness 0.73, paper 0.02): halfway, 0.37; redder ink is capped at 0.4.
+        let red = frame_of([220, 60, 58], target(0.0, 0));
+        let t = redness_threshold(&red, &cfg);
+        assert!((t - 0.37).abs() < 0.01, "{t}");
+        let deep = frame_of([220, 10, 10], target(0.0, 0));
+        assert_eq!(redness_threshold(&deep, &cfg), cfg.min_redness);
+        // Pink ink (redness 0.32, as a webcam's sRGB and crosstalk make it): halfway, ~0.16.
+        let pink = frame_of([220, 150, 148], target(0.0, 0));
+        let t = redness_threshold(&pink, &cfg);
+        assert!((t - 0.16).abs() < 0.02, "{t}");
+        assert_eq!(detect(&pink, &cfg).targets.len(), 1);
+        // Paper only: the threshold stays above the paper's redness (nothing found).
+        let blank = frame_of([0, 0, 0], |_, _| false);
+        assert!(redness_threshold(&blank, &cfg) >= 0.08);
+        assert!(detect(&blank, &cfg).skipped.is_empty());
+    }
+
+    #[test]
+    fn a_ring_in_pieces_is_one_target_and_what_cannot_be_measured_is_said() {
+        let cfg = DetectConfig::default();
+        let ink = [220, 60, 58];
+        let det = detect(&frame_of(ink, target(2.0, 3)), &cfg);
+        assert_eq!(det.targets.len(), 1, "{:?}", det.skipped);
+        let t = &det.targets[0];
+        // The ring's pieces put back together: centre and rim as the whole ring's.
+        assert!((t.outer_centre_px[0] - 80.0).abs() < 0.6, "{t:?}");
+        assert!((t.outer_centre_px[1] - 60.0).abs() < 0.6, "{t:?}");
+        assert!((t.outer_radii_px[1] - 22.0).abs() < 1.0, "{t:?}");
+        assert!(det.skipped.is_empty(), "{:?}", det.skipped);
+        // The same pieces with no disk: skipped, saying so.
+        let det = detect(
+            &frame_of(ink, |x, y| target(0.0, 3)(x, y) && x.hypot(y) > 10.0),
+            &cfg,
+        );
+        assert!(det.targets.is_empty());
+        assert_eq!(det.skipped.len(), 1, "{:?}", det.skipped);
+        assert!(
+            det.skipped[0].reason.contains("split into 3 pieces"),
+            "{:?}",
+            det.skipped
+        );
+        // A disk grown into its ring: one region, skipped, near the target's place.
+        let det = detect(
+            &frame_of(ink, |x, y| {
+                target(10.0, 0)(x, y) || (y.abs() < 3.0 && x > 0.0 && x < 18.0)
+            }),
+            &cfg,
+        );
+        assert!(det.targets.is_empty());
+        assert_eq!(det.skipped.len(), 1, "{:?}", det.skipped);
+        let s = &det.skipped[0];
+        assert!(
+            (s.centre_px[0] - 80.0).hypot(s.centre_px[1] - 60.0) < 8.0,
+            "{s:?}"
+        );
+    }
+
     #[test]
     fn moments_tell_rings_disks_and_clutter_apart() {
         let r = |x: f64, y: f64| x.hypot(y);
