@@ -178,6 +178,11 @@ fn redness_256(p: &[u8], min_r: i32) -> Option<usize> {
 /// `cfg.min_redness` (today's fixed threshold: a clean frame keeps it) and never within the
 /// paper's noise (median + 8 MAD, at least 0.08).
 pub fn redness_threshold(img: &RgbImage, cfg: &DetectConfig) -> f64 {
+    redness_levels(img, cfg).0
+}
+
+/// [`redness_threshold`] and the ink's median redness (the threshold when there is no ink).
+fn redness_levels(img: &RgbImage, cfg: &DetectConfig) -> (f64, f64) {
     let min_r = cfg.min_red_dn as i32;
     let mut hist = [0u64; 256];
     for p in img.as_raw().chunks_exact(3) {
@@ -188,11 +193,13 @@ pub fn redness_threshold(img: &RgbImage, cfg: &DetectConfig) -> f64 {
     let ceiling = cfg.min_redness;
     let n: u64 = hist.iter().sum();
     if n == 0 {
-        return ceiling;
+        return (ceiling, ceiling);
     }
     let split = otsu(&hist);
     let paper = median_in(&hist, 0, split);
-    let Some(paper) = paper else { return ceiling };
+    let Some(paper) = paper else {
+        return (ceiling, ceiling);
+    };
     let mad = {
         let mut dev = [0u64; 256];
         for (q, &c) in hist[..split].iter().enumerate() {
@@ -201,11 +208,13 @@ pub fn redness_threshold(img: &RgbImage, cfg: &DetectConfig) -> f64 {
         median_in(&dev, 0, 256).unwrap_or(0.0)
     };
     let floor = (paper + 8.0 * mad.max(0.5)).max(0.08 * 256.0);
-    let thr = match median_in(&hist, split, 256) {
+    let ink = median_in(&hist, split, 256);
+    let thr = match ink {
         Some(ink) => (paper + ink) / 2.0,
         None => ceiling * 256.0,
     };
-    (thr.max(floor) / 256.0).min(ceiling)
+    let thr = (thr.max(floor) / 256.0).min(ceiling);
+    (thr, ink.map_or(thr, |q| (q / 256.0).max(thr)))
 }
 
 /// Otsu's split of a histogram: the first bin of the upper class.
@@ -352,7 +361,11 @@ const FRAGMENT_GAP_PX: u32 = 4;
 /// moments make a round ring is appended as one component (its `pieces` the members). Groups
 /// (or single components) with a target's outline that are not round come back as reasons to
 /// skip them ([`looks_like_a_target`]): a target that failed a check is never dropped silently.
-fn merge_fragments(comps: &mut Vec<Component>, tol: f64, cfg: &DetectConfig) -> Vec<Skipped> {
+fn merge_fragments(
+    comps: &mut Vec<Component>,
+    tol: f64,
+    cfg: &DetectConfig,
+) -> Vec<(Skipped, [u32; 4])> {
     let loose: Vec<usize> = (0..comps.len())
         .filter(|&i| !comps[i].touches_edge && comps[i].area >= 3.0)
         .filter(|&i| comps[i].form(tol) == Form::Other)
@@ -402,10 +415,9 @@ fn merge_fragments(comps: &mut Vec<Component>, tol: f64, cfg: &DetectConfig) -> 
                     1 => "red target-sized region that is not a ring around a disk (ring and inner disk touching, or a ring not closed)".to_string(),
                     n => format!("red ring split into {n} pieces that do not make a round ring"),
                 };
-                skipped.push(Skipped {
-                    centre_px: [(b[0] + b[2]) as f64 / 2.0, (b[1] + b[3]) as f64 / 2.0],
-                    reason: format!("{what} (box x {}..{}, y {}..{})", b[0], b[2], b[1], b[3]),
-                })
+                let reason = format!("{what} (box x {}..{}, y {}..{})", b[0], b[2], b[1], b[3]);
+                let centre_px = [(b[0] + b[2]) as f64 / 2.0, (b[1] + b[3]) as f64 / 2.0];
+                skipped.push((Skipped { centre_px, reason }, b))
             }
             _ => {}
         }
@@ -467,19 +479,74 @@ fn merged_component(comps: &[Component], members: &[usize]) -> Component {
     }
 }
 
-/// Find every target in a frame.
+/// Find every target in a frame. A region that looked like a target but failed (a disk grown
+/// into its ring, pieces that do not make a ring) is looked at again alone at higher
+/// thresholds, between the frame's and the ink's redness, which thin the ink apart; a
+/// target found so replaces its `skipped` entry.
 pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
+    let (threshold, ink) = redness_levels(img, cfg);
+    let (mut det, retry) = detect_at(img, cfg, threshold);
+    let mut resolved = Vec::new();
+    for (k, b) in retry {
+        let m = cfg.roi_margin_px.ceil() as u32 + 2;
+        let (x0, y0) = (b[0].saturating_sub(m), b[1].saturating_sub(m));
+        let x1 = (b[2] + m).min(img.width() - 1);
+        let y1 = (b[3] + m).min(img.height() - 1);
+        let crop = image::imageops::crop_imm(img, x0, y0, x1 - x0 + 1, y1 - y0 + 1).to_image();
+        for frac in [0.35, 0.6] {
+            let (d, _) = detect_at(&crop, cfg, threshold + frac * (ink - threshold));
+            if let [t] = d.targets.as_slice() {
+                let mut t = t.translated([x0 as f64, y0 as f64]);
+                t.roi.x += x0;
+                t.roi.y += y0;
+                det.targets.push(t);
+                resolved.push(k);
+                break;
+            }
+        }
+    }
+    let mut k = 0;
+    det.skipped.retain(|_| {
+        k += 1;
+        !resolved.contains(&(k - 1))
+    });
+    sort_reading_order(&mut det.targets);
+    det
+}
+
+/// Rows of targets top to bottom, left to right within a row.
+fn sort_reading_order(targets: &mut [Candidate]) {
+    targets.sort_by(|a, b| {
+        let (ya, yb) = (a.outer_centre_px[1], b.outer_centre_px[1]);
+        if (ya - yb).abs() > a.outer_radii_px[1].min(b.outer_radii_px[1]) {
+            ya.total_cmp(&yb)
+        } else {
+            a.outer_centre_px[0].total_cmp(&b.outer_centre_px[0])
+        }
+    });
+}
+
+/// [`detect`] at one redness threshold, with the `skipped` entries (index, box) worth a
+/// second look.
+fn detect_at(
+    img: &RgbImage,
+    cfg: &DetectConfig,
+    threshold: f64,
+) -> (Detection, Vec<(usize, [u32; 4])>) {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let mut det = Detection::default();
+    let mut retry = Vec::new();
     if w == 0 || h == 0 {
-        return det;
+        return (det, retry);
     }
-    let threshold = redness_threshold(img, cfg);
     let (mask, rows) = ink_mask(img, cfg, threshold);
     let mut labels = Vec::new();
     let mut comps = components(&mask, &rows, w, h, &mut labels);
     let tol = cfg.shape_tolerance;
-    det.skipped = merge_fragments(&mut comps, tol, cfg);
+    for (s, b) in merge_fragments(&mut comps, tol, cfg) {
+        retry.push((det.skipped.len(), b));
+        det.skipped.push(s);
+    }
     let min_area = PI * cfg.min_outer_radius_px.powi(2) * 0.3;
 
     let forms: Vec<Form> = comps.iter().map(|c| c.form(tol)).collect();
@@ -499,6 +566,7 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
         let (x, y) = (c[0].round() as usize, c[1].round() as usize);
         let hole = x < w && y < h && !comps[i].pieces.contains(&labels[y * w + x]);
         if !hole {
+            retry.push((det.skipped.len(), comps[i].bbox));
             det.skipped.push(Skipped {
                 centre_px: c,
                 reason: "red ring-shaped region with ink at its centre: ring and inner disk touch (inner disk not found)".into(),
@@ -601,22 +669,13 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
             used[i] = true;
         }
     }
-    // Reading order: rows of targets top to bottom, left to right within a row.
-    det.targets.sort_by(|a, b| {
-        let (ya, yb) = (a.outer_centre_px[1], b.outer_centre_px[1]);
-        if (ya - yb).abs() > a.outer_radii_px[1].min(b.outer_radii_px[1]) {
-            ya.total_cmp(&yb)
-        } else {
-            a.outer_centre_px[0].total_cmp(&b.outer_centre_px[0])
-        }
-    });
     tracing::debug!(
         components = comps.len(),
         targets = det.targets.len(),
         skipped = det.skipped.len(),
         "detect"
     );
-    det
+    (det, retry)
 }
 
 /// Mean of one channel over the pixels of `roi` whose distance from `c` lies in `[r0, r1]`.
