@@ -1,16 +1,20 @@
 //! Finding targets with no prior layout: a red outer ring around a red inner disk (or ring).
 //!
 //! 1. Ink mask: a pixel is ink when it is red, i.e. `(R - max(G, B)) / R` is above a
-//!    threshold. The ratio does not depend on the illumination, so vignetting and uneven
-//!    light do not move it; dark pixels (where the ratio is noise) are never ink.
-//! 2. Connected components (8-connected) with their moments.
+//!    threshold taken from the frame's own redness histogram ([`redness_threshold`]). The
+//!    ratio does not depend on the illumination, so vignetting and uneven light do not move
+//!    it; dark pixels (where the ratio is noise) are never ink.
+//! 2. Connected components (8-connected) with their moments; pieces of a ring broken apart
+//!    are put together when their combined moments make a round ring ([`merge_fragments`]).
 //! 3. Shape: an outer ring is a component whose moments fit an annulus (area and mean
 //!    squared radius give both radii), round (isotropic second moments, square bounding box
 //!    of the annulus's size) with a hole where its centroid is. The inner shape is the
 //!    largest component inside that hole, itself a round disk or annulus.
-//! 4. Whatever cannot be measured is reported in `skipped` with the reason: red regions cut
-//!    by the frame edge, rings too near the edge for their ROI, rings with nothing inside.
-//!    Other red clutter (filled disks, rectangles, text) is rejected silently.
+//! 4. Whatever looked like a target and cannot be measured is reported in `skipped` with the
+//!    reason: red regions cut by the frame edge, rings too near the edge for their ROI, rings
+//!    with nothing inside or grown into their disk, pieces that do not make a round ring,
+//!    regions with a target's outline that are not a ring around a disk. Other red clutter
+//!    (filled disks, rectangles, text) is rejected silently.
 
 use super::plane::Roi;
 use super::Skipped;
@@ -22,7 +26,8 @@ use std::f64::consts::PI;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DetectConfig {
-    /// A pixel is ink when `(R - max(G, B)) / R` is at least this.
+    /// The highest redness threshold: a pixel is ink when `(R - max(G, B)) / R` is at least
+    /// the frame's own threshold ([`redness_threshold`]), which never exceeds this.
     pub min_redness: f64,
     /// ... and its red value is at least this many DN (the ratio of dark pixels is noise).
     pub min_red_dn: u8,
@@ -102,6 +107,9 @@ struct Component {
     mxy: f64,
     bbox: [u32; 4], // x0, y0, x1, y1 inclusive
     touches_edge: bool,
+    /// The labels (1-based) of the mask components it is made of: one, or the pieces of a
+    /// ring broken apart that [`merge_fragments`] put together.
+    pieces: Vec<u32>,
 }
 
 /// Shape of a component judged from its moments.
@@ -155,31 +163,125 @@ impl Component {
     }
 }
 
-/// Ink mask, one byte per pixel (1 = ink), and whether each row has any ink.
-fn ink_mask(img: &RgbImage, cfg: &DetectConfig) -> (Vec<u8>, Vec<bool>) {
+/// Redness of a pixel in 1/256: `256 (R - max(G, B)) / R`, clamped to 0..=255; `None` when
+/// the pixel is too dark for the ratio to mean anything.
+#[inline]
+fn redness_256(p: &[u8], min_r: i32) -> Option<usize> {
+    let (r, g, b) = (p[0] as i32, p[1] as i32, p[2] as i32);
+    (r >= min_r).then(|| (256 * (r - g.max(b)) / r).clamp(0, 255) as usize)
+}
+
+/// The redness threshold (1/256) this frame's ink and paper call for: Otsu's split of the
+/// redness histogram separates paper from ink; the threshold is halfway between the paper's
+/// median and the ink's, i.e. the middle of a blurred edge, so a softer lens, a pinker
+/// webcam colour or dim light do not thin the ring into pieces. Never above
+/// `cfg.min_redness` (today's fixed threshold: a clean frame keeps it) and never within the
+/// paper's noise (median + 8 MAD, at least 0.08).
+pub fn redness_threshold(img: &RgbImage, cfg: &DetectConfig) -> f64 {
+    redness_levels(img, cfg).0
+}
+
+/// [`redness_threshold`] and the ink's median redness (the threshold when there is no ink).
+fn redness_levels(img: &RgbImage, cfg: &DetectConfig) -> (f64, f64) {
+    let min_r = cfg.min_red_dn as i32;
+    let mut hist = [0u64; 256];
+    for p in img.as_raw().chunks_exact(3) {
+        if let Some(q) = redness_256(p, min_r) {
+            hist[q] += 1;
+        }
+    }
+    let ceiling = cfg.min_redness;
+    let n: u64 = hist.iter().sum();
+    if n == 0 {
+        return (ceiling, ceiling);
+    }
+    let split = otsu(&hist);
+    let paper = median_in(&hist, 0, split);
+    let Some(paper) = paper else {
+        return (ceiling, ceiling);
+    };
+    let mad = {
+        let mut dev = [0u64; 256];
+        for (q, &c) in hist[..split].iter().enumerate() {
+            dev[(q as f64 - paper).abs().round().min(255.0) as usize] += c;
+        }
+        median_in(&dev, 0, 256).unwrap_or(0.0)
+    };
+    let floor = (paper + 8.0 * mad.max(0.5)).max(0.08 * 256.0);
+    let ink = median_in(&hist, split, 256);
+    let thr = match ink {
+        Some(ink) => (paper + ink) / 2.0,
+        None => ceiling * 256.0,
+    };
+    let thr = (thr.max(floor) / 256.0).min(ceiling);
+    (thr, ink.map_or(thr, |q| (q / 256.0).max(thr)))
+}
+
+/// Otsu's split of a histogram: the first bin of the upper class.
+fn otsu(hist: &[u64; 256]) -> usize {
+    let n: f64 = hist.iter().map(|&c| c as f64).sum();
+    let total: f64 = hist
+        .iter()
+        .enumerate()
+        .map(|(q, &c)| q as f64 * c as f64)
+        .sum();
+    let (mut w0, mut s0, mut best, mut split) = (0.0, 0.0, -1.0, 128);
+    for (q, &c) in hist.iter().enumerate().take(255) {
+        w0 += c as f64;
+        s0 += q as f64 * c as f64;
+        let w1 = n - w0;
+        if w0 == 0.0 || w1 == 0.0 {
+            continue;
+        }
+        let d = s0 / w0 - (total - s0) / w1;
+        let between = w0 * w1 * d * d;
+        if between > best {
+            best = between;
+            split = q + 1;
+        }
+    }
+    split
+}
+
+/// Median bin of `hist[lo..hi]`, `None` when empty.
+fn median_in(hist: &[u64; 256], lo: usize, hi: usize) -> Option<f64> {
+    let n: u64 = hist[lo..hi].iter().sum();
+    if n == 0 {
+        return None;
+    }
+    let mut acc = 0;
+    for (q, &c) in hist.iter().enumerate().take(hi).skip(lo) {
+        acc += c;
+        if 2 * acc >= n {
+            return Some(q as f64);
+        }
+    }
+    Some((hi - 1) as f64)
+}
+
+/// Ink mask, one byte per pixel (1 = ink), and whether each row has any ink: pixels at
+/// least `threshold` red (see [`redness_threshold`]). No morphological closing: the gap
+/// between a ring and a 5 mm-offset disk is ~2.6 px, which a 3x3 closing would bridge;
+/// a broken ring is put together from its pieces instead ([`merge_fragments`]).
+fn ink_mask(img: &RgbImage, cfg: &DetectConfig, threshold: f64) -> (Vec<u8>, Vec<bool>) {
     let w = img.width() as usize;
     let h = img.height() as usize;
-    let thr = (cfg.min_redness * 256.0).round() as i32;
+    let thr = (threshold * 256.0).round() as i32;
     let min_r = cfg.min_red_dn as i32;
     let mut mask = vec![0u8; w * h];
-    let mut rows = vec![false; h];
     if w == 0 {
-        return (mask, rows);
+        return (mask, vec![false; h]);
     }
     mask.par_chunks_mut(w)
         .zip(img.as_raw().par_chunks(w * 3))
-        .zip(rows.par_iter_mut())
         .with_min_len(16)
-        .for_each(|((m, row), any)| {
-            let mut n = 0u32;
+        .for_each(|(m, row)| {
             for (o, p) in m.iter_mut().zip(row.chunks_exact(3)) {
                 let (r, g, b) = (p[0] as i32, p[1] as i32, p[2] as i32);
-                let ink = (r >= min_r) & (256 * (r - g.max(b)) >= thr * r);
-                *o = ink as u8;
-                n += ink as u32;
+                *o = ((r >= min_r) & (256 * (r - g.max(b)) >= thr * r)) as u8;
             }
-            *any = n > 0;
         });
+    let rows = mask.chunks(w).map(|r| r.iter().any(|&v| v != 0)).collect();
     (mask, rows)
 }
 
@@ -244,22 +346,207 @@ fn components(
                 || bbox[2] as usize == w - 1
                 || bbox[3] as usize == h - 1,
             bbox,
+            pieces: vec![id],
         });
     }
     comps
 }
 
-/// Find every target in a frame.
+/// Components whose boxes lie within this many pixels of each other may be pieces of one
+/// ring.
+const FRAGMENT_GAP_PX: u32 = 4;
+
+/// Pieces of a ring broken apart (blur, dim light, chroma subsampling, halos): components of
+/// no round form whose boxes nearly touch are grouped; a group of two or more whose combined
+/// moments make a round ring is appended as one component (its `pieces` the members). Groups
+/// (or single components) with a target's outline that are not round come back as reasons to
+/// skip them ([`looks_like_a_target`]): a target that failed a check is never dropped silently.
+fn merge_fragments(
+    comps: &mut Vec<Component>,
+    tol: f64,
+    cfg: &DetectConfig,
+) -> Vec<(Skipped, [u32; 4])> {
+    let loose: Vec<usize> = (0..comps.len())
+        .filter(|&i| !comps[i].touches_edge && comps[i].area >= 3.0)
+        .filter(|&i| comps[i].form(tol) == Form::Other)
+        .collect();
+    let mut parent: Vec<usize> = (0..loose.len()).collect();
+    fn root(p: &mut [usize], mut i: usize) -> usize {
+        while p[i] != i {
+            p[i] = p[p[i]];
+            i = p[i];
+        }
+        i
+    }
+    let near = |a: &Component, b: &Component| {
+        let g = FRAGMENT_GAP_PX;
+        a.bbox[0] <= b.bbox[2] + g
+            && b.bbox[0] <= a.bbox[2] + g
+            && a.bbox[1] <= b.bbox[3] + g
+            && b.bbox[1] <= a.bbox[3] + g
+    };
+    for a in 0..loose.len() {
+        for b in a + 1..loose.len() {
+            if near(&comps[loose[a]], &comps[loose[b]]) {
+                let (ra, rb) = (root(&mut parent, a), root(&mut parent, b));
+                parent[ra] = rb;
+            }
+        }
+    }
+    let mut groups: std::collections::BTreeMap<usize, Vec<usize>> = Default::default();
+    for (a, &i) in loose.iter().enumerate() {
+        let r = root(&mut parent, a);
+        groups.entry(r).or_default().push(i);
+    }
+    let mut skipped = Vec::new();
+    for members in groups.into_values() {
+        let merged = merged_component(comps, &members);
+        match merged.form(tol) {
+            Form::Ring(_, ro)
+                if members.len() >= 2
+                    && ro >= cfg.min_outer_radius_px
+                    && ro <= cfg.max_outer_radius_px =>
+            {
+                comps.push(merged)
+            }
+            _ if looks_like_a_target(&merged, tol, cfg) => {
+                let b = merged.bbox;
+                let what = match members.len() {
+                    1 => "red target-sized region that is not a ring around a disk (ring and inner disk touching, or a ring not closed)".to_string(),
+                    n => format!("red ring split into {n} pieces that do not make a round ring"),
+                };
+                let reason = format!("{what} (box x {}..{}, y {}..{})", b[0], b[2], b[1], b[3]);
+                let centre_px = [(b[0] + b[2]) as f64 / 2.0, (b[1] + b[3]) as f64 / 2.0];
+                skipped.push((Skipped { centre_px, reason }, b))
+            }
+            _ => {}
+        }
+    }
+    skipped
+}
+
+/// A region that is not round but has a target's outline: a square box of a ring's size,
+/// mostly empty (a ring with its disk fills ~0.4 of its box; a filled square 1, a disk 0.79).
+fn looks_like_a_target(c: &Component, tol: f64, cfg: &DetectConfig) -> bool {
+    let (bw, bh) = (
+        (c.bbox[2] - c.bbox[0] + 1) as f64,
+        (c.bbox[3] - c.bbox[1] + 1) as f64,
+    );
+    let side = bw.max(bh);
+    (bw - bh).abs() <= tol * side + 2.0
+        && side >= 2.0 * cfg.min_outer_radius_px
+        && side <= 2.0 * cfg.max_outer_radius_px + 2.0
+        && c.area / (bw * bh) < 0.6
+}
+
+/// One component from several: their areas, centroids and second moments combined.
+fn merged_component(comps: &[Component], members: &[usize]) -> Component {
+    let n: f64 = members.iter().map(|&i| comps[i].area).sum();
+    let mean = |k: usize| {
+        members
+            .iter()
+            .map(|&i| comps[i].area * comps[i].centroid[k])
+            .sum::<f64>()
+            / n
+    };
+    let (cx, cy) = (mean(0), mean(1));
+    let (mut mxx, mut myy, mut mxy) = (0.0, 0.0, 0.0);
+    let mut bbox = [u32::MAX, u32::MAX, 0, 0];
+    let mut pieces = Vec::new();
+    for &i in members {
+        let c = &comps[i];
+        let (dx, dy) = (c.centroid[0] - cx, c.centroid[1] - cy);
+        mxx += c.area * (c.mxx + dx * dx);
+        myy += c.area * (c.myy + dy * dy);
+        mxy += c.area * (c.mxy + dx * dy);
+        bbox = [
+            bbox[0].min(c.bbox[0]),
+            bbox[1].min(c.bbox[1]),
+            bbox[2].max(c.bbox[2]),
+            bbox[3].max(c.bbox[3]),
+        ];
+        pieces.extend_from_slice(&c.pieces);
+    }
+    Component {
+        area: n,
+        centroid: [cx, cy],
+        mxx: mxx / n,
+        myy: myy / n,
+        mxy: mxy / n,
+        bbox,
+        touches_edge: false,
+        pieces,
+    }
+}
+
+/// Find every target in a frame. A region that looked like a target but failed (a disk grown
+/// into its ring, pieces that do not make a ring) is looked at again alone at higher
+/// thresholds, between the frame's and the ink's redness, which thin the ink apart; a
+/// target found so replaces its `skipped` entry.
 pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
+    let (threshold, ink) = redness_levels(img, cfg);
+    let (mut det, retry) = detect_at(img, cfg, threshold);
+    let mut resolved = Vec::new();
+    for (k, b) in retry {
+        let m = cfg.roi_margin_px.ceil() as u32 + 2;
+        let (x0, y0) = (b[0].saturating_sub(m), b[1].saturating_sub(m));
+        let x1 = (b[2] + m).min(img.width() - 1);
+        let y1 = (b[3] + m).min(img.height() - 1);
+        let crop = image::imageops::crop_imm(img, x0, y0, x1 - x0 + 1, y1 - y0 + 1).to_image();
+        for frac in [0.35, 0.6] {
+            let (d, _) = detect_at(&crop, cfg, threshold + frac * (ink - threshold));
+            if let [t] = d.targets.as_slice() {
+                let mut t = t.translated([x0 as f64, y0 as f64]);
+                t.roi.x += x0;
+                t.roi.y += y0;
+                det.targets.push(t);
+                resolved.push(k);
+                break;
+            }
+        }
+    }
+    let mut k = 0;
+    det.skipped.retain(|_| {
+        k += 1;
+        !resolved.contains(&(k - 1))
+    });
+    sort_reading_order(&mut det.targets);
+    det
+}
+
+/// Rows of targets top to bottom, left to right within a row.
+fn sort_reading_order(targets: &mut [Candidate]) {
+    targets.sort_by(|a, b| {
+        let (ya, yb) = (a.outer_centre_px[1], b.outer_centre_px[1]);
+        if (ya - yb).abs() > a.outer_radii_px[1].min(b.outer_radii_px[1]) {
+            ya.total_cmp(&yb)
+        } else {
+            a.outer_centre_px[0].total_cmp(&b.outer_centre_px[0])
+        }
+    });
+}
+
+/// [`detect`] at one redness threshold, with the `skipped` entries (index, box) worth a
+/// second look.
+fn detect_at(
+    img: &RgbImage,
+    cfg: &DetectConfig,
+    threshold: f64,
+) -> (Detection, Vec<(usize, [u32; 4])>) {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let mut det = Detection::default();
+    let mut retry = Vec::new();
     if w == 0 || h == 0 {
-        return det;
+        return (det, retry);
     }
-    let (mask, rows) = ink_mask(img, cfg);
+    let (mask, rows) = ink_mask(img, cfg, threshold);
     let mut labels = Vec::new();
-    let comps = components(&mask, &rows, w, h, &mut labels);
+    let mut comps = components(&mask, &rows, w, h, &mut labels);
     let tol = cfg.shape_tolerance;
+    for (s, b) in merge_fragments(&mut comps, tol, cfg) {
+        retry.push((det.skipped.len(), b));
+        det.skipped.push(s);
+    }
     let min_area = PI * cfg.min_outer_radius_px.powi(2) * 0.3;
 
     let forms: Vec<Form> = comps.iter().map(|c| c.form(tol)).collect();
@@ -271,13 +558,22 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
             Form::Ring(_, ro) => ro >= cfg.min_outer_radius_px && ro <= cfg.max_outer_radius_px,
             _ => false,
         })
-        .filter(|&i| {
-            // The hole is paper (or another component) where the centroid is.
-            let c = comps[i].centroid;
-            let (x, y) = (c[0].round() as usize, c[1].round() as usize);
-            x < w && y < h && labels[y * w + x] != i as u32 + 1
-        })
         .collect();
+    // The hole is paper (or another component) where the centroid is; a ring-shaped region
+    // filled there is a ring grown into its disk: reported, not measured.
+    rings.retain(|&i| {
+        let c = comps[i].centroid;
+        let (x, y) = (c[0].round() as usize, c[1].round() as usize);
+        let hole = x < w && y < h && !comps[i].pieces.contains(&labels[y * w + x]);
+        if !hole {
+            retry.push((det.skipped.len(), comps[i].bbox));
+            det.skipped.push(Skipped {
+                centre_px: c,
+                reason: "red ring-shaped region with ink at its centre: ring and inner disk touch (inner disk not found)".into(),
+            });
+        }
+        hole
+    });
     let ring_rim = |i: usize| match forms[i] {
         Form::Ring(_, ro) => ro,
         _ => 0.0,
@@ -295,7 +591,7 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
         let c = &comps[i];
         // The inner shape: the largest round component inside the hole.
         let inner = (0..comps.len())
-            .filter(|&j| j != i && !used[j])
+            .filter(|&j| j != i && !used[j] && comps[j].pieces.len() == 1)
             .filter(|&j| {
                 let d = &comps[j];
                 d.bbox[0] > c.bbox[0]
@@ -316,10 +612,14 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
             .max_by(|&a, &b| comps[a].area.total_cmp(&comps[b].area));
         let centre = c.centroid;
         let Some(j) = inner else {
+            let split = match c.pieces.len() {
+                1 => String::new(),
+                n => format!(", split into {n} pieces,"),
+            };
             det.skipped.push(Skipped {
                 centre_px: centre,
                 reason: format!(
-                    "red ring (rim radius {rim:.1} px) with no round inner disk or ring in its hole"
+                    "red ring (rim radius {rim:.1} px){split} with no round inner disk or ring in its hole (inner disk not found)"
                 ),
             });
             continue;
@@ -369,22 +669,13 @@ pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
             used[i] = true;
         }
     }
-    // Reading order: rows of targets top to bottom, left to right within a row.
-    det.targets.sort_by(|a, b| {
-        let (ya, yb) = (a.outer_centre_px[1], b.outer_centre_px[1]);
-        if (ya - yb).abs() > a.outer_radii_px[1].min(b.outer_radii_px[1]) {
-            ya.total_cmp(&yb)
-        } else {
-            a.outer_centre_px[0].total_cmp(&b.outer_centre_px[0])
-        }
-    });
     tracing::debug!(
         components = comps.len(),
         targets = det.targets.len(),
         skipped = det.skipped.len(),
         "detect"
     );
-    det
+    (det, retry)
 }
 
 /// Mean of one channel over the pixels of `roi` whose distance from `c` lies in `[r0, r1]`.
@@ -480,6 +771,88 @@ mod tests {
         let comps = components(&mask, &vec![true; h], w, h, &mut labels);
         assert_eq!(comps.len(), 1);
         comps[0].form(DetectConfig::default().shape_tolerance)
+    }
+
+    /// A 160x120 frame of paper with `ink` wherever `inside(x, y)` (about the centre).
+    fn frame_of(ink: [u8; 3], inside: impl Fn(f64, f64) -> bool) -> RgbImage {
+        RgbImage::from_fn(160, 120, |x, y| {
+            let on = inside(x as f64 - 80.0, y as f64 - 60.0);
+            image::Rgb(if on { ink } else { [230, 226, 218] })
+        })
+    }
+
+    /// A ring (16..22 px) around a disk (7 px) offset by `off` px, cut by `cuts` radial gaps
+    /// 3 px wide.
+    fn target(off: f64, cuts: usize) -> impl Fn(f64, f64) -> bool {
+        move |x: f64, y: f64| {
+            let r = x.hypot(y);
+            let gap = (0..cuts).any(|k| {
+                let a = 2.0 * PI * k as f64 / cuts as f64 + 0.3;
+                let along = x * a.cos() + y * a.sin();
+                along > 0.0 && (x * a.sin() - y * a.cos()).abs() < 1.5
+            });
+            (r >= 16.0 && r < 22.0 && !gap) || (x - off).hypot(y) < 7.0
+        }
+    }
+
+    #[test]
+    fn the_threshold_follows_the_ink_and_never_exceeds_the_fixed_one() {
+        let cfg = DetectConfig::default();
+        // Deep red ink (redness 0.73, paper 0.02): halfway, 0.37; redder ink is capped at 0.4.
+        let red = frame_of([220, 60, 58], target(0.0, 0));
+        let t = redness_threshold(&red, &cfg);
+        assert!((t - 0.37).abs() < 0.01, "{t}");
+        let deep = frame_of([220, 10, 10], target(0.0, 0));
+        assert_eq!(redness_threshold(&deep, &cfg), cfg.min_redness);
+        // Pink ink (redness 0.32, as a webcam's sRGB and crosstalk make it): halfway, ~0.16.
+        let pink = frame_of([220, 150, 148], target(0.0, 0));
+        let t = redness_threshold(&pink, &cfg);
+        assert!((t - 0.16).abs() < 0.02, "{t}");
+        assert_eq!(detect(&pink, &cfg).targets.len(), 1);
+        // Paper only: the threshold stays above the paper's redness (nothing found).
+        let blank = frame_of([0, 0, 0], |_, _| false);
+        assert!(redness_threshold(&blank, &cfg) >= 0.08);
+        assert!(detect(&blank, &cfg).skipped.is_empty());
+    }
+
+    #[test]
+    fn a_ring_in_pieces_is_one_target_and_what_cannot_be_measured_is_said() {
+        let cfg = DetectConfig::default();
+        let ink = [220, 60, 58];
+        let det = detect(&frame_of(ink, target(2.0, 3)), &cfg);
+        assert_eq!(det.targets.len(), 1, "{:?}", det.skipped);
+        let t = &det.targets[0];
+        // The ring's pieces put back together: centre and rim as the whole ring's.
+        assert!((t.outer_centre_px[0] - 80.0).abs() < 0.6, "{t:?}");
+        assert!((t.outer_centre_px[1] - 60.0).abs() < 0.6, "{t:?}");
+        assert!((t.outer_radii_px[1] - 22.0).abs() < 1.0, "{t:?}");
+        assert!(det.skipped.is_empty(), "{:?}", det.skipped);
+        // The same pieces with no disk: skipped, saying so.
+        let det = detect(
+            &frame_of(ink, |x, y| target(0.0, 3)(x, y) && x.hypot(y) > 10.0),
+            &cfg,
+        );
+        assert!(det.targets.is_empty());
+        assert_eq!(det.skipped.len(), 1, "{:?}", det.skipped);
+        assert!(
+            det.skipped[0].reason.contains("split into 3 pieces"),
+            "{:?}",
+            det.skipped
+        );
+        // A disk grown into its ring: one region, skipped, near the target's place.
+        let det = detect(
+            &frame_of(ink, |x, y| {
+                target(10.0, 0)(x, y) || (y.abs() < 3.0 && x > 0.0 && x < 18.0)
+            }),
+            &cfg,
+        );
+        assert!(det.targets.is_empty());
+        assert_eq!(det.skipped.len(), 1, "{:?}", det.skipped);
+        let s = &det.skipped[0];
+        assert!(
+            (s.centre_px[0] - 80.0).hypot(s.centre_px[1] - 60.0) < 8.0,
+            "{s:?}"
+        );
     }
 
     #[test]

@@ -320,8 +320,22 @@ impl Pipeline {
         };
         if let Some(det) = detected {
             self.channel = detect::measurement_channel(frame, &det);
+            let mut skipped = det.skipped;
+            if let Some(board) = &self.board {
+                // A board target in view that detection neither found nor reported.
+                let found: Vec<[f64; 2]> = det.targets.iter().map(|t| t.outer_centre_px).collect();
+                let reported: Vec<[f64; 2]> = skipped.iter().map(|s| s.centre_px).collect();
+                let unseen = super::layout::unseen_targets(
+                    &found,
+                    &reported,
+                    board,
+                    self.opts.scale_um_per_px,
+                    got,
+                );
+                skipped.extend(unseen);
+            }
             self.targets = det.targets;
-            self.skipped = det.skipped;
+            self.skipped = skipped;
             self.size = Some(got);
         }
         // Where the targets should be: the last frame's displacement, or the positions'.

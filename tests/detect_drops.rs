@@ -1,0 +1,173 @@
+//! Issue 11: no target in view is dropped silently. Over frames of the sim's `ideal`,
+//! soft-lens dim, `webcam` and `stress` cameras at random board placements, every board
+//! target whose centre is in the frame is either detected or listed in `skipped` near it.
+
+use rigd::pipeline::detect::{detect, DetectConfig};
+use rigd::pipeline::layout::unseen_targets;
+use rigd::pipeline::{process_frames, Combine, ProcessOptions};
+use rigd::sim::frames::FrameRenderer;
+use rigd::sim::{Board, CameraModel};
+
+/// Counts over frames × targets in view.
+#[derive(Debug, Default, Clone, Copy, PartialEq)]
+struct Counts {
+    measured: usize,
+    skipped: usize,
+    silent: usize,
+}
+
+/// Deterministic board placements (an R2 sequence): the paper board moved by up to ±250 mm
+/// across and ±150 mm down, so that some targets leave the frame or are cut by its edge.
+fn origin(i: u64) -> [f64; 2] {
+    let f = |a: f64| (0.5 + a * (i as f64 + 1.0)).fract() * 2.0 - 1.0;
+    [
+        f(0.754_877_666_246_692_8) * 250_000.0,
+        f(0.569_840_290_998_053_2) * 150_000.0,
+    ]
+}
+
+/// Detect in `frames` frames of `cam` (seed `seed`, the board placed anew each frame) and
+/// count each target in view as found, skipped or silently dropped.
+fn count(cam: &CameraModel, frames: u64, seed: u64, light: f64, with_board: bool) -> Counts {
+    let board = Board::paper();
+    let mut c = Counts::default();
+    for i in 0..frames {
+        let r = FrameRenderer::new(board.clone(), cam.clone(), seed + i)
+            .unwrap()
+            .with_origin(origin(seed * 31 + i));
+        let mut img = r.render_at(i, [0.0, 0.0]);
+        if light < 1.0 {
+            // Dim light: the whole frame darker (as a shorter exposure would make it).
+            img.pixels_mut()
+                .for_each(|p| p.0 = p.0.map(|v| (v as f64 * light).round() as u8));
+        }
+        let view = r.views(i, &[[0.0, 0.0]])[0];
+        let mut det = detect(&img, &DetectConfig::default());
+        if with_board {
+            let found: Vec<[f64; 2]> = det.targets.iter().map(|t| t.outer_centre_px).collect();
+            let reported: Vec<[f64; 2]> = det.skipped.iter().map(|s| s.centre_px).collect();
+            let size = (cam.width, cam.height);
+            let unseen = unseen_targets(&found, &reported, &board, cam.scale_um_per_px, size);
+            det.skipped.extend(unseen);
+        }
+        for t in &board.targets {
+            let p = view.project(cam, 1, t.centre_um);
+            let (w, h) = (cam.width as f64, cam.height as f64);
+            if p[0] < 0.0 || p[1] < 0.0 || p[0] > w - 1.0 || p[1] > h - 1.0 {
+                continue;
+            }
+            let rim_px = t.outer.outer_radius_um() / cam.scale_um_per_px;
+            let near = |q: [f64; 2]| (q[0] - p[0]).hypot(q[1] - p[1]) < rim_px;
+            if det.targets.iter().any(|d| near(d.outer_centre_px)) {
+                c.measured += 1;
+            } else if det.skipped.iter().any(|s| near(s.centre_px)) {
+                c.skipped += 1;
+            } else {
+                c.silent += 1;
+            }
+        }
+    }
+    c
+}
+
+/// The ideal camera behind a softer lens (the issue's blur σ 1.2 px).
+fn soft() -> CameraModel {
+    CameraModel {
+        psf_sigma_px: 1.2,
+        ..CameraModel::default()
+    }
+}
+
+fn profile(name: &str) -> CameraModel {
+    CameraModel::profile(name).unwrap()
+}
+
+/// 20 frames per case, the board placed anew in each (counts in docs/method.md, "No target
+/// dropped silently"). Measured: ideal, soft and webcam 220 of 220 (seed 7) and 220 of 224
+/// (seed 101, 3-4 cut by the edge and skipped); stress 220 of 222 and 220 of 224, the
+/// rest cut by the edge and skipped. Before issue 11's detection the webcam and stress
+/// frames gave no target at all, 210-218 dropped silently.
+#[test]
+fn no_target_in_view_is_dropped_silently() {
+    let cases = [
+        // (case, camera, light, seed, least share of the targets in view measured)
+        ("ideal", CameraModel::default(), 1.0, 7, 0.98),
+        ("ideal, blur 1.2 px", soft(), 1.0, 101, 0.98),
+        ("ideal, blur 1.2 px, dim", soft(), 0.5, 7, 0.98),
+        ("ideal, blur 1.2 px, dim", soft(), 0.5, 101, 0.98),
+        ("webcam", profile("webcam"), 1.0, 7, 0.98),
+        ("webcam", profile("webcam"), 1.0, 101, 0.98),
+        ("stress", profile("stress"), 1.0, 7, 0.98),
+        ("stress", profile("stress"), 1.0, 101, 0.98),
+    ];
+    for (name, cam, light, seed, least) in cases {
+        for with_board in [false, true] {
+            let c = count(&cam, 20, seed, light, with_board);
+            eprintln!("{name} (seed {seed}, board {with_board}): {c:?}");
+            assert_eq!(c.silent, 0, "{name} seed {seed}: {c:?}");
+            let in_view = c.measured + c.skipped + c.silent;
+            assert!(
+                in_view >= 150,
+                "{name} seed {seed}: few targets in view: {c:?}"
+            );
+            assert!(
+                c.measured as f64 >= least * in_view as f64,
+                "{name} seed {seed}: {c:?}"
+            );
+        }
+    }
+}
+
+/// The pipeline's result with a board, on stress frames: every board target in view in
+/// frame 0 is an object or a `skipped` entry. Measured: 16 `skipped` entries over the 6
+/// placements (cut by the edge, ROIs leaving the frame, the board check's); no
+/// target in view missing from the result.
+#[test]
+fn the_pipeline_result_accounts_for_every_target_in_view_on_stress_frames() {
+    let cam = profile("stress");
+    let board = Board::paper();
+    let mut skipped_total = 0;
+    for placement in 0..6u64 {
+        let r = FrameRenderer::new(board.clone(), cam.clone(), 40 + placement)
+            .unwrap()
+            .with_origin(origin(placement * 7 + 3));
+        let frames: Vec<_> = (0..3)
+            .map(|i| r.render_at(i, [i as f64 * 80.0, 0.0]))
+            .collect();
+        let pos = [0.0, 80.0, 160.0];
+        let opts = ProcessOptions {
+            combine: Combine::Mean,
+            scale_um_per_px: cam.scale_um_per_px,
+            ..ProcessOptions::default()
+        };
+        let res = process_frames(&frames, &pos, &opts, Some(board.clone()))
+            .unwrap()
+            .result;
+        let view = r.views(0, &[[0.0, 0.0]])[0];
+        skipped_total += res.skipped.len();
+        for t in &board.targets {
+            let p = view.project(&cam, 1, t.centre_um);
+            if p[0] < 0.0
+                || p[1] < 0.0
+                || p[0] > cam.width as f64 - 1.0
+                || p[1] > cam.height as f64 - 1.0
+            {
+                continue;
+            }
+            let rim_px = t.outer.outer_radius_um() / cam.scale_um_per_px;
+            let near = |q: [f64; 2]| (q[0] - p[0]).hypot(q[1] - p[1]) < rim_px;
+            assert!(
+                res.objects.iter().any(|o| near(o.centre_px))
+                    || res.skipped.iter().any(|s| near(s.centre_px)),
+                "placement {placement}: target {} at {p:?} is neither measured nor skipped: {:?}",
+                t.name,
+                res.skipped
+            );
+        }
+    }
+    eprintln!("skipped entries over 6 placements: {skipped_total}");
+    assert!(
+        skipped_total >= 6,
+        "the stress frames skipped too little to test: {skipped_total}"
+    );
+}
