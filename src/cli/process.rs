@@ -173,7 +173,15 @@ fn run_session(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
             rigd: env!("CARGO_PKG_VERSION").into(),
             processed_unix_s: crate::daemon::session::unix_s(std::time::SystemTime::now()),
         };
-        crate::offline::outputs::write_outputs(out, &done.result, &done.images, &settings)?;
+        let registration = crate::offline::outputs::registration_name(&settings.overrides, &s);
+        let result = &done.result;
+        crate::offline::outputs::write_outputs(
+            out,
+            result,
+            &done.images,
+            &settings,
+            registration.as_deref(),
+        )?;
     }
     if args.json {
         println!("{}", serde_json::to_string(&done.result)?);

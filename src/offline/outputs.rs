@@ -54,6 +54,18 @@ impl From<AtomicWriteError> for OutputError {
     }
 }
 
+/// results.csv's `registration`: the command line's, else the session's job's, by its wire
+/// name (`commanded`, `interferometer`: the pipeline's `positions`).
+pub fn registration_name(
+    overrides: &Overrides,
+    session: &crate::daemon::session::Session,
+) -> Option<String> {
+    overrides
+        .registration
+        .or(session.manifest.job.registration)
+        .map(|r| crate::cli::text::wire_name(&r))
+}
+
 /// `session/processed/<name>`, made if missing (never through a symlink).
 pub fn settings_dir(session: &Path, name: &str) -> Result<PathBuf, OutputError> {
     let processed = session.join(PROCESSED);

@@ -4,7 +4,7 @@
 //! index. A session that fails is reported by name and the others go on.
 
 use super::index::{rows_of, Index, SessionFacts};
-use super::outputs::{settings_dir, write_outputs, Settings};
+use super::outputs::{registration_name, settings_dir, write_outputs, Settings};
 use super::overrides::Overrides;
 use super::session_runs::process_session;
 use crate::board::Board;
@@ -96,11 +96,7 @@ fn one(
     };
     let out = settings_dir(&s.dir, &name)?;
     // The single call site of the result files (result.json and results.csv).
-    let registration = settings
-        .overrides
-        .registration
-        .or(s.manifest.job.registration)
-        .map(|r| crate::cli::text::wire_name(&r));
+    let registration = registration_name(&settings.overrides, &s);
     write_outputs(&out, &done.result, &done.images, &settings, registration.as_deref())?;
     let rows = rows_of(&SessionFacts::of(&s.manifest), &name, &done.result);
     if let Some(path) = index_path(dir, &how.index) {
