@@ -80,7 +80,8 @@ fn write_sessions(root: &Path, n: usize) -> Vec<PathBuf> {
     let p = plan(&job, &info, root, 0).unwrap();
     (0..n)
         .map(|s| {
-            let mut w = SessionWriter::create(root, s as u64 + 1, &job, &p, &info, None).unwrap();
+            let mut w =
+                SessionWriter::create(root, s as u64 + 1, &job, &p, &info, (None, None)).unwrap();
             for (i, &pos) in p.runs[0].positions_um.iter().enumerate() {
                 let view = View::at([pos, 150.0]);
                 let px = scene.expose(&[view], 1.0, (s * 1000 + i) as u64);

@@ -280,11 +280,14 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
             "k = 3, not the recorded 5"
         );
         // results.csv: a row per target of the run, its offsets those of result.json.
-        let csv = String::from_utf8(now[Path::new("processed/fit-k3/results.csv")].clone()).unwrap();
+        let csv =
+            String::from_utf8(now[Path::new("processed/fit-k3/results.csv")].clone()).unwrap();
         let rows: Vec<&str> = csv.lines().skip(1).collect();
         assert_eq!(rows.len(), 2, "{csv}");
         let dx: f64 = rows[0].split(',').nth(4).unwrap().parse().unwrap();
-        let want = r["runs"][0]["result"]["objects"][0]["offset_um"][0].as_f64().unwrap();
+        let want = r["runs"][0]["result"]["objects"][0]["offset_um"][0]
+            .as_f64()
+            .unwrap();
         assert_eq!(dx, want, "{csv}");
         let st: Value =
             serde_json::from_slice(&now[Path::new("processed/fit-k3/settings.json")]).unwrap();

@@ -116,7 +116,10 @@ pub fn write_outputs(
     staged.push(atomic_file::stage(&settings_path, &bytes)?);
     let csv_path = out.join(crate::results_csv::FILE);
     let rows = crate::results_csv::rows(&result.runs, registration);
-    staged.push(atomic_file::stage(&csv_path, &crate::results_csv::to_bytes(&rows))?);
+    staged.push(atomic_file::stage(
+        &csv_path,
+        &crate::results_csv::to_bytes(&rows),
+    )?);
     let result_path = out.join(crate::daemon::session::RESULT);
     let bytes = serde_json::to_vec_pretty(result).map_err(|e| encode(&result_path, &e))?;
     staged.push(atomic_file::stage(&result_path, &bytes)?);

@@ -97,7 +97,13 @@ fn one(
     let out = settings_dir(&s.dir, &name)?;
     // The single call site of the result files (result.json and results.csv).
     let registration = registration_name(&settings.overrides, &s);
-    write_outputs(&out, &done.result, &done.images, &settings, registration.as_deref())?;
+    write_outputs(
+        &out,
+        &done.result,
+        &done.images,
+        &settings,
+        registration.as_deref(),
+    )?;
     let rows = rows_of(&SessionFacts::of(&s.manifest), &name, &done.result);
     if let Some(path) = index_path(dir, &how.index) {
         let mut all = indexes.lock().unwrap_or_else(|e| e.into_inner());

@@ -791,7 +791,7 @@ mod tests {
                 let along = x * a.cos() + y * a.sin();
                 along > 0.0 && (x * a.sin() - y * a.cos()).abs() < 1.5
             });
-            (r >= 16.0 && r < 22.0 && !gap) || (x - off).hypot(y) < 7.0
+            ((16.0..22.0).contains(&r) && !gap) || (x - off).hypot(y) < 7.0
         }
     }
 
