@@ -11,24 +11,10 @@ use rigd::daemon::protocol::Request;
 use rigd::daemon::session::Session;
 use rigd::pipeline::Combine;
 use rigd::rig::{simulated, SimSettings};
-use rigd::sim::CameraModel;
 use support::daemon::*;
 
 fn sim(dir: &std::path::Path) -> SimSettings {
-    let board = dir.join("small.toml");
-    std::fs::write(&board, support::SMALL_BOARD).unwrap();
-    SimSettings {
-        camera: CameraModel {
-            width: 300,
-            height: 200,
-            supersample: 2,
-            frame_period_ms: 2.0,
-            exposure_ms: 1.0,
-            ..CameraModel::default()
-        },
-        board_file: Some(board),
-        ..SimSettings::default()
-    }
+    support::daemon::small_board_sim(dir)
 }
 
 fn rigctl(socket: &std::path::Path, args: &[&str]) -> (bool, String, String) {

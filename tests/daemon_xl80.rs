@@ -29,20 +29,7 @@ const NOISE_UM: f64 = 0.2;
 
 /// A small fast `rigd --sim` rig looking at the small two-target board.
 fn sim_settings(dir: &Path) -> SimSettings {
-    let board = dir.join("small.toml");
-    std::fs::write(&board, support::SMALL_BOARD).unwrap();
-    SimSettings {
-        camera: CameraModel {
-            width: 300,
-            height: 200,
-            supersample: 2,
-            frame_period_ms: 2.0,
-            exposure_ms: 1.0,
-            ..CameraModel::default()
-        },
-        board_file: Some(board),
-        ..SimSettings::default()
-    }
+    support::daemon::small_board_sim(dir)
 }
 
 /// The reading at `t`, linear between the recorded samples around it (written here again,

@@ -11,8 +11,7 @@ mod support;
 
 use rigd::daemon::protocol::{EVENT_KINDS, REQUEST_KINDS};
 use rigd::daemon::schema::{definition, document, document_text};
-use rigd::rig::{simulated, SimSettings};
-use rigd::sim::CameraModel;
+use rigd::rig::simulated;
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::{BufRead, BufReader, Write};
@@ -248,21 +247,7 @@ fn closed(doc: &Value) -> Value {
 /// A `rigd --sim` rig whose small frames show the small board's two targets, so frames are
 /// processed (`processed` events).
 fn small_sim_rig(dir: &Path) -> rigd::rig::Rig {
-    let board = dir.join("small.toml");
-    std::fs::write(&board, support::SMALL_BOARD).unwrap();
-    simulated(&SimSettings {
-        camera: CameraModel {
-            width: 300,
-            height: 200,
-            supersample: 2,
-            frame_period_ms: 2.0,
-            exposure_ms: 1.0,
-            ..CameraModel::default()
-        },
-        board_file: Some(board),
-        ..SimSettings::default()
-    })
-    .unwrap()
+    simulated(&support::daemon::small_board_sim(dir)).unwrap()
 }
 
 fn validator(doc: &Value, name: &str) -> jsonschema::Validator {

@@ -11,8 +11,7 @@ mod support;
 use rigd::acquisition::{JobSpec, PaperCase};
 use rigd::daemon::protocol::Request;
 use rigd::daemon::session::Session;
-use rigd::rig::{simulated, SimSettings};
-use rigd::sim::CameraModel;
+use rigd::rig::simulated;
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -22,21 +21,7 @@ use support::daemon::{assert_finished, run_job, Daemon};
 /// A sim rig with the small board (two targets) on 300x200 frames: targets are found.
 fn daemon() -> Daemon {
     let dir = tempfile::tempdir().unwrap();
-    let board = dir.path().join("small.toml");
-    std::fs::write(&board, support::SMALL_BOARD).unwrap();
-    let rig = simulated(&SimSettings {
-        camera: CameraModel {
-            width: 300,
-            height: 200,
-            supersample: 2,
-            frame_period_ms: 2.0,
-            exposure_ms: 1.0,
-            ..CameraModel::default()
-        },
-        board_file: Some(board),
-        ..SimSettings::default()
-    })
-    .unwrap();
+    let rig = simulated(&support::daemon::small_board_sim(dir.path())).unwrap();
     Daemon::start_in(rig, dir)
 }
 

@@ -11,7 +11,6 @@ use rigd::acquisition::{JobRegistration, JobSpec, PaperCase};
 use rigd::pipeline::{ObjectResult, ProcessResult};
 use rigd::plot::Series;
 use rigd::rig::{simulated, SimSettings};
-use rigd::sim::CameraModel;
 use std::collections::HashMap;
 use std::path::Path;
 use std::process::{Command, Output};
@@ -64,20 +63,7 @@ fn assert_row_is(row: &HashMap<String, String>, o: &ObjectResult, r: &ProcessRes
 /// A small fast sim rig looking at the small two-target board (H: 2000 µm on x, V: 3000 µm
 /// on y), its XL-80 logging.
 fn sim_settings(dir: &Path) -> SimSettings {
-    let board = dir.join("small.toml");
-    std::fs::write(&board, support::SMALL_BOARD).unwrap();
-    SimSettings {
-        camera: CameraModel {
-            width: 300,
-            height: 200,
-            supersample: 2,
-            frame_period_ms: 2.0,
-            exposure_ms: 1.0,
-            ..CameraModel::default()
-        },
-        board_file: Some(board),
-        ..SimSettings::default()
-    }
+    support::daemon::small_board_sim(dir)
 }
 
 fn rigctl(args: &[&std::ffi::OsStr]) -> Output {

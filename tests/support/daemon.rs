@@ -11,6 +11,7 @@ use rigd::daemon::server::Background;
 use rigd::daemon::session::Session;
 use rigd::rig::from_config;
 use rigd::rig::Rig;
+use rigd::rig::SimSettings;
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
 use rigd::sim::motion::{Axis, AxisParams};
 use rigd::sim::CameraModel;
@@ -55,6 +56,25 @@ pub fn fast_camera() -> CameraModel {
         frame_period_ms: 1.0,
         exposure_ms: 0.5,
         ..CameraModel::default()
+    }
+}
+
+/// The sim rig most daemon tests use: 300x200 frames every 2 ms with the small board
+/// (written into `dir`), everything else the simulator's defaults.
+pub fn small_board_sim(dir: &Path) -> SimSettings {
+    let board = dir.join("small.toml");
+    std::fs::write(&board, super::SMALL_BOARD).unwrap();
+    SimSettings {
+        camera: CameraModel {
+            width: 300,
+            height: 200,
+            supersample: 2,
+            frame_period_ms: 2.0,
+            exposure_ms: 1.0,
+            ..CameraModel::default()
+        },
+        board_file: Some(board),
+        ..SimSettings::default()
     }
 }
 
