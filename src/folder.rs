@@ -95,9 +95,13 @@ pub fn open(dir: &Path, limit: Option<usize>) -> Result<Folder, FolderError> {
     })
 }
 
-/// The `piezo_commanded_um` column of `steps.csv` (read after [`read_steps`] checked the
-/// file): `None` without the column or with it empty in every row (a one-stage scan).
-pub fn read_piezo(path: &Path) -> Result<Option<Vec<f64>>, FolderError> {
+/// The cells of `steps.csv`'s column `name` with their line numbers, the first `rows` rows
+/// (all with `None`); `None` if the file has no such column.
+fn column(
+    path: &Path,
+    name: &str,
+    rows: Option<usize>,
+) -> Result<Option<Vec<(u64, String)>>, FolderError> {
     let open_err = |e: csv::Error| FolderError::Io {
         path: path.to_path_buf(),
         message: format!("cannot read: {e}"),
@@ -107,39 +111,55 @@ pub fn read_piezo(path: &Path) -> Result<Option<Vec<f64>>, FolderError> {
         .from_path(path)
         .map_err(open_err)?;
     let headers = rdr.headers().map_err(open_err)?;
-    let Some(col) = headers.iter().position(|h| h == "piezo_commanded_um") else {
+    let Some(col) = headers.iter().position(|h| h == name) else {
         return Ok(None);
     };
     let mut cells = Vec::new();
-    for rec in rdr.records() {
+    for rec in rdr.records().take(rows.unwrap_or(usize::MAX)) {
         let rec = rec.map_err(open_err)?;
         let line = rec.position().map(|p| p.line()).unwrap_or(0);
-        let v = rec.get(col).unwrap_or("");
-        let parsed = match v {
+        cells.push((line, rec.get(col).unwrap_or("").to_string()));
+    }
+    Ok(Some(cells))
+}
+
+/// The `piezo_commanded_um` column of `steps.csv` (read after [`read_steps`] checked the
+/// file): `None` without the column or with it empty in every row (a one-stage scan).
+pub fn read_piezo(path: &Path) -> Result<Option<Vec<f64>>, FolderError> {
+    let row_err = |line: u64, message: String| FolderError::StepsRow {
+        path: path.to_path_buf(),
+        line,
+        message,
+    };
+    let Some(cells) = column(path, "piezo_commanded_um", None)? else {
+        return Ok(None);
+    };
+    let mut parsed = Vec::with_capacity(cells.len());
+    for (line, v) in cells {
+        let x = match v.as_str() {
             "" => None,
             _ => Some(
                 v.parse::<f64>()
                     .ok()
                     .filter(|v| v.is_finite())
-                    .ok_or_else(|| FolderError::StepsRow {
-                        path: path.to_path_buf(),
-                        line,
-                        message: format!("piezo_commanded_um `{v}` is not a number"),
+                    .ok_or_else(|| {
+                        row_err(line, format!("piezo_commanded_um `{v}` is not a number"))
                     })?,
             ),
         };
-        cells.push((line, parsed));
+        parsed.push((line, x));
     }
-    if cells.iter().all(|(_, v)| v.is_none()) {
+    if parsed.iter().all(|(_, v)| v.is_none()) {
         return Ok(None);
     }
-    cells
+    parsed
         .into_iter()
         .map(|(line, v)| {
-            v.ok_or_else(|| FolderError::StepsRow {
-                path: path.to_path_buf(),
-                line,
-                message: "piezo_commanded_um is empty, and other rows have one".into(),
+            v.ok_or_else(|| {
+                row_err(
+                    line,
+                    "piezo_commanded_um is empty, and other rows have one".into(),
+                )
             })
         })
         .collect::<Result<Vec<f64>, _>>()
@@ -154,30 +174,19 @@ pub fn read_interferometer(path: &Path, frames: usize) -> Result<Vec<f64>, Folde
         line,
         message,
     };
-    let open_err = |e: csv::Error| FolderError::Io {
-        path: path.to_path_buf(),
-        message: format!("cannot read: {e}"),
-    };
-    let mut rdr = csv::ReaderBuilder::new()
-        .trim(csv::Trim::All)
-        .from_path(path)
-        .map_err(open_err)?;
-    let headers = rdr.headers().map_err(open_err)?;
-    let Some(col) = headers.iter().position(|h| h == "interferometer_um") else {
+    let Some(cells) = column(path, "interferometer_um", Some(frames))? else {
         return Err(err(
             1,
             "no interferometer_um column: --registration interferometer needs one".into(),
         ));
     };
-    let mut out = Vec::with_capacity(frames);
-    for rec in rdr.records().take(frames) {
-        let rec = rec.map_err(open_err)?;
-        let line = rec.position().map(|p| p.line()).unwrap_or(0);
-        let v = rec.get(col).unwrap_or("");
-        let x = v.parse::<f64>().ok().filter(|v| v.is_finite());
-        out.push(x.ok_or_else(|| err(line, format!("interferometer_um `{v}` is not a reading")))?);
-    }
-    Ok(out)
+    cells
+        .into_iter()
+        .map(|(line, v)| {
+            let x = v.parse::<f64>().ok().filter(|v| v.is_finite());
+            x.ok_or_else(|| err(line, format!("interferometer_um `{v}` is not a reading")))
+        })
+        .collect()
 }
 
 /// Read `steps.csv`: `index,position_um[,...]`, indices 0, 1, 2... in order.

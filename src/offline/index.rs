@@ -31,8 +31,8 @@ CREATE TABLE IF NOT EXISTS results (
     target     TEXT NOT NULL,
     dx_um      REAL,
     dy_um      REAL,
-    sigma_x_um REAL,
-    sigma_y_um REAL,
+    u_dx_um REAL,
+    u_dy_um REAL,
     settings   TEXT NOT NULL,
     date       TEXT NOT NULL,
     label      TEXT,
@@ -43,18 +43,8 @@ CREATE INDEX IF NOT EXISTS results_date ON results (date);
 
 /// The columns, in order: the CSV's header and the table's.
 pub const COLUMNS: [&str; 12] = [
-    "session",
-    "run",
-    "case",
-    "repeat",
-    "target",
-    "dx_um",
-    "dy_um",
-    "sigma_x_um",
-    "sigma_y_um",
-    "settings",
-    "date",
-    "label",
+    "session", "run", "case", "repeat", "target", "dx_um", "dy_um", "u_dx_um", "u_dy_um",
+    "settings", "date", "label",
 ];
 
 /// One target of one run. `date`: the session's start, RFC 3339 UTC (`2026-12-02T03:33:58Z`).
@@ -67,8 +57,8 @@ pub struct Row {
     pub target: String,
     pub dx_um: Option<f64>,
     pub dy_um: Option<f64>,
-    pub sigma_x_um: Option<f64>,
-    pub sigma_y_um: Option<f64>,
+    pub u_dx_um: Option<f64>,
+    pub u_dy_um: Option<f64>,
     pub settings: String,
     pub date: String,
     pub label: Option<String>,
@@ -137,8 +127,8 @@ pub fn rows_of(facts: &SessionFacts, settings: &str, result: &JobResult) -> Vec<
                 target: o.name.clone().unwrap_or_else(|| format!("#{i}")),
                 dx_um: finite(o.offset_um[0]),
                 dy_um: finite(o.offset_um[1]),
-                sigma_x_um: sigma.and_then(|s| s[0]),
-                sigma_y_um: sigma.and_then(|s| s[1]),
+                u_dx_um: sigma.and_then(|s| s[0]),
+                u_dy_um: sigma.and_then(|s| s[1]),
                 settings: settings.to_string(),
                 date: facts.date.clone(),
                 label: facts.label.clone(),
@@ -208,18 +198,8 @@ impl Index {
                 .map_err(err)?;
             for r in rows {
                 ins.execute(params![
-                    r.session,
-                    r.run,
-                    r.case,
-                    r.repeat,
-                    r.target,
-                    r.dx_um,
-                    r.dy_um,
-                    r.sigma_x_um,
-                    r.sigma_y_um,
-                    r.settings,
-                    r.date,
-                    r.label
+                    r.session, r.run, r.case, r.repeat, r.target, r.dx_um, r.dy_um, r.u_dx_um,
+                    r.u_dy_um, r.settings, r.date, r.label
                 ])
                 .map_err(err)?;
             }
@@ -229,8 +209,8 @@ impl Index {
 
     /// The rows `f` selects, by date, session, settings, run and target.
     pub fn query(&self, f: &Filter) -> Result<Vec<Row>, IndexError> {
-        let sql = "SELECT session, run, \"case\", \"repeat\", target, dx_um, dy_um, sigma_x_um, \
-                   sigma_y_um, settings, date, label FROM results \
+        let sql = "SELECT session, run, \"case\", \"repeat\", target, dx_um, dy_um, u_dx_um, \
+                   u_dy_um, settings, date, label FROM results \
                    WHERE (?1 IS NULL OR date >= ?1) AND (?2 IS NULL OR label = ?2) \
                    AND (?3 IS NULL OR target = ?3) AND (?4 IS NULL OR settings = ?4) \
                    ORDER BY date, session, settings, run, target";
@@ -245,8 +225,8 @@ impl Index {
                     target: r.get(4)?,
                     dx_um: r.get(5)?,
                     dy_um: r.get(6)?,
-                    sigma_x_um: r.get(7)?,
-                    sigma_y_um: r.get(8)?,
+                    u_dx_um: r.get(7)?,
+                    u_dy_um: r.get(8)?,
                     settings: r.get(9)?,
                     date: r.get(10)?,
                     label: r.get(11)?,
