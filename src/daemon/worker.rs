@@ -183,9 +183,14 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
 /// a convenience (`rigctl index rebuild` remakes it from the sessions): a failure is logged.
 fn index_job(root: &std::path::Path, facts: &SessionFacts, result: &JobResult) {
     use crate::offline::index::{rows_of, Index, INDEX_FILE, RECORDED};
+    let path = root.join(INDEX_FILE);
+    // Nothing under the data root is opened through a symlink (docs/architecture.md).
+    if path.symlink_metadata().is_ok_and(|m| !m.is_file()) {
+        tracing::warn!(path = %path.display(), "results not indexed: not a regular file");
+        return;
+    }
     let rows = rows_of(facts, RECORDED, result);
-    let added = Index::open(&root.join(INDEX_FILE))
-        .and_then(|mut i| i.replace(&facts.session, RECORDED, &rows));
+    let added = Index::open(&path).and_then(|mut i| i.replace(&facts.session, RECORDED, &rows));
     if let Err(e) = added {
         tracing::warn!(session = %facts.session, "results not indexed: {e}");
     }
