@@ -145,7 +145,9 @@ impl Gcs {
         match self.axis.command_move(target_um) {
             Ok(dur) => {
                 self.target_um = target_um;
-                self.on_target_at = now + dur + self.opts.settle;
+                // The axis' clock starts inside `command_move`, after `now` (see grbl.rs).
+                let ends = self.axis.move_ends_at().max(now + dur);
+                self.on_target_at = ends + self.opts.settle;
                 if self.faults.take_alarm_mid_move() {
                     self.fault_at = Some(now + dur / 2);
                 }

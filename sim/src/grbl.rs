@@ -252,12 +252,15 @@ impl Grbl {
             .axis
             .command_move_at(reach, speed_um_s)
             .unwrap_or(Duration::ZERO);
+        // The axis starts its clock inside `command_move_at`, after `now`: end the move when
+        // the axis does, or a thread preempted in between reports Idle short of the target.
+        let ends = self.axis.move_ends_at().max(now + dur);
         if reach != p.target_um {
-            self.alarm_at = Some((now + dur, 1));
+            self.alarm_at = Some((ends, 1));
         } else if self.faults.take_alarm_mid_move() {
-            self.alarm_at = Some((now + dur / 2, 1));
+            self.alarm_at = Some((ends - dur / 2, 1));
         }
-        self.current = Some((p, now + dur));
+        self.current = Some((p, ends));
         self.state = if p.jog { State::Jog } else { State::Run };
     }
 
