@@ -175,6 +175,7 @@ mod tests {
             inner_radius_px: 1.0,
             frames: 20,
             effective_pixel_um: 77.4,
+            ..Default::default()
         };
         ProcessResult {
             options: ProcessOptions {
@@ -191,6 +192,7 @@ mod tests {
             skipped: vec![],
             steps: vec![],
             step_summary: Default::default(),
+            calibration: None,
         }
     }
 
