@@ -274,3 +274,52 @@ fn apparent_px(c_um: [f64; 2], radii_um: &[f64]) -> [f64; 2] {
         sum[1] / radii_um.len() as f64,
     ]
 }
+
+/// Bad input is refused with what and where: too few steps, no interferometer column, a
+/// calibration of another frame size.
+#[test]
+fn calibrate_and_process_refuse_bad_input_by_name() {
+    let d = tempfile::tempdir().unwrap();
+    let few = d.path().join("few");
+    write_folder(&few, &small_board(), &small_camera(), [310.0, 150.0], 500.0, 3, 7);
+    let cal = d.path().join("cal.json");
+    let (f, c) = (few.to_str().unwrap(), cal.to_str().unwrap());
+    let out = rigctl(&["calibrate", f, "--scale-um-per-px", "774", "--out", c]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && !cal.exists());
+    assert!(
+        err.contains(f) && err.contains("3 steps: a calibration needs at least 5 frames"),
+        "{err}"
+    );
+    let out = rigctl(&[
+        "calibrate", f, "--scale-um-per-px", "774", "--out", c, "--registration", "interferometer",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("steps.csv") && err.contains("no interferometer_um column"), "{err}");
+    // A calibration of 1280x720 frames (the unit tests' synthetic scan, written by hand)
+    // applied to 300x200 frames.
+    let rec = serde_json::json!({
+        "version": 1, "id": "cal-test", "date": "2026-12-02T19:00:00Z", "method": "commanded",
+        "rig": null,
+        "fingerprint": {"frame_size": [1280, 720], "scale_um_per_px": 774.0, "board": null},
+        "scan": {"frames": 30, "step_um": 500.0, "travel_um": 14500.0, "piezo_travel_um": null},
+        "reference_rel_u": 1e-4, "targets": [],
+        "field": {"layout": "free", "model": {"centre_px": [639.5, 359.5],
+            "norm_radius_px": 734.3, "a_px_per_um": [[0.001292, 0.0], [0.0, 0.001292]],
+            "g_per_um": [0.0, 0.0], "k1": 0.0, "k2": 0.0},
+            "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.14159,
+            "print_scale": null, "residual_rms_px": 0.01, "residual_rms_um": 7.7,
+            "residual_max_um": 20.0}
+    });
+    std::fs::write(&cal, rec.to_string()).unwrap();
+    let out = rigctl(&["process", f, "--calibration", c]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success()
+            && err.contains("calibration cal-test was fitted on 1280x720 frames; these are 300x200"),
+        "{err}"
+    );
+    std::fs::write(&cal, "{\"version\": 7}").unwrap();
+    let err = String::from_utf8_lossy(&rigctl(&["process", f, "--calibration", c]).stderr).into_owned();
+    assert!(err.contains(c) && err.contains("version 7: this rigd reads version 1"), "{err}");
+}
