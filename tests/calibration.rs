@@ -281,7 +281,15 @@ fn apparent_px(c_um: [f64; 2], radii_um: &[f64]) -> [f64; 2] {
 fn calibrate_and_process_refuse_bad_input_by_name() {
     let d = tempfile::tempdir().unwrap();
     let few = d.path().join("few");
-    write_folder(&few, &small_board(), &small_camera(), [310.0, 150.0], 500.0, 3, 7);
+    write_folder(
+        &few,
+        &small_board(),
+        &small_camera(),
+        [310.0, 150.0],
+        500.0,
+        3,
+        7,
+    );
     let cal = d.path().join("cal.json");
     let (f, c) = (few.to_str().unwrap(), cal.to_str().unwrap());
     let out = rigctl(&["calibrate", f, "--scale-um-per-px", "774", "--out", c]);
@@ -292,10 +300,20 @@ fn calibrate_and_process_refuse_bad_input_by_name() {
         "{err}"
     );
     let out = rigctl(&[
-        "calibrate", f, "--scale-um-per-px", "774", "--out", c, "--registration", "interferometer",
+        "calibrate",
+        f,
+        "--scale-um-per-px",
+        "774",
+        "--out",
+        c,
+        "--registration",
+        "interferometer",
     ]);
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("steps.csv") && err.contains("no interferometer_um column"), "{err}");
+    assert!(
+        err.contains("steps.csv") && err.contains("no interferometer_um column"),
+        "{err}"
+    );
     // A calibration of 1280x720 frames (the unit tests' synthetic scan, written by hand)
     // applied to 300x200 frames.
     let rec = serde_json::json!({
@@ -316,10 +334,15 @@ fn calibrate_and_process_refuse_bad_input_by_name() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
         !out.status.success()
-            && err.contains("calibration cal-test was fitted on 1280x720 frames; these are 300x200"),
+            && err
+                .contains("calibration cal-test was fitted on 1280x720 frames; these are 300x200"),
         "{err}"
     );
     std::fs::write(&cal, "{\"version\": 7}").unwrap();
-    let err = String::from_utf8_lossy(&rigctl(&["process", f, "--calibration", c]).stderr).into_owned();
-    assert!(err.contains(c) && err.contains("version 7: this rigd reads version 1"), "{err}");
+    let err =
+        String::from_utf8_lossy(&rigctl(&["process", f, "--calibration", c]).stderr).into_owned();
+    assert!(
+        err.contains(c) && err.contains("version 7: this rigd reads version 1"),
+        "{err}"
+    );
 }

@@ -367,10 +367,7 @@ impl Pipeline {
                 );
                 skipped.extend(unseen);
             }
-            if let Some((cal, _)) = &self.calibration {
-                let board = self.board.as_ref().map(|b| b.name.as_str());
-                self.calibration_warnings = cal.check(got, self.opts.scale_um_per_px, board)?;
-            }
+            self.check_calibration(got)?;
             self.targets = det.targets;
             self.skipped = skipped;
             self.size = Some(got);
@@ -541,20 +538,33 @@ impl Pipeline {
                 skipped,
                 steps,
                 step_summary,
-                calibration: self
-                    .calibration
-                    .as_ref()
-                    .map(|(c, source)| CalibrationUsed {
-                        id: c.id.clone(),
-                        date: c.date.clone(),
-                        method: c.method,
-                        source: source.clone(),
-                        warnings: self.calibration_warnings.clone(),
-                    }),
+                calibration: self.calibration_used(),
             },
             images: named,
             tracks,
         })
+    }
+
+    /// Frame 0: whether the calibration fits these frames (its warnings kept).
+    fn check_calibration(&mut self, frame_size: (u32, u32)) -> Result<(), PipelineError> {
+        if let Some((cal, _)) = &self.calibration {
+            let board = self.board.as_ref().map(|b| b.name.as_str());
+            self.calibration_warnings = cal.check(frame_size, self.opts.scale_um_per_px, board)?;
+        }
+        Ok(())
+    }
+
+    /// The calibration the result names.
+    fn calibration_used(&self) -> Option<CalibrationUsed> {
+        self.calibration
+            .as_ref()
+            .map(|(c, source)| CalibrationUsed {
+                id: c.id.clone(),
+                date: c.date.clone(),
+                method: c.method,
+                source: source.clone(),
+                warnings: self.calibration_warnings.clone(),
+            })
     }
 
     /// The recorded tracks, named by the board as the objects are.
