@@ -325,7 +325,7 @@ fn calibrate_and_process_refuse_bad_input_by_name() {
         "field": {"layout": "free", "model": {"centre_px": [639.5, 359.5],
             "norm_radius_px": 734.3, "a_px_per_um": [[0.001292, 0.0], [0.0, 0.001292]],
             "g_per_um": [0.0, 0.0], "k1": 0.0, "k2": 0.0},
-            "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.14159,
+            "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.0,
             "print_scale": null, "residual_rms_px": 0.01, "residual_rms_um": 7.7,
             "residual_max_um": 20.0}
     });
