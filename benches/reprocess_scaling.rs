@@ -137,6 +137,7 @@ fn main() {
                 ..Overrides::default()
             },
             board: None,
+            calibration: None,
             threads: th,
             index: IndexTarget::File(root.path().join(format!("index-{th}.sqlite"))),
         };

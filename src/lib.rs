@@ -20,6 +20,7 @@
 
 pub mod acquisition;
 pub mod atomic_file;
+pub mod calibration_file;
 pub mod cli;
 pub mod config;
 pub mod daemon;
@@ -40,4 +41,4 @@ pub mod xl80;
 #[cfg(feature = "sim")]
 pub use rigd_sim as sim;
 // The board and the pipeline live in rigd-core; `crate::pipeline::...` stays a path.
-pub use rigd_core::{board, pipeline};
+pub use rigd_core::{board, calibration, pipeline};

@@ -28,7 +28,8 @@ pub struct Row {
     /// Inner centre minus outer centre, µm on the board.
     pub dx_um: f64,
     pub dy_um: f64,
-    /// The pipeline's one-sigma standard uncertainty of dx_um, dy_um (`sigma_um`).
+    /// The standard uncertainty of dx_um, dy_um: the combined `u_um` (type A and B, GUM)
+    /// when the result has it, else (results before it) `sigma_um`.
     pub u_dx_um: Option<f64>,
     pub u_dy_um: Option<f64>,
     /// The board's nominal offset.
@@ -77,8 +78,8 @@ pub fn rows_of(
                 target: o.name.clone().unwrap_or_else(|| format!("#{i}")),
                 dx_um: o.offset_um[0],
                 dy_um: o.offset_um[1],
-                u_dx_um: o.sigma_um.and_then(|s| known(s[0])),
-                u_dy_um: o.sigma_um.and_then(|s| known(s[1])),
+                u_dx_um: o.u_um.or(o.sigma_um).and_then(|s| known(s[0])),
+                u_dy_um: o.u_um.or(o.sigma_um).and_then(|s| known(s[1])),
                 nominal_dx_um: nominal.and_then(|n| n[0]),
                 nominal_dy_um: nominal.and_then(|n| n[1]),
                 bias_dx_um: bias(0),
@@ -175,6 +176,7 @@ mod tests {
             inner_radius_px: 1.0,
             frames: 20,
             effective_pixel_um: 77.4,
+            ..Default::default()
         };
         ProcessResult {
             options: ProcessOptions {
@@ -191,6 +193,7 @@ mod tests {
             skipped: vec![],
             steps: vec![],
             step_summary: Default::default(),
+            calibration: None,
         }
     }
 

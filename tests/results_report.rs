@@ -46,8 +46,16 @@ fn num(row: &HashMap<String, String>, col: &str) -> Option<f64> {
 fn assert_row_is(row: &HashMap<String, String>, o: &ObjectResult, r: &ProcessResult) {
     assert_eq!(num(row, "dx_um"), Some(o.offset_um[0]), "{row:?}");
     assert_eq!(num(row, "dy_um"), Some(o.offset_um[1]), "{row:?}");
-    assert_eq!(num(row, "u_dx_um"), o.sigma_um.map(|s| s[0]), "{row:?}");
-    assert_eq!(num(row, "u_dy_um"), o.sigma_um.map(|s| s[1]), "{row:?}");
+    assert_eq!(
+        num(row, "u_dx_um"),
+        o.u_um.or(o.sigma_um).map(|s| s[0]),
+        "{row:?}"
+    );
+    assert_eq!(
+        num(row, "u_dy_um"),
+        o.u_um.or(o.sigma_um).map(|s| s[1]),
+        "{row:?}"
+    );
     let nominal = o.nominal_um.expect("the board names every target");
     assert_eq!(num(row, "nominal_dx_um"), Some(nominal[0]));
     assert_eq!(num(row, "nominal_dy_um"), Some(nominal[1]));

@@ -7,6 +7,7 @@
 //! decoded images with their positions, results go out as plain data.
 
 pub mod board;
+pub mod calibration;
 pub mod pipeline;
 
 pub use board::Board;

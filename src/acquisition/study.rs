@@ -158,10 +158,12 @@ mod tests {
                     inner_radius_px: 1.0,
                     frames: frames as usize,
                     effective_pixel_um: 774.0,
+                    ..Default::default()
                 }],
                 skipped: vec![],
                 steps: vec![],
                 step_summary: Default::default(),
+                calibration: None,
             }),
             error: None,
         }

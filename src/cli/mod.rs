@@ -1,5 +1,6 @@
 //! The `rigctl` command line: one module per subcommand, wired here.
 
+pub mod calibrate;
 pub mod cancel;
 pub mod client;
 #[cfg(feature = "sim")]
@@ -61,6 +62,9 @@ pub enum Command {
     Replay(replay::ReplayArgs),
     /// Write a recorded session as OME-Zarr or OME-TIFF (units, positions, times), offline.
     Export(export::ExportArgs),
+    /// Fit a calibration (local scale per target, field model) from a folder scan of known
+    /// displacements (frames/*.png + steps.csv).
+    Calibrate(calibrate::CalibrateArgs),
     /// Measure target offsets offline: a session run by run as the daemon did, or a folder
     /// of frames (frames/*.png + steps.csv).
     Process(process::ProcessArgs),
@@ -115,6 +119,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Fetch(a) => fetch::run(a),
         Command::Replay(a) => replay::run(a),
         Command::Export(a) => export::run(a),
+        Command::Calibrate(a) => calibrate::run(a),
         Command::Process(a) => process::run(a),
         Command::Report(a) => report::run(a),
         Command::Reprocess(a) => reprocess::run(a),

@@ -4,6 +4,7 @@
 
 use crate::acquisition::JobRegistration;
 use crate::board::Board;
+use crate::calibration_file::Applied;
 use crate::folder::{self, FrameFile};
 use crate::offline::push::{decoders_for_one_run, push_frames, FrameIn, PushError};
 use crate::offline::session_runs::process_session;
@@ -45,6 +46,11 @@ pub struct ProcessingFlags {
     /// Also reconstruct the whole frame [session: recorded].
     #[arg(long)]
     pub whole_frame: bool,
+    /// A calibration record (`rigctl calibrate --out`): offsets converted by its field
+    /// model instead of the global scale, with its type-B uncertainty; a calibration of
+    /// another frame size is refused (docs/calibration.md).
+    #[arg(long, value_name = "FILE")]
+    pub calibration: Option<PathBuf>,
 }
 
 fn k_help() -> String {
@@ -57,6 +63,11 @@ fn k_help() -> String {
 }
 
 impl ProcessingFlags {
+    /// The calibration file, read and checked (its version), if one is given.
+    pub fn calibration(&self) -> anyhow::Result<Option<Applied>> {
+        self.calibration.as_deref().map(Applied::load).transpose()
+    }
+
     pub fn overrides(&self) -> Overrides {
         Overrides {
             k: self.k,
@@ -162,7 +173,9 @@ fn run_session(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
     let ov = args.flags.overrides();
     let s = crate::daemon::session::Session::open(&args.dir)?;
     let keep = args.out.is_some();
-    let done = process_session(&s, &ov, board, args.frames, keep, decoders_for_one_run())?;
+    let cal = args.flags.calibration()?;
+    let decoders = decoders_for_one_run();
+    let done = process_session(&s, &ov, board, cal.as_ref(), args.frames, keep, decoders)?;
     if let Some(out) = &args.out {
         std::fs::create_dir_all(out)
             .with_context(|| format!("{}: cannot create", out.display()))?;
@@ -207,6 +220,7 @@ fn run_session(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
 fn run_folder(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
     // Every option is checked before a frame is read.
     let options = args.flags.folder_options()?;
+    let cal = args.flags.calibration()?;
     let dir = folder::open(&args.dir, args.frames)?;
     let positions = match args.flags.registration {
         Some(JobRegistration::Interferometer) => {
@@ -227,6 +241,9 @@ fn run_folder(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
     let mut pipeline = Pipeline::new(options, board);
     // The reconstructions are written only with --out: otherwise not converted at all.
     pipeline.keep_images(args.out.is_some());
+    if let Some(c) = &cal {
+        c.apply(&mut pipeline);
+    }
     push_frames(&mut pipeline, &frames, decoders_for_one_run()).map_err(|e| match e {
         PushError::Read(e) => anyhow::Error::new(e),
         other => anyhow::anyhow!("{other}"),

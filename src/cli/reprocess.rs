@@ -58,6 +58,7 @@ pub fn run(a: ReprocessArgs) -> anyhow::Result<()> {
     let how = Reprocess {
         overrides: a.flags.overrides(),
         board,
+        calibration: a.flags.calibration()?,
         threads,
         index: match (&a.index, a.no_index) {
             (_, true) => IndexTarget::None,

@@ -109,11 +109,13 @@ mod tests {
                         inner_radius_px: 1.0,
                         frames: 1,
                         effective_pixel_um: 774.0,
+                        ..Default::default()
                     })
                     .collect(),
                 skipped: vec![],
                 steps: vec![],
                 step_summary: Default::default(),
+                calibration: None,
             }),
             error: None,
         }

@@ -118,7 +118,8 @@ pub fn rows_of(facts: &SessionFacts, settings: &str, result: &JobResult) -> Vec<
     for r in &result.runs {
         let Some(res) = &r.result else { continue };
         for (i, o) in res.objects.iter().enumerate() {
-            let sigma = o.sigma_um.map(|s| s.map(finite));
+            // As results.csv: the combined uncertainty, else (older results) sigma_um.
+            let sigma = o.u_um.or(o.sigma_um).map(|s| s.map(finite));
             rows.push(Row {
                 session: facts.session.clone(),
                 run: r.run,

@@ -19,6 +19,8 @@ pub struct Reprocess {
     pub overrides: Overrides,
     /// A board overriding each session's rig board.
     pub board: Option<Board>,
+    /// A calibration converting every run's offsets (its id joins the settings' name).
+    pub calibration: Option<crate::calibration_file::Applied>,
     /// Sessions processed at once (rayon threads); the pipeline shares the pool.
     pub threads: usize,
     /// Where rows go: one index for every session, else `<session's parent>/index.sqlite`;
@@ -84,9 +86,20 @@ fn one(
     indexes: &Mutex<Vec<(PathBuf, Index)>>,
 ) -> anyhow::Result<Summary> {
     let s = Session::open(dir)?;
-    let name = how.overrides.settings_name();
+    let name = match &how.calibration {
+        Some(c) => format!("{}-{}", how.overrides.settings_name(), c.calibration.id),
+        None => how.overrides.settings_name(),
+    };
     // One decoder thread per session: the pool runs sessions side by side.
-    let done = process_session(&s, &how.overrides, how.board.clone(), None, true, 1)?;
+    let done = process_session(
+        &s,
+        &how.overrides,
+        how.board.clone(),
+        how.calibration.as_ref(),
+        None,
+        true,
+        1,
+    )?;
     let settings = Settings {
         name: name.clone(),
         overrides: how.overrides,

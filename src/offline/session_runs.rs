@@ -14,6 +14,7 @@ use crate::acquisition::processor::Image16;
 use crate::acquisition::study::{summarize, JobResult, RunResult};
 use crate::acquisition::JobRegistration;
 use crate::board::Board;
+use crate::calibration_file::Applied;
 use crate::daemon::session::{Session, StepRow};
 use crate::folder::FrameFile;
 use crate::pipeline::{Pipeline, ValidOptions};
@@ -138,12 +139,14 @@ pub struct Processed {
 }
 
 /// Process every run of `s` (see [`session_runs`]); `board` overrides the rig's;
+/// `calibration` converts every run's offsets;
 /// `keep_images` converts the reconstructions to images; `decoders` PNG decoder threads per
 /// run.
 pub fn process_session(
     s: &Session,
     ov: &Overrides,
     board: Option<Board>,
+    calibration: Option<&Applied>,
     limit: Option<usize>,
     keep_images: bool,
     decoders: usize,
@@ -162,7 +165,7 @@ pub fn process_session(
     let mut results = Vec::with_capacity(runs.len());
     let mut images = Vec::new();
     for input in runs {
-        let (run, outcome) = process_run(input, board.clone(), keep_images, decoders)?;
+        let (run, outcome) = process_run(input, board.clone(), calibration, keep_images, decoders)?;
         let (result, error) = match outcome {
             Ok(f) => {
                 for im in f.images {
@@ -207,6 +210,7 @@ type RunOutcome = Result<crate::pipeline::run::Finished, String>;
 fn process_run(
     input: RunInput,
     board: Option<Board>,
+    calibration: Option<&Applied>,
     keep_images: bool,
     decoders: usize,
 ) -> Result<(RunPlan, RunOutcome), SessionProcessError> {
@@ -215,6 +219,9 @@ fn process_run(
     }
     let mut pipeline = Pipeline::new(input.options, board);
     pipeline.keep_images(keep_images);
+    if let Some(c) = calibration {
+        c.apply(&mut pipeline);
+    }
     let outcome = match push_frames(&mut pipeline, &input.frames, decoders) {
         Ok(()) => pipeline.finish().map_err(|e| e.to_string()),
         Err(PushError::Pipeline { nth, file, source }) => {

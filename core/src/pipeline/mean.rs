@@ -67,6 +67,13 @@ impl OffsetMean {
         }
     }
 
+    /// The standard error of the plain mean from the offsets' scatter (`std / √n`), per
+    /// axis; none below two frames.
+    pub fn scatter_sigma(&self) -> Option<[f64; 2]> {
+        let n = self.n;
+        (n > 1).then(|| self.m2.map(|m2| (m2 / (n - 1) as f64 / n as f64).sqrt()))
+    }
+
     /// (offset, its one-sigma uncertainty): weighted when every frame had an invertible
     /// covariance and their sum inverts, else plain with the standard error of the scatter
     /// (none from a single frame). NaN from no frame.

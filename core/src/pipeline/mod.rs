@@ -79,7 +79,7 @@ pub enum Registration {
 }
 
 /// One measured target.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 pub struct ObjectResult {
     /// Board name of the target when a board was given and the target matched.
     pub name: Option<String>,
@@ -87,7 +87,8 @@ pub struct ObjectResult {
     pub centre_px: [f64; 2],
     /// Inner centre minus outer centre, camera pixels.
     pub offset_px: [f64; 2],
-    /// The same in micrometres on the board.
+    /// The same in micrometres on the board: `offset_px` x `scale_um_per_px`, or, when a
+    /// calibration was applied (`ProcessResult::calibration`), converted by its field model.
     pub offset_um: [f64; 2],
     /// One-sigma uncertainty of `offset_um` (from the fit, or the frame-to-frame scatter).
     pub sigma_um: Option<[f64; 2]>,
@@ -100,6 +101,34 @@ pub struct ObjectResult {
     /// Size on the board of one pixel of the grid the offset was measured on
     /// (`scale_um_per_px / k` for a reconstruction, the camera pixel otherwise).
     pub effective_pixel_um: f64,
+    /// Combined standard uncertainty of `offset_um` (GUM): `sqrt(u_a² + u_b²)` per axis.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub u_um: Option<[f64; 2]>,
+    /// Type A: from the frames' scatter (the per-frame offsets' standard error, never below
+    /// the fit's covariance; the fit's covariance for one frame).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub u_a_um: Option<[f64; 2]>,
+    /// Type B: the calibration's (field model, reference scale), else the global scale's
+    /// assumed `calibration::UNCALIBRATED_SCALE_REL_U` of the offset's length.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub u_b_um: Option<[f64; 2]>,
+    /// `offset_px` x `scale_um_per_px`, when a calibration gave `offset_um` instead.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offset_global_um: Option<[f64; 2]>,
+}
+
+/// The calibration a result was converted with.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationUsed {
+    pub id: String,
+    pub date: String,
+    pub method: crate::calibration::Reference,
+    /// Where it was read from, when the caller says.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source: Option<String>,
+    /// Mismatches that did not stop it (another scale or board than it was fitted with).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 /// A target candidate that was found but not measured, and why.
@@ -148,6 +177,9 @@ pub struct ProcessResult {
     /// Every step, in brief (absent from results written before rigd 0.2: all steps listed).
     #[serde(default)]
     pub step_summary: StepSummary,
+    /// The calibration the offsets were converted with (none: the global scale).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<CalibrationUsed>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -164,6 +196,8 @@ pub enum PipelineError {
     NoFrames,
     #[error(transparent)]
     Option(#[from] OptionError),
+    #[error(transparent)]
+    Calibration(#[from] crate::calibration::CalibrationError),
     #[error("{0}")]
     Other(String),
 }

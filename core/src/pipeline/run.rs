@@ -20,9 +20,11 @@ use super::plane::{Plane, Roi};
 use super::reconstruct::{self, Fine, View};
 use super::register::{self, At, Dirs, StepLog};
 use super::*;
-use crate::board::Board;
+use crate::board::{Board, Shape};
+use crate::calibration::{Calibration, Radii, TargetTrack, UNCALIBRATED_SCALE_REL_U};
 use image::RgbImage;
 use rayon::prelude::*;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// Vertical fine shifts whose row sums a whole-frame reconstruction keeps at once (each an
@@ -50,6 +52,9 @@ pub struct NamedImage {
 pub struct Finished {
     pub result: ProcessResult,
     pub images: Vec<NamedImage>,
+    /// Every target's outer centre in every frame, when asked for
+    /// ([`Pipeline::record_tracks`]: a calibration scan); empty otherwise.
+    pub tracks: Vec<TargetTrack>,
 }
 
 /// How one target's frames are being combined.
@@ -83,6 +88,13 @@ pub struct Pipeline {
     steps: StepLog,
     /// Whether `finish` hands back the reconstructions as images.
     keep_images: bool,
+    /// `[target]`: every frame's offset (any combine mode): the type-A uncertainty.
+    scatter: Vec<OffsetMean>,
+    /// `[target][frame]`: outer centres, when asked for.
+    tracks: Option<Vec<Vec<Option<[f64; 2]>>>>,
+    /// The calibration the offsets are converted with, and where it came from.
+    calibration: Option<(Arc<Calibration>, Option<String>)>,
+    calibration_warnings: Vec<String>,
 }
 
 impl Pipeline {
@@ -106,7 +118,28 @@ impl Pipeline {
             last_image_shift_px: [0.0; 2],
             steps: StepLog::default(),
             keep_images: true,
+            scatter: Vec::new(),
+            tracks: None,
+            calibration: None,
+            calibration_warnings: Vec::new(),
         }
+    }
+
+    /// Keep every target's outer centre in every frame and hand them back
+    /// (`Finished::tracks`): what a calibration is fitted from. Set it before frame 0.
+    pub fn record_tracks(&mut self, record: bool) {
+        self.tracks = record.then(Vec::new);
+    }
+
+    /// Convert the offsets with `calibration` (its field model, not the global scale) and
+    /// take its type-B uncertainty; `source` names where it was read from. Frame 0 checks
+    /// it against the frames (`Calibration::check`): another frame size fails the run.
+    pub fn set_calibration(
+        &mut self,
+        calibration: Option<Arc<Calibration>>,
+        source: Option<String>,
+    ) {
+        self.calibration = calibration.map(|c| (c, source));
     }
 
     /// Whether `finish` hands back the reconstructions as 16-bit images (the default). A
@@ -334,6 +367,7 @@ impl Pipeline {
                 );
                 skipped.extend(unseen);
             }
+            self.check_calibration(got)?;
             self.targets = det.targets;
             self.skipped = skipped;
             self.size = Some(got);
@@ -371,6 +405,7 @@ impl Pipeline {
             return Ok(None);
         }
         self.accumulate(frame, &est, recon_px);
+        self.observe(&est);
         let p0 = *self.first_position_um.get_or_insert(at);
         let piezo = piezo_um.is_some();
         let residual = register::residual_at(index, (at, p0), shift, &self.dirs(), piezo);
@@ -387,6 +422,24 @@ impl Pipeline {
             image_shift_px: shift,
             process_ms: t0.elapsed().as_secs_f64() * 1e3,
         }))
+    }
+
+    /// Each target's offset into its scatter, its centre into its track.
+    fn observe(&mut self, est: &[Option<CentreEstimate>]) {
+        if self.scatter.is_empty() {
+            self.scatter = vec![OffsetMean::default(); est.len()];
+        }
+        for (m, e) in self.scatter.iter_mut().zip(est) {
+            if let Some(e) = e {
+                m.add(e);
+            }
+        }
+        if let Some(tracks) = self.tracks.as_mut() {
+            tracks.resize(est.len(), Vec::new());
+            for (t, e) in tracks.iter_mut().zip(est) {
+                t.push(e.as_ref().map(|e| e.outer_px));
+            }
+        }
     }
 
     /// Add the frame to what its targets (and the whole frame) accumulate.
@@ -421,19 +474,21 @@ impl Pipeline {
         let mut skipped = self.skipped.clone();
         let mut images = Vec::new();
         let combining = std::mem::take(&mut self.combining);
-        let measured: Vec<Result<(ObjectResult, Option<Fine>), String>> = combining
+        let measured: Vec<Result<Measured, String>> = combining
             .into_par_iter()
             .enumerate()
             .map(|(t, c)| self.measure_target(t, c?, k))
             .collect();
         let mut objects = Vec::new();
+        let mut type_a_px = Vec::new();
         for (t, m) in measured.into_iter().enumerate() {
             match m {
-                Ok((o, fine)) => {
+                Ok((o, fine, a)) => {
                     if let Some(f) = fine.filter(|_| self.keep_images) {
                         images.push((objects.len(), f));
                     }
                     objects.push(o);
+                    type_a_px.push(a);
                 }
                 Err(reason) => skipped.push(Skipped {
                     centre_px: self.targets[t].outer_centre_px,
@@ -455,6 +510,8 @@ impl Pipeline {
         if let Some(board) = &self.board {
             name_objects(&mut objects, board, self.opts.scale_um_per_px);
         }
+        self.convert_objects(&mut objects, &type_a_px);
+        let tracks = self.take_tracks();
         let mut named: Vec<NamedImage> = images
             .into_iter()
             .map(|(i, f)| NamedImage {
@@ -481,18 +538,113 @@ impl Pipeline {
                 skipped,
                 steps,
                 step_summary,
+                calibration: self.calibration_used(),
             },
             images: named,
+            tracks,
         })
     }
 
+    /// Frame 0: whether the calibration fits these frames (its warnings kept).
+    fn check_calibration(&mut self, frame_size: (u32, u32)) -> Result<(), PipelineError> {
+        if let Some((cal, _)) = &self.calibration {
+            let board = self.board.as_ref().map(|b| b.name.as_str());
+            self.calibration_warnings = cal.check(frame_size, self.opts.scale_um_per_px, board)?;
+        }
+        Ok(())
+    }
+
+    /// The calibration the result names.
+    fn calibration_used(&self) -> Option<CalibrationUsed> {
+        self.calibration
+            .as_ref()
+            .map(|(c, source)| CalibrationUsed {
+                id: c.id.clone(),
+                date: c.date.clone(),
+                method: c.method,
+                source: source.clone(),
+                warnings: self.calibration_warnings.clone(),
+            })
+    }
+
+    /// The recorded tracks, named by the board as the objects are.
+    fn take_tracks(&mut self) -> Vec<TargetTrack> {
+        let Some(tracks) = self.tracks.take() else {
+            return Vec::new();
+        };
+        let centres: Vec<[f64; 2]> = self.targets.iter().map(|c| c.outer_centre_px).collect();
+        let names = match &self.board {
+            Some(b) => super::layout::name_targets(&centres, b, self.opts.scale_um_per_px),
+            None => vec![None; centres.len()],
+        };
+        tracks
+            .into_iter()
+            .zip(names)
+            .zip(&self.first)
+            .map(|((centres_px, name), first)| TargetTrack {
+                name,
+                centres_px,
+                outer_radius_px: first.as_ref().map_or(f64::NAN, |e| e.outer_radius_px),
+                inner_radius_px: first.as_ref().map_or(f64::NAN, |e| e.inner_radius_px),
+            })
+            .collect()
+    }
+
+    /// Each object's offset in µm (through the calibration when there is one) and its
+    /// uncertainty: type A from `type_a_px`, type B from the calibration or the global
+    /// scale's assumed uncertainty.
+    fn convert_objects(&self, objects: &mut [ObjectResult], type_a_px: &[Option<[f64; 2]>]) {
+        let s = self.opts.scale_um_per_px;
+        for (o, a) in objects.iter_mut().zip(type_a_px) {
+            let (m, u_b) = match &self.calibration {
+                Some((cal, _)) => {
+                    let c = cal.convert(o.centre_px, o.offset_px, self.radii(o));
+                    o.offset_global_um = Some(o.offset_um);
+                    o.offset_um = c.offset_um;
+                    (c.um_per_px, c.u_b_um)
+                }
+                None => {
+                    let len = o.offset_um[0].hypot(o.offset_um[1]);
+                    ([[s, 0.0], [0.0, s]], [UNCALIBRATED_SCALE_REL_U * len; 2])
+                }
+            };
+            o.u_a_um = a.map(|a| std::array::from_fn(|i| (m[i][0] * a[0]).hypot(m[i][1] * a[1])));
+            o.u_b_um = Some(u_b);
+            o.u_um = o.u_a_um.map(|a| [a[0].hypot(u_b[0]), a[1].hypot(u_b[1])]);
+        }
+    }
+
+    /// The object's circles on the board: the board's shapes when it is named, else its
+    /// measured rims at the global scale.
+    fn radii(&self, o: &ObjectResult) -> Radii {
+        let edges = |s: &Shape| match *s {
+            Shape::Ring {
+                inner_radius_um,
+                outer_radius_um,
+            } => [inner_radius_um, outer_radius_um],
+            Shape::Disk { radius_um } => [radius_um; 2],
+        };
+        let named = o
+            .name
+            .as_deref()
+            .and_then(|n| self.board.as_ref()?.target(n));
+        match named {
+            Some(t) => Radii {
+                outer_um: edges(&t.outer),
+                inner_um: edges(&t.inner),
+            },
+            None => {
+                let s = self.opts.scale_um_per_px;
+                Radii {
+                    outer_um: [o.outer_radius_px * s; 2],
+                    inner_um: [o.inner_radius_px * s; 2],
+                }
+            }
+        }
+    }
+
     /// One target's result with the chosen combine mode (and its reconstruction, if any).
-    fn measure_target(
-        &self,
-        t: usize,
-        combining: Combining,
-        k: usize,
-    ) -> Result<(ObjectResult, Option<Fine>), String> {
+    fn measure_target(&self, t: usize, combining: Combining, k: usize) -> Result<Measured, String> {
         let s = self.opts.scale_um_per_px;
         let first = self.first[t].as_ref().ok_or("not measurable in frame 0")?;
         let (est, sigma_px, frames, fine) = match combining {
@@ -511,6 +663,14 @@ impl Pipeline {
             }
         };
         let off = est.offset_px();
+        // Type A: the per-frame offsets' standard error, never below the fit's own figure.
+        let type_a = match (
+            self.scatter.get(t).and_then(|m| m.scatter_sigma()),
+            sigma_px,
+        ) {
+            (Some(a), Some(b)) => Some([a[0].max(b[0]), a[1].max(b[1])]),
+            (a, b) => a.or(b),
+        };
         Ok((
             ObjectResult {
                 name: None,
@@ -523,8 +683,10 @@ impl Pipeline {
                 inner_radius_px: est.inner_radius_px,
                 frames,
                 effective_pixel_um: s / k as f64,
+                ..ObjectResult::default()
             },
             fine,
+            type_a,
         ))
     }
 
@@ -582,6 +744,9 @@ impl Pipeline {
         Ok((back, fine))
     }
 }
+
+/// One target's result, its reconstruction (if any) and its type-A uncertainty in px.
+type Measured = (ObjectResult, Option<Fine>, Option<[f64; 2]>);
 
 /// A target's reconstruction window: its place in frame 0 and the reconstruction its
 /// frames' crops (moved by each frame's whole-pixel displacement) accumulate into.

@@ -171,6 +171,7 @@ mod tests {
             inner_radius_px: 8.0,
             frames: 1,
             effective_pixel_um: 774.0,
+            ..Default::default()
         }
     }
 
