@@ -21,12 +21,18 @@ const FRAMES: u32 = 5;
 
 fn attr(loc: &hdf5::Location, name: &str) -> String {
     let a = loc.attr(name).unwrap_or_else(|e| panic!("@{name}: {e}"));
-    a.read_scalar::<VarLenUnicode>().unwrap().as_str().to_owned()
+    a.read_scalar::<VarLenUnicode>()
+        .unwrap()
+        .as_str()
+        .to_owned()
 }
 
 fn text(g: &hdf5::Group, path: &str) -> String {
     let ds = g.dataset(path).unwrap_or_else(|e| panic!("{path}: {e}"));
-    ds.read_scalar::<VarLenUnicode>().unwrap().as_str().to_owned()
+    ds.read_scalar::<VarLenUnicode>()
+        .unwrap()
+        .as_str()
+        .to_owned()
 }
 
 fn floats(g: &hdf5::Group, path: &str) -> Vec<f64> {
@@ -99,7 +105,9 @@ fn nexus_holds_every_frame_with_its_scale_positions_times_and_manifest() {
     assert_eq!(attr(&frames, "interpretation"), "rgba-image");
     let px = frames.read_raw::<u8>().unwrap();
     for (t, chunk) in px.chunks_exact(40 * 64 * 3).enumerate() {
-        let png = image::open(s.frame_path(s.steps[t].index)).unwrap().into_rgb8();
+        let png = image::open(s.frame_path(s.steps[t].index))
+            .unwrap()
+            .into_rgb8();
         assert_eq!(chunk, png.as_raw().as_slice(), "frame {t}");
     }
     let x = floats(&data, "x");
@@ -125,7 +133,10 @@ fn nexus_holds_every_frame_with_its_scale_positions_times_and_manifest() {
     let start = attr(&cam.dataset("start_time").unwrap(), "start");
     let rfc3339 = time::format_description::well_known::Rfc3339;
     let start = time::OffsetDateTime::parse(&start, &rfc3339).unwrap();
-    assert!((start.unix_timestamp_nanos() as f64 * 1e-9 - t0).abs() < 1e-6, "{start}");
+    assert!(
+        (start.unix_timestamp_nanos() as f64 * 1e-9 - t0).abs() < 1e-6,
+        "{start}"
+    );
     let axis = inst.group("axis").unwrap();
     assert_eq!(attr(&axis, "NX_class"), "NXpositioner");
     assert_eq!(floats(&axis, "target_value"), positions);
@@ -205,7 +216,13 @@ fn rigctl_export_nexus_writes_name_nxs_beside() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let want = format!("{}.nxs", s.manifest.name);
     let out = String::from_utf8(o.stdout).unwrap();
-    assert!(out.starts_with(&format!("{want}: 5 frames of 64x40 px")), "{out}");
+    assert!(
+        out.starts_with(&format!("{want}: 5 frames of 64x40 px")),
+        "{out}"
+    );
     let f = hdf5::File::open(dir.path().join(want)).unwrap();
-    assert_eq!(f.dataset("entry/data/frames").unwrap().shape(), [5, 40, 64, 3]);
+    assert_eq!(
+        f.dataset("entry/data/frames").unwrap().shape(),
+        [5, 40, 64, 3]
+    );
 }

@@ -111,13 +111,17 @@ fn instrument(src: &Source, entry: &Group) -> hdf5::Result<()> {
     let m = &src.session.manifest;
     let p = &src.planes;
     let inst = nx_group(entry, "instrument", "NXinstrument")?;
-    field_str(&inst, "name", &format!("rigd rig ({:?})", m.rig.mode).to_lowercase())?;
+    field_str(
+        &inst,
+        "name",
+        &format!("rigd rig ({:?})", m.rig.mode).to_lowercase(),
+    )?;
     let cam = nx_group(&inst, "camera", "NXdetector")?;
     field_str(&cam, "description", "camera on the axis, 8-bit RGB")?;
     field_str(&cam, "layout", "area")?;
     let s = src.scale_um_per_px();
     for name in ["x_pixel_size", "y_pixel_size"] {
-        attr_str(&field_num(&cam, name, s)?, "units", UM)?;
+        field_um(&cam, name, s)?;
     }
     let t0 = p.t_unix_s.first().copied().unwrap_or(0.0);
     let dt: Vec<f64> = (0..p.len()).map(|t| p.delta_t_s(t)).collect();
@@ -131,9 +135,18 @@ fn instrument(src: &Source, entry: &Group) -> hdf5::Result<()> {
         StageKind::Axis => Some(m.rig.axis_limits_um),
         StageKind::Piezo => m.rig.piezo_limits_um,
     };
-    positioner(&inst, &stage.to_string(), &p.axis_um, &p.position_um, limits)?;
+    positioner(
+        &inst,
+        &stage.to_string(),
+        &p.axis_um,
+        &p.position_um,
+        limits,
+    )?;
     if p.has_piezo() && stage != StageKind::Piezo {
-        let (reported, commanded) = (nan_for_none(&p.piezo_um), nan_for_none(&p.piezo_commanded_um));
+        let (reported, commanded) = (
+            nan_for_none(&p.piezo_um),
+            nan_for_none(&p.piezo_commanded_um),
+        );
         positioner(&inst, "piezo", &reported, &commanded, m.rig.piezo_limits_um)?;
     }
     if p.interferometer_um.iter().any(Option::is_some) {
@@ -160,8 +173,8 @@ fn positioner(
     field_f64s(&g, "value", reported_um, UM)?;
     field_f64s(&g, "target_value", commanded_um, UM)?;
     if let Some([lo, hi]) = limits_um {
-        attr_str(&field_num(&g, "soft_limit_min", lo)?, "units", UM)?;
-        attr_str(&field_num(&g, "soft_limit_max", hi)?, "units", UM)?;
+        field_um(&g, "soft_limit_min", lo)?;
+        field_um(&g, "soft_limit_max", hi)?;
     }
     Ok(())
 }
@@ -169,7 +182,11 @@ fn positioner(
 /// The signal's own attributes, once its pixels are written.
 fn frames_attrs(frames: &Dataset) -> hdf5::Result<()> {
     attr_str(frames, "interpretation", "rgba-image")?;
-    attr_str(frames, "long_name", "frames (uint8 RGB: frame, row, column, channel)")
+    attr_str(
+        frames,
+        "long_name",
+        "frames (uint8 RGB: frame, row, column, channel)",
+    )
 }
 
 /// NXdata: the frames, their commanded positions and times (links into the instrument),
@@ -184,7 +201,8 @@ fn data_group(src: &Source, entry: &Group) -> hdf5::Result<()> {
     let position = format!("instrument/{stage}/target_value");
     for (target, name) in links.into_iter().chain([(position.as_str(), "position")]) {
         data.link_hard(&format!("/entry/{target}"), name)?;
-        attr_str(&entry.dataset(target)?, "target", &format!("/entry/{target}"))?;
+        let linked = entry.dataset(target)?;
+        attr_str(&linked, "target", &format!("/entry/{target}"))?;
     }
     let (w, h) = src.frame_size;
     let s = src.scale_um_per_px();
@@ -210,18 +228,30 @@ fn collection(src: &Source, entry: &Group) -> hdf5::Result<()> {
     let g = nx_group(entry, "rigd", "NXcollection")?;
     field_str(&g, "format", FORMAT)?;
     field_str(&g, "session", &m.name)?;
-    attr_str(&field_num(&g, "scale_um_per_px", src.scale_um_per_px())?, "units", UM)?;
+    field_um(&g, "scale_um_per_px", src.scale_um_per_px())?;
     let planes = nx_group(&g, "planes", "NXcollection")?;
     let ints = |v: &[u32]| v.iter().map(|&x| i64::from(x)).collect::<Vec<i64>>();
-    planes.new_dataset_builder().with_data(&ints(&p.index)).create("index")?;
-    planes.new_dataset_builder().with_data(&ints(&p.run)).create("run")?;
-    planes.new_dataset_builder().with_data(&ints(&p.repeat)).create("repeat")?;
+    planes
+        .new_dataset_builder()
+        .with_data(&ints(&p.index))
+        .create("index")?;
+    planes
+        .new_dataset_builder()
+        .with_data(&ints(&p.run))
+        .create("run")?;
+    planes
+        .new_dataset_builder()
+        .with_data(&ints(&p.repeat))
+        .create("repeat")?;
     let cases = p
         .case
         .iter()
         .map(|c| vlen(c))
         .collect::<hdf5::Result<Vec<_>>>()?;
-    planes.new_dataset_builder().with_data(&cases).create("case")?;
+    planes
+        .new_dataset_builder()
+        .with_data(&cases)
+        .create("case")?;
     field_f64s(&planes, "position_um", &p.position_um, UM)?;
     field_f64s(&planes, "axis_um", &p.axis_um, UM)?;
     for (name, col) in [
@@ -264,7 +294,9 @@ fn json_collection(parent: &Group, name: &str, v: &serde_json::Value) -> hdf5::R
             Value::String(s) => field_str(&g, &key, s)?,
             Value::Array(a) if !a.is_empty() && a.iter().all(Value::is_number) => {
                 let xs: Vec<f64> = a.iter().filter_map(Value::as_f64).collect();
-                g.new_dataset_builder().with_data(&xs).create(key.as_str())?
+                g.new_dataset_builder()
+                    .with_data(&xs)
+                    .create(key.as_str())?
             }
             Value::Array(_) => field_str(&g, &key, &v.to_string())?,
         };
@@ -322,10 +354,7 @@ fn attr_strs(loc: &Location, name: &str, values: &[&str]) -> hdf5::Result<()> {
         .iter()
         .map(|s| vlen(s))
         .collect::<hdf5::Result<Vec<_>>>()?;
-    loc.new_attr_builder()
-        .with_data(&v)
-        .create(name)
-        .map(drop)
+    loc.new_attr_builder().with_data(&v).create(name).map(drop)
 }
 
 fn field_str(g: &Group, name: &str, value: &str) -> hdf5::Result<Dataset> {
@@ -338,6 +367,12 @@ fn field_num<T: H5Type>(g: &Group, name: &str, value: T) -> hdf5::Result<Dataset
     let ds = g.new_dataset::<T>().shape(()).create(name)?;
     ds.write_scalar(&value)?;
     Ok(ds)
+}
+
+/// A scalar length in µm.
+fn field_um(g: &Group, name: &str, value_um: f64) -> hdf5::Result<()> {
+    let ds = field_num(g, name, value_um)?;
+    attr_str(&ds, "units", UM)
 }
 
 fn field_f64s(g: &Group, name: &str, values: &[f64], units: &str) -> hdf5::Result<Dataset> {
