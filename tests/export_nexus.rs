@@ -74,7 +74,6 @@ fn nexus_holds_every_frame_with_its_scale_positions_times_and_manifest() {
     };
     let s = record_small(dir.path(), job);
     let f = exported(&s);
-    let scale = s.manifest.rig.scale_um_per_px;
     assert_eq!(attr(&f, "NX_class"), "NXroot");
     assert_eq!(attr(&f, "default"), "entry");
     let entry = f.group("entry").unwrap();
@@ -82,11 +81,16 @@ fn nexus_holds_every_frame_with_its_scale_positions_times_and_manifest() {
     assert_eq!(attr(&entry, "default"), "data");
     assert_eq!(text(&entry, "entry_identifier"), s.manifest.name);
     assert!(text(&entry, "start_time").ends_with('Z'));
+    check_nxdata(&entry.group("data").unwrap(), &s);
+    check_instrument(&entry.group("instrument").unwrap(), &s);
+    check_collection(&entry.group("rigd").unwrap(), &s);
+}
 
-    // NXdata: the signal, its axes and their dimensions.
-    let data = entry.group("data").unwrap();
-    assert_eq!(attr(&data, "NX_class"), "NXdata");
-    assert_eq!(attr(&data, "signal"), "frames");
+/// NXdata: the signal, its axes and their dimensions, every pixel, positions and times.
+fn check_nxdata(data: &hdf5::Group, s: &Session) {
+    let scale = s.manifest.rig.scale_um_per_px;
+    assert_eq!(attr(data, "NX_class"), "NXdata");
+    assert_eq!(attr(data, "signal"), "frames");
     let axes: Vec<String> = data
         .attr("axes")
         .unwrap()
@@ -110,19 +114,21 @@ fn nexus_holds_every_frame_with_its_scale_positions_times_and_manifest() {
             .into_rgb8();
         assert_eq!(chunk, png.as_raw().as_slice(), "frame {t}");
     }
-    let x = floats(&data, "x");
-    assert_eq!((x.len(), x[1], units(&data, "x")), (64, scale, "um".into()));
-    assert_eq!(floats(&data, "y").len(), 40);
+    let x = floats(data, "x");
+    assert_eq!((x.len(), x[1], units(data, "x")), (64, scale, "um".into()));
+    assert_eq!(floats(data, "y").len(), 40);
     let positions: Vec<f64> = s.steps.iter().map(|r| r.position_um).collect();
-    assert_eq!(floats(&data, "position"), positions);
-    assert_eq!(units(&data, "position"), "um");
+    assert_eq!(floats(data, "position"), positions);
+    assert_eq!(units(data, "position"), "um");
     let t0 = s.steps[0].t_unix_s;
     let dt: Vec<f64> = s.steps.iter().map(|r| r.t_unix_s - t0).collect();
-    assert_eq!(floats(&data, "time"), dt);
-    assert_eq!(units(&data, "time"), "s");
+    assert_eq!(floats(data, "time"), dt);
+    assert_eq!(units(data, "time"), "s");
+}
 
-    // NXinstrument: the detector's pixel size, the stage, the interferometer; no piezo.
-    let inst = entry.group("instrument").unwrap();
+/// NXinstrument: the detector's pixel size, the stage, the interferometer; no piezo.
+fn check_instrument(inst: &hdf5::Group, s: &Session) {
+    let scale = s.manifest.rig.scale_um_per_px;
     let cam = inst.group("camera").unwrap();
     assert_eq!(attr(&cam, "NX_class"), "NXdetector");
     for name in ["x_pixel_size", "y_pixel_size"] {
@@ -133,38 +139,42 @@ fn nexus_holds_every_frame_with_its_scale_positions_times_and_manifest() {
     let start = attr(&cam.dataset("start_time").unwrap(), "start");
     let rfc3339 = time::format_description::well_known::Rfc3339;
     let start = time::OffsetDateTime::parse(&start, &rfc3339).unwrap();
+    let t0 = s.steps[0].t_unix_s;
     assert!(
         (start.unix_timestamp_nanos() as f64 * 1e-9 - t0).abs() < 1e-6,
         "{start}"
     );
     let axis = inst.group("axis").unwrap();
     assert_eq!(attr(&axis, "NX_class"), "NXpositioner");
+    let positions: Vec<f64> = s.steps.iter().map(|r| r.position_um).collect();
     assert_eq!(floats(&axis, "target_value"), positions);
     let reported: Vec<f64> = s.steps.iter().map(|r| r.axis_um).collect();
     assert_eq!(floats(&axis, "value"), reported);
     assert_eq!(units(&axis, "value"), "um");
     let readings = s.steps.iter().map(|r| r.interferometer_um);
     assert!(readings.clone().all(|r| r.is_some()), "the sim's XL-80");
-    assert!(same(&floats(&inst, "interferometer/value"), readings));
-    assert_eq!(units(&inst, "interferometer/value"), "um");
+    assert!(same(&floats(inst, "interferometer/value"), readings));
+    assert_eq!(units(inst, "interferometer/value"), "um");
     assert!(inst.group("piezo").is_err(), "a line moves no piezo");
+}
 
-    // The session: steps.csv's columns, the manifest as JSON and as collections.
-    let rigd = entry.group("rigd").unwrap();
-    assert_eq!(attr(&rigd, "NX_class"), "NXcollection");
+/// The session: steps.csv's columns, the manifest as JSON and as collections.
+fn check_collection(rigd: &hdf5::Group, s: &Session) {
+    let scale = s.manifest.rig.scale_um_per_px;
+    assert_eq!(attr(rigd, "NX_class"), "NXcollection");
     let times: Vec<f64> = s.steps.iter().map(|r| r.t_unix_s).collect();
-    assert_eq!(floats(&rigd, "planes/t_unix_s"), times);
-    assert_eq!(floats(&rigd, "scale_um_per_px"), [scale]);
-    let m: serde_json::Value = serde_json::from_str(&text(&rigd, "manifest_json")).unwrap();
+    assert_eq!(floats(rigd, "planes/t_unix_s"), times);
+    assert_eq!(floats(rigd, "scale_um_per_px"), [scale]);
+    let m: serde_json::Value = serde_json::from_str(&text(rigd, "manifest_json")).unwrap();
     assert_eq!(m["job_id"], s.manifest.job_id);
-    assert_eq!(text(&rigd, "manifest/job/label"), "nexus check");
+    assert_eq!(text(rigd, "manifest/job/label"), "nexus check");
     let steps = rigd.dataset("manifest/job/steps").unwrap();
     assert_eq!(steps.read_scalar::<i64>().unwrap(), i64::from(FRAMES));
-    assert_eq!(floats(&rigd, "manifest/job/step_um"), [100.0]);
-    assert_eq!(units(&rigd, "manifest/job/step_um"), "um");
-    assert_eq!(units(&rigd, "manifest/job/settle_ms"), "ms");
-    assert_eq!(text(&rigd, "manifest/rig/board/name"), "small");
-    assert_eq!(units(&rigd, "manifest/rig/scale_um_per_px"), "um");
+    assert_eq!(floats(rigd, "manifest/job/step_um"), [100.0]);
+    assert_eq!(units(rigd, "manifest/job/step_um"), "um");
+    assert_eq!(units(rigd, "manifest/job/settle_ms"), "ms");
+    assert_eq!(text(rigd, "manifest/rig/board/name"), "small");
+    assert_eq!(units(rigd, "manifest/rig/scale_um_per_px"), "um");
 }
 
 #[test]
