@@ -12,12 +12,10 @@ mod support;
 
 use image::RgbImage;
 use rigd::daemon::frame_png;
-use rigd::daemon::session::{Session, SessionState};
+use rigd::daemon::session::Session;
 use rigd::export::{export, ExportError, Format};
-use rigd::rig::{simulated, SimSettings};
-use rigd::sim::CameraModel;
 use std::path::Path;
-use support::daemon::{capture_job, run_job, Daemon};
+use support::daemon::{capture_job, record_small};
 use tiff::decoder::{ifd::Value, Decoder, DecodingResult};
 use tiff::tags::Tag;
 
@@ -26,40 +24,7 @@ const FRAMES: u32 = 5;
 /// A finished 5-frame capture session on a small sim rig (64x40 frames, an interferometer),
 /// copied out of the daemon's data root into `dir`.
 fn record(dir: &Path) -> Session {
-    let board = dir.join("small.toml");
-    std::fs::write(&board, support::SMALL_BOARD).unwrap();
-    let settings = SimSettings {
-        camera: CameraModel {
-            width: 64,
-            height: 40,
-            supersample: 2,
-            frame_period_ms: 2.0,
-            exposure_ms: 1.0,
-            ..CameraModel::default()
-        },
-        board_file: Some(board),
-        ..SimSettings::default()
-    };
-    let d = Daemon::start_in(simulated(&settings).unwrap(), tempfile::tempdir().unwrap());
-    let mut c = d.subscribed();
-    let (_, ev) = run_job(&mut c, capture_job(100.0, FRAMES, 20));
-    let s = d.session(&ev);
-    assert_eq!(s.manifest.state, SessionState::Finished);
-    let to = dir.join(&s.manifest.name);
-    copy_dir(&s.dir, &to);
-    Session::open(&to).unwrap()
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
+    record_small(dir, capture_job(100.0, FRAMES, 20))
 }
 
 fn frame(s: &Session, index: u32) -> RgbImage {
@@ -305,7 +270,11 @@ fn bad_sessions_are_refused_naming_the_session_and_frame() {
     let f3 = s.frame_path(3);
     let keep = std::fs::read(&f3).unwrap();
     RgbImage::new(10, 10).save(&f3).unwrap();
-    for format in [Format::OmeTiff, Format::OmeZarr] {
+    let mut formats = vec![Format::OmeTiff, Format::OmeZarr];
+    if rigd::export::NEXUS_BUILT {
+        formats.push(Format::Nexus);
+    }
+    for format in formats {
         let e = export(&s.dir, format, &out).unwrap_err().to_string();
         assert!(
             e.contains(&name) && e.contains("frame 3 (frames/000003.png)"),
@@ -387,4 +356,29 @@ fn rigctl_export_writes_beside_and_says_what_it_wrote() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("a.tif: already exists"), "{err}");
+}
+
+#[cfg(not(feature = "hdf5"))]
+#[test]
+fn nexus_without_the_hdf5_feature_says_how_to_build_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = record(dir.path());
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args(["export", s.dir.to_str().unwrap(), "--format", "nexus"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("built without the cargo feature `hdf5`")
+            && err.contains("libhdf5-dev")
+            && err.contains("--features hdf5"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read_dir(dir.path()).unwrap().count(),
+        2,
+        "nothing written beside the session and the board"
+    );
 }

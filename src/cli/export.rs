@@ -1,5 +1,5 @@
-//! `rigctl export SESSION --format ome-zarr|ome-tiff [--out PATH]`: a recorded session as
-//! OME-Zarr or OME-TIFF, with units, per-plane positions and times (docs/export.md). Runs
+//! `rigctl export SESSION --format ome-zarr|ome-tiff|nexus [--out PATH]`: a recorded session
+//! as OME-Zarr, OME-TIFF or NeXus/HDF5 (the last with the cargo feature `hdf5`), with units, per-plane positions and times (docs/export.md). Runs
 //! offline on the session folder: no daemon needed.
 
 use crate::export::{self, Format};
@@ -13,7 +13,7 @@ pub struct ExportArgs {
     /// The file format to write.
     #[arg(long, value_enum)]
     pub format: Format,
-    /// Where to write (must not exist) [default: NAME.ome.zarr or NAME.ome.tif here].
+    /// Where to write (must not exist) [default: NAME.ome.zarr, NAME.ome.tif or NAME.nxs here].
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Print what was written as one JSON object on stdout.

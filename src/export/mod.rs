@@ -9,8 +9,11 @@
 //!
 //! - `planes`: the per-plane table (positions, times) both formats carry;
 //! - `ome_xml`: the OME-XML of an OME-TIFF; `tiff`: the OME-TIFF writer;
-//! - `zarr`: the OME-Zarr 0.5 (Zarr v3) writer.
+//! - `zarr`: the OME-Zarr 0.5 (Zarr v3) writer;
+//! - `nexus`: the HDF5/NeXus writer (cargo feature `hdf5`: it links the system's libhdf5).
 
+#[cfg(feature = "hdf5")]
+pub mod nexus;
 pub mod ome_xml;
 pub mod planes;
 pub mod tiff;
@@ -29,6 +32,9 @@ pub enum Format {
     OmeZarr,
     /// OME-TIFF (one file, BigTIFF past 4 GB): `NAME.ome.tif`.
     OmeTiff,
+    /// NeXus on HDF5 (NXentry/NXdata, NXinstrument): `NAME.nxs`. Needs a build with the
+    /// cargo feature `hdf5`.
+    Nexus,
 }
 
 impl Format {
@@ -37,9 +43,13 @@ impl Format {
         match self {
             Format::OmeZarr => "ome.zarr",
             Format::OmeTiff => "ome.tif",
+            Format::Nexus => "nxs",
         }
     }
 }
+
+/// Whether this build writes NeXus (the cargo feature `hdf5`).
+pub const NEXUS_BUILT: bool = cfg!(feature = "hdf5");
 
 #[derive(Debug, thiserror::Error)]
 pub enum ExportError {
@@ -60,6 +70,12 @@ pub enum ExportError {
     Exists { path: PathBuf },
     #[error("{path}: {message}")]
     Output { path: PathBuf, message: String },
+    #[error(
+        "--format nexus: this rigctl was built without the cargo feature `hdf5` (HDF5 needs \
+         the system's libhdf5): install it (Debian: apt-get install libhdf5-dev) and build \
+         with `cargo build --release --features hdf5` (docs/export.md)"
+    )]
+    NoHdf5,
 }
 
 impl ExportError {
@@ -169,10 +185,20 @@ impl Source {
         mut f: impl FnMut(usize, &[u8]) -> Result<(), ExportError>,
     ) -> Result<(), ExportError> {
         let mut planar = Vec::new();
+        self.for_each_rgb(|t, img| {
+            to_planar(img, &mut planar);
+            f(t, &planar)
+        })
+    }
+
+    /// Every frame in steps.csv's order, each with its plane number, as the PNG's
+    /// interleaved RGB (row, column, channel), read and handed to `f` one at a time.
+    pub fn for_each_rgb(
+        &self,
+        mut f: impl FnMut(usize, &RgbImage) -> Result<(), ExportError>,
+    ) -> Result<(), ExportError> {
         for (t, &index) in self.planes.index.iter().enumerate() {
-            let img = self.read_frame(index)?;
-            to_planar(&img, &mut planar);
-            f(t, &planar)?;
+            f(t, &self.read_frame(index)?)?;
         }
         Ok(())
     }
@@ -199,6 +225,10 @@ pub fn default_out(session_name: &str, format: Format) -> PathBuf {
 
 /// Export the session in `dir` as `format` to `out`, which must not exist.
 pub fn export(dir: &Path, format: Format, out: &Path) -> Result<Summary, ExportError> {
+    // Before anything is read: a build without HDF5 says so whatever the session.
+    if format == Format::Nexus && !NEXUS_BUILT {
+        return Err(ExportError::NoHdf5);
+    }
     if std::fs::symlink_metadata(out).is_ok() {
         return Err(ExportError::Exists {
             path: out.to_path_buf(),
@@ -208,6 +238,10 @@ pub fn export(dir: &Path, format: Format, out: &Path) -> Result<Summary, ExportE
     match format {
         Format::OmeTiff => tiff::write(&src, out)?,
         Format::OmeZarr => zarr::write(&src, out)?,
+        #[cfg(feature = "hdf5")]
+        Format::Nexus => nexus::write(&src, out)?,
+        #[cfg(not(feature = "hdf5"))]
+        Format::Nexus => return Err(ExportError::NoHdf5),
     }
     Ok(Summary {
         out: out.to_path_buf(),

@@ -8,7 +8,7 @@ use rigd::config::Config;
 use rigd::config::DaemonSettings;
 use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::server::Background;
-use rigd::daemon::session::Session;
+use rigd::daemon::session::{Session, SessionState};
 use rigd::rig::from_config;
 use rigd::rig::Rig;
 use rigd::rig::SimSettings;
@@ -330,5 +330,48 @@ pub fn assert_frames_decode(s: &Session, size: (u32, u32)) {
         let img = image::open(s.frame_path(r.index))
             .unwrap_or_else(|e| panic!("frame {} of {}: {e}", r.index, s.dir.display()));
         assert_eq!((img.width(), img.height()), size, "frame {}", r.index);
+    }
+}
+
+/// Run `job` to its end on a small sim rig (64x40 frames of the small board, an
+/// interferometer) and copy its finished session out of the daemon's data root into `dir`.
+pub fn record_small(dir: &Path, job: JobSpec) -> Session {
+    let board = dir.join("small.toml");
+    std::fs::write(&board, super::SMALL_BOARD).unwrap();
+    let settings = SimSettings {
+        camera: CameraModel {
+            width: 64,
+            height: 40,
+            supersample: 2,
+            frame_period_ms: 2.0,
+            exposure_ms: 1.0,
+            ..CameraModel::default()
+        },
+        board_file: Some(board),
+        ..SimSettings::default()
+    };
+    let d = Daemon::start_in(
+        rigd::rig::simulated(&settings).unwrap(),
+        tempfile::tempdir().unwrap(),
+    );
+    let mut c = d.subscribed();
+    let (_, ev) = run_job(&mut c, job);
+    let s = d.session(&ev);
+    assert_eq!(s.manifest.state, SessionState::Finished);
+    let to = dir.join(&s.manifest.name);
+    copy_dir(&s.dir, &to);
+    Session::open(&to).unwrap()
+}
+
+/// A copy of the tree at `from` (files and folders) at `to`.
+pub fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
     }
 }
