@@ -13,11 +13,13 @@
 use image::RgbImage;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rigd::calibration::{Calibration, FitOptions, Reference, Scan};
 use rigd::pipeline::{Combine, Estimator, Pipeline, ProcessOptions};
 use rigd::sim::board::Target;
 use rigd::sim::crb::offset_crb_um_raw;
 use rigd::sim::frames::FrameRenderer;
 use rigd::sim::{Board, CameraModel};
+use std::sync::Arc;
 
 /// A case of the paper's study: frames, step, k.
 #[derive(Debug, Clone, Copy)]
@@ -111,15 +113,20 @@ fn render(
         .collect()
 }
 
-/// Each target's error (measured minus nominal) on one repeat's frames, by board index.
+/// A target's error (measured minus nominal) and its stated standard uncertainty `u_um`.
+type Measured = Option<([f64; 2], [f64; 2])>;
+
+/// Each target's error on one repeat's frames, by board index.
 fn measure(
     board: &Board,
     imgs: &[(RgbImage, f64)],
     case: Case,
     estimator: Estimator,
-) -> Vec<Option<[f64; 2]>> {
+    cal: Option<&Arc<Calibration>>,
+) -> Vec<Measured> {
     let opts = options(case, estimator).validate().unwrap();
     let mut pipe = Pipeline::new(opts, Some(board.clone()));
+    pipe.set_calibration(cal.cloned(), Some("study".into()));
     for (img, x_um) in imgs {
         pipe.push_at(img, *x_um, None).unwrap();
     }
@@ -132,12 +139,46 @@ fn measure(
                 .objects
                 .iter()
                 .find(|o| o.name.as_deref() == Some(&t.name))?;
-            Some([
+            let e = [
                 o.offset_um[0] - t.offset_um[0],
                 o.offset_um[1] - t.offset_um[1],
-            ])
+            ];
+            Some((e, o.u_um.unwrap_or([f64::NAN; 2])))
         })
         .collect()
+}
+
+/// Calibration from the stage as a user makes it (docs/calibration.md): 21 frames 1000 µm
+/// apart, commanded positions, the board's layout.
+fn calibrate(frames: &FrameRenderer, sequence: &mut u64) -> Arc<Calibration> {
+    let board = frames.scene().board().clone();
+    let opts = ProcessOptions {
+        axis_dir: [-1.0, 0.0],
+        ..ProcessOptions::default()
+    };
+    let mut pipe = Pipeline::new(opts.clone().validate().unwrap(), Some(board.clone()));
+    pipe.record_tracks(true);
+    let positions_um: Vec<f64> = (0..21).map(|i| i as f64 * 1000.0).collect();
+    for &x_um in &positions_um {
+        *sequence += 1;
+        pipe.push_at(&frames.render_at(*sequence, [x_um, 0.0]), x_um, None)
+            .unwrap();
+    }
+    let done = pipe.finish().unwrap();
+    let scan = Scan {
+        frame_size: (done.result.width, done.result.height),
+        scale_um_per_px: opts.scale_um_per_px,
+        axis_dir: opts.axis_dir,
+        reference: Reference::Commanded,
+        positions_um,
+        piezo_um: None,
+        targets: done.tracks,
+    };
+    let fit = FitOptions {
+        board: Some(board),
+        ..FitOptions::default()
+    };
+    Arc::new(Calibration::fit(&scan, &fit).unwrap())
 }
 
 /// Per target of one case: bias and std of each axis, the bound, measured count.
@@ -155,10 +196,16 @@ fn rms(figs: &[TargetFigures], f: impl Fn(&TargetFigures) -> [f64; 2]) -> f64 {
     (s / (2 * figs.len()) as f64).sqrt()
 }
 
-fn figures(errors: &[Vec<Option<[f64; 2]>>], crb_um: &[[f64; 2]]) -> Vec<TargetFigures> {
+fn max_abs_bias(figs: &[TargetFigures]) -> f64 {
+    figs.iter()
+        .flat_map(|t| t.bias_um.map(f64::abs))
+        .fold(0.0, f64::max)
+}
+
+fn figures(errors: &[Vec<Measured>], crb_um: &[[f64; 2]]) -> Vec<TargetFigures> {
     (0..crb_um.len())
         .map(|t| {
-            let e: Vec<[f64; 2]> = errors.iter().filter_map(|r| r[t]).collect();
+            let e: Vec<[f64; 2]> = errors.iter().filter_map(|r| r[t].map(|m| m.0)).collect();
             let n = e.len();
             let mut fig = TargetFigures {
                 crb_um: crb_um[t],
@@ -176,8 +223,19 @@ fn figures(errors: &[Vec<Option<[f64; 2]>>], crb_um: &[[f64; 2]]) -> Vec<TargetF
         .collect()
 }
 
+/// Share of the measurements (targets x axes x repeats) with |error| <= 2u.
+fn coverage(errors: &[Vec<Measured>]) -> f64 {
+    let within: Vec<bool> = errors
+        .iter()
+        .flatten()
+        .flatten()
+        .flat_map(|(e, u)| [e[0].abs() <= 2.0 * u[0], e[1].abs() <= 2.0 * u[1]])
+        .collect();
+    within.iter().filter(|&&w| w).count() as f64 / within.len() as f64
+}
+
 /// The bound per target for one frame (its position in the frame fixes the local scale,
-/// blur and light), averaged in variance over two sub-pixel phases.
+/// blur and light), averaged in variance over the given starts' sub-pixel phases.
 fn crb_per_frame(frames: &FrameRenderer, starts: &[[f64; 2]]) -> Vec<[f64; 2]> {
     let board = frames.scene().board().clone();
     let cam = frames.camera().clone();
@@ -194,10 +252,14 @@ fn crb_per_frame(frames: &FrameRenderer, starts: &[[f64; 2]]) -> Vec<[f64; 2]> {
         .collect()
 }
 
-/// One study: `repeats` of every case with each estimator, on layout `seed`.
+/// One study on layout `seed`, per case: the fit with the global scale and with the stage
+/// calibration, the paper's estimator, and the coverage of |error| <= 2u (global,
+/// calibrated).
 struct Study {
     fit: Vec<Vec<TargetFigures>>,
+    calibrated: Vec<Vec<TargetFigures>>,
     paper: Vec<Vec<TargetFigures>>,
+    coverage: Vec<[f64; 2]>,
 }
 
 fn study(seed: u64, repeats: usize) -> Study {
@@ -209,23 +271,29 @@ fn study(seed: u64, repeats: usize) -> Study {
         .map(|_| [rng.gen_range(0.0..774.0), rng.gen_range(0.0..774.0)])
         .collect();
     let crb = crb_per_frame(&frames, &starts[..2.min(repeats)]);
+    let mut seq = 0;
+    let cal = calibrate(&frames, &mut seq);
     let mut out = Study {
         fit: vec![],
+        calibrated: vec![],
         paper: vec![],
+        coverage: vec![],
     };
-    let mut seq = 0;
     for case in CASES {
         let crb_case: Vec<[f64; 2]> = crb
             .iter()
             .map(|b| b.map(|v| v / (case.frames as f64).sqrt()))
             .collect();
-        let (mut fit, mut paper) = (vec![], vec![]);
+        let (mut fit, mut calibrated, mut paper) = (vec![], vec![], vec![]);
         for &start in &starts {
             let imgs = render(&frames, start, case, &mut seq);
-            fit.push(measure(&board, &imgs, case, Estimator::Fit));
-            paper.push(measure(&board, &imgs, case, Estimator::Paper));
+            fit.push(measure(&board, &imgs, case, Estimator::Fit, None));
+            calibrated.push(measure(&board, &imgs, case, Estimator::Fit, Some(&cal)));
+            paper.push(measure(&board, &imgs, case, Estimator::Paper, None));
         }
+        out.coverage.push([coverage(&fit), coverage(&calibrated)]);
         out.fit.push(figures(&fit, &crb_case));
+        out.calibrated.push(figures(&calibrated, &crb_case));
         out.paper.push(figures(&paper, &crb_case));
     }
     out
@@ -233,45 +301,45 @@ fn study(seed: u64, repeats: usize) -> Study {
 
 fn print(s: &Study) {
     println!(
-        "| case | fit RMS std | CRB (raw) | ratio | fit RMS bias | max bias | paper RMS std |"
+        "| case | CRB (raw) | fit std | / CRB | paper std | RMS bias, global / calibrated | max bias, global / calibrated | within 2u, global / calibrated |"
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     for (i, case) in CASES.iter().enumerate() {
-        let (f, p) = (&s.fit[i], &s.paper[i]);
-        let max_bias = f
-            .iter()
-            .flat_map(|t| t.bias_um.map(f64::abs))
-            .fold(0.0, f64::max);
-        let (std, crb) = (rms(f, |t| t.std_um), rms(f, |t| t.crb_um));
+        let (f, c, p) = (&s.fit[i], &s.calibrated[i], &s.paper[i]);
+        let (std, crb) = (rms(c, |t| t.std_um), rms(c, |t| t.crb_um));
         println!(
-            "| {} x {} µm, k {} | {std:.2} | {crb:.2} | {:.2} | {:.1} | {max_bias:.1} | {:.1} |",
+            "| {} x {} µm, k {} | {crb:.2} | {std:.2} | {:.2} | {:.1} | {:.1} / {:.1} | {:.0} / {:.0} | {:.0} % / {:.0} % |",
             case.frames,
             case.step_um,
             case.k,
             std / crb,
-            rms(f, |t| t.bias_um),
             rms(p, |t| t.std_um),
+            rms(f, |t| t.bias_um),
+            rms(c, |t| t.bias_um),
+            max_abs_bias(f),
+            max_abs_bias(c),
+            100.0 * s.coverage[i][0],
+            100.0 * s.coverage[i][1],
         );
     }
 }
 
-/// The suite's check, 3 repeats of one layout. What it holds today, uncalibrated (one
-/// global scale; measured at 4 repeats: fit std 1.3–1.7x the raw-sensor bound, the paper's
-/// estimator 5–9x the fit's std, RMS bias 45–49 µm and up to 135 µm on 5 mm offsets): every
-/// target measured in every repeat; the fit's scatter near the bound and well below the
-/// paper's estimator's; the bias dominated by the local scale the global one ignores (the
-/// tilt and the distortion), which calibration from the stage is for (docs/calibration.md).
+/// The suite's check, 3 repeats of one layout, held near what it measures today
+/// (docs/method.md, "On the webcam profile"): every target measured in every repeat; the
+/// fit's scatter near the raw-sensor bound and well below the paper's estimator's; the
+/// calibration removes the global scale's error (its RMS bias falls), but the estimator's
+/// own bias on these frames remains, which the stated uncertainty does not cover yet.
 #[test]
-fn webcam_offsets_are_precise_but_biased_without_calibration() {
+fn webcam_offsets_precise_calibration_cuts_the_bias() {
     let s = study(11, 3);
     print(&s);
     for (i, case) in CASES.iter().enumerate() {
-        let f = &s.fit[i];
+        let (f, c) = (&s.fit[i], &s.calibrated[i]);
         assert!(
-            f.iter().all(|t| t.n == 3),
-            "{case:?}: a target was lost: {f:?}"
+            c.iter().all(|t| t.n == 3),
+            "{case:?}: a target was lost: {c:?}"
         );
-        let (std, crb) = (rms(f, |t| t.std_um), rms(f, |t| t.crb_um));
+        let (std, crb) = (rms(c, |t| t.std_um), rms(c, |t| t.crb_um));
         let paper = rms(&s.paper[i], |t| t.std_um);
         assert!(
             std < 2.5 * crb,
@@ -281,11 +349,75 @@ fn webcam_offsets_are_precise_but_biased_without_calibration() {
             paper > 3.5 * std,
             "{case:?}: paper {paper:.1} vs fit {std:.2}"
         );
-        let bias = rms(f, |t| t.bias_um);
+        let (global, calibrated) = (rms(f, |t| t.bias_um), rms(c, |t| t.bias_um));
         assert!(
-            (25.0..80.0).contains(&bias),
-            "{case:?}: RMS bias {bias:.1} µm"
+            (25.0..80.0).contains(&global),
+            "{case:?}: RMS bias {global:.1} µm"
         );
+        // Measured: 0.89-0.90 of the global scale's bias, 42-44 µm left (the uneven ink,
+        // `which_effect_biases_the_fit`).
+        assert!(
+            calibrated < 0.95 * global,
+            "{case:?}: {calibrated:.1} vs {global:.1} µm"
+        );
+        assert!(
+            calibrated < 55.0,
+            "{case:?}: calibrated RMS bias {calibrated:.1} µm"
+        );
+    }
+}
+
+/// Which of the webcam's effects makes the fit's bias, with the board parallel to the
+/// sensor and no distortion (so the global scale is right): each effect off in turn, 10
+/// frames at 100 µm, k = 5, 3 repeats. Measured (RMS / max bias, µm): all on 43 / 86; no
+/// MJPEG 41 / 83; no sharpening 53 / 107; linear output 31 / 62; no lateral colour 43 / 87;
+/// smooth edges 42 / 83; **even ink 5.3 / 11**; perfect print 2.7 / 6.1. The fit's model has
+/// one ink contrast per target, and the print's uneven ink (4 % over 3 mm) moves its edges.
+#[test]
+#[ignore = "a diagnosis: cargo test --release --test webcam_accuracy -- --ignored --nocapture which_effect"]
+fn which_effect_biases_the_fit() {
+    type Change = fn(&mut CameraModel);
+    let variants: [(&str, Change); 8] = [
+        ("all on", |_| {}),
+        ("no MJPEG", |c| c.mjpeg_quality = None),
+        ("no sharpening", |c| c.sharpen_amount = 0.0),
+        ("linear output", |c| c.gamma = Default::default()),
+        ("no lateral colour", |c| {
+            (c.lateral_colour_r, c.lateral_colour_b) = (0.0, 0.0)
+        }),
+        ("smooth edges", |c| c.edge_roughness_um = 0.0),
+        ("even ink", |c| c.ink_density_rms = 0.0),
+        ("perfect print", |c| {
+            (c.edge_roughness_um, c.ink_density_rms) = (0.0, 0.0)
+        }),
+    ];
+    for (name, change) in variants {
+        let mut cam = CameraModel::profile("webcam").unwrap();
+        (
+            cam.tilt_x_deg,
+            cam.tilt_y_deg,
+            cam.distortion_k1,
+            cam.distortion_k2,
+        ) = (0.0, 0.0, 0.0, 0.0);
+        change(&mut cam);
+        let board = random_board(11, &cam);
+        let frames = FrameRenderer::new(board.clone(), cam, 11).unwrap();
+        let (mut seq, case) = (0, CASES[1]);
+        let errors: Vec<_> = [[100.0, 200.0], [500.0, 50.0], [300.0, 600.0]]
+            .iter()
+            .map(|&s| {
+                measure(
+                    &board,
+                    &render(&frames, s, case, &mut seq),
+                    case,
+                    Estimator::Fit,
+                    None,
+                )
+            })
+            .collect();
+        let figs = figures(&errors, &[[0.0; 2]; 12]);
+        let (bias, max) = (rms(&figs, |t| t.bias_um), max_abs_bias(&figs));
+        println!("{name}: RMS bias {bias:.1} µm, max {max:.1} µm");
     }
 }
 
