@@ -5,7 +5,7 @@ use crate::acquisition::JobRegistration;
 use crate::board::Board;
 use crate::calibration::{Calibration, FitOptions, Reference, Scan};
 use crate::folder::{self, FrameFile};
-use crate::offline::push::{decoders_for_one_run, push_frames, FrameIn, PushError};
+use crate::offline::push::{process_folder, FrameIn};
 use crate::pipeline::{Combine, Estimator, Pipeline, ProcessOptions, Registration};
 use anyhow::Context;
 use std::path::PathBuf;
@@ -79,13 +79,7 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
     let mut pipeline = Pipeline::new(options.clone(), board.clone());
     pipeline.keep_images(false);
     pipeline.record_tracks(true);
-    push_frames(&mut pipeline, &frames, decoders_for_one_run()).map_err(|e| match e {
-        PushError::Read(e) => anyhow::Error::new(e),
-        other => anyhow::anyhow!("{other}"),
-    })?;
-    let done = pipeline
-        .finish()
-        .with_context(|| args.dir.display().to_string())?;
+    let done = process_folder(pipeline, &frames, &args.dir)?;
     let (w, h) = (done.result.width, done.result.height);
     let scan = Scan {
         frame_size: (w, h),

@@ -6,7 +6,7 @@ use crate::acquisition::JobRegistration;
 use crate::board::Board;
 use crate::calibration_file::Applied;
 use crate::folder::{self, FrameFile};
-use crate::offline::push::{decoders_for_one_run, push_frames, FrameIn, PushError};
+use crate::offline::push::{decoders_for_one_run, process_folder, FrameIn};
 use crate::offline::session_runs::process_session;
 use crate::offline::Overrides;
 use crate::pipeline::{
@@ -244,13 +244,7 @@ fn run_folder(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
     if let Some(c) = &cal {
         c.apply(&mut pipeline);
     }
-    push_frames(&mut pipeline, &frames, decoders_for_one_run()).map_err(|e| match e {
-        PushError::Read(e) => anyhow::Error::new(e),
-        other => anyhow::anyhow!("{other}"),
-    })?;
-    let done = pipeline
-        .finish()
-        .with_context(|| args.dir.display().to_string())?;
+    let done = process_folder(pipeline, &frames, &args.dir)?;
     if let Some(out) = &args.out {
         folder::write_outputs(out, &done.result, &done.images)?;
     }

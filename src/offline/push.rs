@@ -111,6 +111,20 @@ pub fn push_frames(
     })
 }
 
+/// A plain folder's frames through `pipeline` as one run, then its result; errors name
+/// `dir` (`rigctl process DIR` and `rigctl calibrate DIR`).
+pub fn process_folder(
+    mut pipeline: Pipeline,
+    frames: &[FrameIn],
+    dir: &std::path::Path,
+) -> anyhow::Result<crate::pipeline::run::Finished> {
+    push_frames(&mut pipeline, frames, decoders_for_one_run()).map_err(|e| match e {
+        PushError::Read(e) => anyhow::Error::new(e),
+        other => anyhow::anyhow!("{other}"),
+    })?;
+    anyhow::Context::with_context(pipeline.finish(), || dir.display().to_string())
+}
+
 /// Decoder threads for one run processed alone: one per core, at most 4.
 pub fn decoders_for_one_run() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get().min(4))
