@@ -93,7 +93,8 @@ def test_results_equal_result_json(finished_job: FinishedJob) -> None:
     assert list(res["target"]) == [o["name"] for o in objects]
     # The shortest text that reads back to the same float: equal, not close.
     assert list(res["dx_um"]) == [o["offset_um"][0] for o in objects]
-    assert list(res["u_dy_um"]) == [o["sigma_um"][1] for o in objects]
+    # u_dy_um is the combined standard uncertainty (GUM: type A and B), `u_um`.
+    assert list(res["u_dy_um"]) == [(o.get("u_um") or o["sigma_um"])[1] for o in objects]
     assert list(res["nominal_dx_um"]) == [o["nominal_um"][0] for o in objects]
     assert list(res["bias_dy_um"]) == [o["offset_um"][1] - o["nominal_um"][1] for o in objects]
     assert set(res["case"]) == {"scan"} and set(res["k"]) == {2}

@@ -141,7 +141,8 @@ class Session:
 
     def results(self) -> pd.DataFrame:
         """results.csv: one row per (run, case, repeat, target) with dx_um, dy_um, their
-        standard uncertainties u_dx_um, u_dy_um, nominal_dx_um/nominal_dy_um and
+        combined standard uncertainties u_dx_um, u_dy_um (result.json's `u_um`: the frames'
+        scatter and the scale or calibration, docs/calibration.md), nominal_dx_um/nominal_dy_um and
         bias_dx_um/bias_dy_um (NaN when not known), frames, k and the processing settings
         (RESULTS_COLUMNS). FileNotFoundError for a session that has none (not processed
         yet, or written before rigd wrote it: `offsets` reads result.json instead)."""
