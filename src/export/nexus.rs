@@ -85,7 +85,7 @@ fn skeleton(src: &Source, file: &hdf5::File) -> hdf5::Result<Group> {
     attr_str(file, "NX_class", "NXroot")?;
     attr_str(file, "default", "entry")?;
     attr_str(file, "creator", &format!("rigd {}", m.versions.rigd))?;
-    if let Some(t) = iso8601(m.updated_unix_s) {
+    if let Some(t) = super::ome_xml::utc_rfc3339(m.updated_unix_s) {
         attr_str(file, "file_time", &t)?;
     }
     let entry = nx_group(file, "entry", "NXentry")?;
@@ -96,7 +96,7 @@ fn skeleton(src: &Source, file: &hdf5::File) -> hdf5::Result<Group> {
     attr_str(&program, "version", &m.versions.rigd)?;
     let times = [p.t_unix_s.first(), p.t_unix_s.last()];
     for (name, t) in ["start_time", "end_time"].into_iter().zip(times) {
-        if let Some(t) = t.copied().and_then(iso8601) {
+        if let Some(t) = t.copied().and_then(super::ome_xml::utc_rfc3339) {
             field_str(&entry, name, &t)?;
         }
     }
@@ -127,7 +127,7 @@ fn instrument(src: &Source, entry: &Group) -> hdf5::Result<()> {
     let dt: Vec<f64> = (0..p.len()).map(|t| p.delta_t_s(t)).collect();
     let start = field_f64s(&cam, "start_time", &dt, "s")?;
     attr_str(&start, "long_name", "exposure time from the first frame's")?;
-    if let Some(t) = iso8601(t0) {
+    if let Some(t) = super::ome_xml::utc_rfc3339(t0) {
         attr_str(&start, "start", &t)?;
     }
     let (stage, _) = m.job.stages();
@@ -317,17 +317,6 @@ pub fn unit_of(key: &str) -> Option<&'static str> {
 
 fn nan_for_none(v: &[Option<f64>]) -> Vec<f64> {
     v.iter().map(|x| x.unwrap_or(f64::NAN)).collect()
-}
-
-/// ISO 8601 (RFC 3339) in UTC, as NX_DATE_TIME wants it.
-fn iso8601(t_unix_s: f64) -> Option<String> {
-    let ns = (t_unix_s * 1e9).round();
-    if !ns.is_finite() {
-        return None;
-    }
-    let t = time::OffsetDateTime::from_unix_timestamp_nanos(ns as i128).ok()?;
-    t.format(&time::format_description::well_known::Rfc3339)
-        .ok()
 }
 
 fn vlen(s: &str) -> hdf5::Result<VarLenUnicode> {

@@ -55,8 +55,8 @@ fn num(v: f64) -> Option<String> {
     v.is_finite().then(|| v.to_string())
 }
 
-/// The exposure time of the first frame as xsd:dateTime (UTC).
-fn acquisition_date(t_unix_s: f64) -> Option<String> {
+/// A Unix time as RFC 3339 in UTC: OME's xsd:dateTime and NeXus' NX_DATE_TIME alike.
+pub(super) fn utc_rfc3339(t_unix_s: f64) -> Option<String> {
     let ns = (t_unix_s * 1e9).round();
     if !ns.is_finite() {
         return None;
@@ -77,12 +77,7 @@ pub fn document(img: &Image) -> String {
         env!("CARGO_PKG_VERSION")
     );
     let _ = writeln!(x, "<Image ID=\"Image:0\" Name=\"{}\">", escape(img.name));
-    if let Some(d) = img
-        .planes
-        .t_unix_s
-        .first()
-        .and_then(|&t| acquisition_date(t))
-    {
+    if let Some(d) = img.planes.t_unix_s.first().and_then(|&t| utc_rfc3339(t)) {
         let _ = writeln!(x, "<AcquisitionDate>{d}</AcquisitionDate>");
     }
     let _ = writeln!(x, "<Description>{}</Description>", escape(img.description));
@@ -173,7 +168,7 @@ mod tests {
     #[test]
     fn acquisition_dates_are_utc() {
         assert_eq!(
-            acquisition_date(1_795_000_000.5).as_deref(),
+            utc_rfc3339(1_795_000_000.5).as_deref(),
             Some("2026-11-18T11:06:40.5Z")
         );
     }
