@@ -354,14 +354,14 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             (25.0..80.0).contains(&global),
             "{case:?}: RMS bias {global:.1} µm"
         );
-        // Measured: 0.89-0.90 of the global scale's bias, 42-44 µm left (the uneven ink,
-        // `which_effect_biases_the_fit`).
+        // Measured: 0.76-0.80 of the global scale's bias, 32.5-35 µm left (the uneven ink,
+        // `which_effect_biases_the_fit`; one contrast per target left 42-44 µm).
         assert!(
-            calibrated < 0.95 * global,
+            calibrated < 0.88 * global,
             "{case:?}: {calibrated:.1} vs {global:.1} µm"
         );
         assert!(
-            calibrated < 55.0,
+            calibrated < 40.0,
             "{case:?}: calibrated RMS bias {calibrated:.1} µm"
         );
     }
@@ -369,10 +369,13 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
 
 /// Which of the webcam's effects makes the fit's bias, with the board parallel to the
 /// sensor and no distortion (so the global scale is right): each effect off in turn, 10
-/// frames at 100 µm, k = 5, 3 repeats. Measured (RMS / max bias, µm): all on 43 / 86; no
-/// MJPEG 41 / 83; no sharpening 53 / 107; linear output 31 / 62; no lateral colour 43 / 87;
-/// smooth edges 42 / 83; **even ink 5.3 / 11**; perfect print 2.7 / 6.1. The fit's model has
-/// one ink contrast per target, and the print's uneven ink (4 % over 3 mm) moves its edges.
+/// frames at 100 µm, k = 5, 3 repeats. Measured (RMS / max bias, µm), with a contrast plane
+/// per shape: all on 30.8 / 60; no MJPEG 30.4 / 57; no sharpening 35.4 / 68; linear output
+/// 18.5 / 34; no lateral colour 31.0 / 61; smooth edges 30.8 / 56; **even ink 5.7 / 14**;
+/// perfect print 3.8 / 8.4. (With one contrast per target: all on 43 / 86, even ink
+/// 5.3 / 11.) The print's uneven ink (4 % over 3 mm) still moves the edges: it bends within
+/// a target, which a plane cannot follow (`how_smooth_must_the_ink_be`), and the sRGB
+/// output curve makes the shift depend on the contrast.
 #[test]
 #[ignore = "a diagnosis: cargo test --release --test webcam_accuracy -- --ignored --nocapture which_effect"]
 fn which_effect_biases_the_fit() {
@@ -427,5 +430,37 @@ fn study_full() {
     for seed in [11, 12, 13] {
         println!("layout {seed}, 20 repeats");
         print(&study(seed, 20));
+    }
+}
+
+/// How smooth the ink must be for the fit's contrast planes (one per shape) to follow it:
+/// the ideal camera, 4 % RMS uneven ink with correlation lengths of 1, 3 and 10 mm (the
+/// webcam's is 3 mm), 10 frames at 100 µm, k = 5, 3 repeats. Measured (RMS / max bias, µm):
+/// 1 mm 15.7 / 39.5; **3 mm 16.6 / 30.1** (one contrast per target: 33.1 / 67.6);
+/// 10 mm 4.5 / 9.8. Over 10 mm the ink is a plane across a target and the planes take it;
+/// at 3 mm it bends within the inner disk (6 mm radius), and neither a cubic contrast nor
+/// one shared field for both shapes did better (docs/method.md).
+#[test]
+#[ignore = "a diagnosis: cargo test --release --test webcam_accuracy -- --ignored --nocapture how_smooth"]
+fn how_smooth_must_the_ink_be() {
+    for corr_um in [1_000.0, 3_000.0, 10_000.0] {
+        let cam = CameraModel {
+            ink_density_rms: 0.04,
+            ink_density_corr_um: corr_um,
+            ..CameraModel::profile("ideal").unwrap()
+        };
+        let board = random_board(11, &cam);
+        let frames = FrameRenderer::new(board.clone(), cam, 11).unwrap();
+        let (mut seq, case) = (0, CASES[1]);
+        let errors: Vec<_> = [[100.0, 200.0], [500.0, 50.0], [300.0, 600.0]]
+            .iter()
+            .map(|&s| {
+                let imgs = render(&frames, s, case, &mut seq);
+                measure(&board, &imgs, case, Estimator::Fit, None)
+            })
+            .collect();
+        let figs = figures(&errors, &[[0.0; 2]; 12]);
+        let (bias, max) = (rms(&figs, |t| t.bias_um), max_abs_bias(&figs));
+        println!("ink correlation {corr_um} µm: RMS bias {bias:.1} µm, max {max:.1} µm");
     }
 }

@@ -1,18 +1,22 @@
 //! The model fit: Levenberg–Marquardt least squares of a blurred ring-and-disk image to the
 //! window's pixels.
 //!
-//! Model of pixel (x, y): `I = L(x, y) · (1 − c · cov(x, y))` with
+//! Model of pixel (x, y): `I = L(x, y) · (1 − c_o(x, y) · cov_o(x, y) − c_i(x, y) ·
+//! cov_i(x, y))` with
 //! - `L = b0 + bx·X + by·Y`, the paper level as a plane (vignetting and uneven light are
 //!   smooth over one target), X and Y the position in the window scaled to about ±1;
-//! - `c` the ink contrast (1 − ink/paper);
-//! - `cov` the ink coverage: a sum of blurred circle edges, each `E(ρ − R) = ½·erfc((ρ −
-//!   R)/(√2·s))` of the signed distance to the circle, + for the rims, − for the holes.
-//!   One blur width `s` stands for the lens blur and the pixel's own area (their variances
-//!   add: s² ≈ σ_psf² + 1/12 px²).
+//! - `c_o`, `c_i` the ink contrast (1 − ink/paper) of the outer ring and of the inner shape,
+//!   each a plane `c + cx·X + cy·Y` of its own: printed ink is not evenly dense, and a
+//!   contrast that changes across a shape moves its fitted edges (by ~√π·s·Δc/c: 50 µm per
+//!   4 % on a webcam frame) unless the model lets it change;
+//! - `cov_o`, `cov_i` the ink coverage of each shape: a sum of blurred circle edges, each
+//!   `E(ρ − R) = ½·erfc((ρ − R)/(√2·s))` of the signed distance to the circle, + for the
+//!   rims, − for the holes. One blur width `s` stands for the lens blur and the pixel's own
+//!   area (their variances add: s² ≈ σ_psf² + 1/12 px²).
 //!
-//! The parameters: both centres, all radii, `s`, `b0`, `bx`, `by`, `c` (12, 13 with an inner
-//! ring). The offset's covariance is the inner-minus-outer block of `(JᵀJ)⁻¹ · σ̂²`, with σ̂²
-//! the residual variance.
+//! The parameters: both centres, all radii, `s`, `b0`, `bx`, `by` and the two contrast
+//! planes (17, 18 with an inner ring). The offset's covariance is the inner-minus-outer
+//! block of `(JᵀJ)⁻¹ · σ̂²`, with σ̂² the residual variance.
 
 use super::{CentreEstimate, EstimateError, Window};
 use crate::pipeline::detect::Candidate;
@@ -30,10 +34,21 @@ const S: usize = 7;
 const B0: usize = 8;
 const BX: usize = 9;
 const BY: usize = 10;
+/// The ink contrast of each shape, a plane `c + cx·X + cy·Y`: the outer ring's
+/// coefficients from `C` on, the inner shape's from `CI`. (A cubic contrast, or one field
+/// for both shapes, did not do better on uneven ink: `tests/webcam_accuracy.rs`.)
 const C: usize = 11;
+const NC: usize = 3;
+const CI: usize = C + NC;
 /// Hole of an inner ring (absent for an inner disk).
-const RIH: usize = 12;
-const MAXP: usize = 13;
+const RIH: usize = CI + NC;
+const MAXP: usize = RIH + 1;
+/// The contrast planes' gradients.
+const GRADIENTS: [usize; 4] = [C + 1, C + 2, CI + 1, CI + 2];
+/// Uneven ink is kept in the model only where the data show it: the gradients' Wald χ²
+/// (4 degrees of freedom) above its 99.9 % point. On evenly printed targets the four
+/// parameters would only add scatter (~40 % on the offset).
+const GRADIENTS_CHI2: f64 = 18.47;
 
 const MAX_ITER: usize = 60;
 /// Beyond this many blur widths an edge is flat (Φ(−4) = 3e-5 of the contrast, 0.006 DN on
@@ -89,6 +104,8 @@ struct Problem<'a> {
     mid: [f64; 2],
     inv_half: f64,
     reach_centre: [f64; 2],
+    /// Whether the contrast planes' gradients are free (else held at 0).
+    planes: bool,
 }
 
 impl Problem<'_> {
@@ -129,46 +146,58 @@ impl Problem<'_> {
                 } else {
                     (0.0, 0.0)
                 };
-                let cov = e_rim - e_hole + e_in - e_ih;
+                let (cov_o, cov_i) = (e_rim - e_hole, e_in - e_ih);
                 let (bx, by) = (
                     (fx - self.mid[0]) * self.inv_half,
                     (fy - self.mid[1]) * self.inv_half,
                 );
                 let l = p[B0] + p[BX] * bx + p[BY] * by;
-                let shade = 1.0 - p[C] * cov;
+                let mono = [1.0, bx, by];
+                let poly = |at: usize| -> f64 {
+                    mono.iter().zip(&p[at..at + NC]).map(|(m, q)| m * q).sum()
+                };
+                let (c_o, c_i) = (poly(C), poly(CI));
+                let shade = 1.0 - c_o * cov_o - c_i * cov_i;
                 let r = v as f64 - l * shade;
                 out.cost += r * r;
                 out.n += 1;
-                // The Jacobian row: the background terms always, the geometry only near an
-                // edge (zero elsewhere).
+                // The Jacobian row: the background terms always, the contrast inside the
+                // shapes, the geometry only near an edge (zero elsewhere).
                 let mut j = [0f64; MAXP];
                 j[B0] = shade;
                 j[BX] = bx * shade;
                 j[BY] = by * shade;
-                j[C] = -l * cov;
-                let lc = -l * p[C];
+                let terms = if self.planes { NC } else { 1 };
+                for (at, cov) in [(C, cov_o), (CI, cov_i)] {
+                    if cov != 0.0 {
+                        for (jc, m) in j[at..at + terms].iter_mut().zip(&mono) {
+                            *jc = -l * cov * m;
+                        }
+                    }
+                }
+                let (lco, lci) = (-l * c_o, -l * c_i);
                 let douter = d_rim - d_hole;
                 if douter != 0.0 {
                     // dρ/dcx = −dx/ρ.
-                    j[CXO] = lc * douter * (-dxo / ro);
-                    j[CYO] = lc * douter * (-dyo / ro);
-                    j[RIM] = lc * -d_rim;
-                    j[HOLE] = lc * d_hole;
+                    j[CXO] = lco * douter * (-dxo / ro);
+                    j[CYO] = lco * douter * (-dyo / ro);
+                    j[RIM] = lco * -d_rim;
+                    j[HOLE] = lco * d_hole;
                 }
                 let dinner = d_in - d_ih;
                 if dinner != 0.0 {
-                    j[CXI] = lc * dinner * (-dxi / ri);
-                    j[CYI] = lc * dinner * (-dyi / ri);
-                    j[RI] = lc * -d_in;
-                    j[RIH] = lc * d_ih;
+                    j[CXI] = lci * dinner * (-dxi / ri);
+                    j[CYI] = lci * dinner * (-dyi / ri);
+                    j[RI] = lci * -d_in;
+                    j[RIH] = lci * d_ih;
                 }
                 if douter != 0.0 || dinner != 0.0 {
                     // dE/ds = −E'(d)·d/s.
-                    let ds = -(d_rim * (ro - p[RIM]) - d_hole * (ro - p[HOLE])
-                        + d_in * (ri - p[RI])
+                    let ds_o = -(d_rim * (ro - p[RIM]) - d_hole * (ro - p[HOLE])) / s;
+                    let ds_i = -(d_in * (ri - p[RI])
                         - d_ih * if ring_inner { ri - p[RIH] } else { 0.0 })
                         / s;
-                    j[S] = lc * ds;
+                    j[S] = lco * ds_o + lci * ds_i;
                 }
                 // Jᵀr and JᵀJ from the dense row: fixed-size loops the compiler vectorises,
                 // skipping the row's zeros (most pixels touch only the background terms).
@@ -186,8 +215,24 @@ impl Problem<'_> {
         out
     }
 
+    /// `JᵀJ`, with a unit diagonal for the held gradients (their steps are then 0).
     fn matrix(&self, n: &Normal) -> DMatrix<f64> {
-        DMatrix::from_fn(self.np, self.np, |a, b| n.h[a][b])
+        DMatrix::from_fn(self.np, self.np, |a, b| {
+            if a == b && !self.planes && GRADIENTS.contains(&a) {
+                1.0
+            } else {
+                n.h[a][b]
+            }
+        })
+    }
+
+    /// Parameters the fit moves.
+    fn free(&self) -> usize {
+        if self.planes {
+            self.np
+        } else {
+            self.np - GRADIENTS.len()
+        }
     }
 }
 
@@ -223,6 +268,7 @@ pub(super) fn estimate(
     p[S] = 0.8 * k;
     p[B0] = paper;
     p[C] = 1.0 - ink / paper;
+    p[CI] = p[C];
     let half = 0.5 * (win.x1 - win.x0).max(win.y1 - win.y0) as f64;
     let prob = Problem {
         plane,
@@ -235,36 +281,117 @@ pub(super) fn estimate(
         ],
         inv_half: 1.0 / half.max(1.0),
         reach_centre: g.outer_centre_px,
+        planes: true,
     };
+    let full = solve(&prob, p, k, g)?;
+    let with_planes = Fit {
+        cov: prob.matrix(&full.normal).try_inverse(),
+        ..full
+    };
+    if gradients_significant(&prob, &with_planes) {
+        return Ok(with_planes.estimate(&prob));
+    }
+    let even = Problem {
+        planes: false,
+        ..prob
+    };
+    let mut p0 = with_planes.p;
+    GRADIENTS.iter().for_each(|&i| p0[i] = 0.0);
+    let fit = solve(&even, p0, k, g)?;
+    Ok(Fit {
+        cov: even.matrix(&fit.normal).try_inverse(),
+        ..fit
+    }
+    .estimate(&even))
+}
+
+/// A converged fit: the parameters, the normal equations there and their inverse.
+struct Fit {
+    p: [f64; MAXP],
+    normal: Normal,
+    cov: Option<DMatrix<f64>>,
+}
+
+impl Fit {
+    fn residual_variance(&self, prob: &Problem) -> Option<f64> {
+        let dof = self.normal.n.saturating_sub(prob.free());
+        (dof > 0).then(|| self.normal.cost / dof as f64)
+    }
+
+    fn estimate(&self, prob: &Problem) -> CentreEstimate {
+        let p = &self.p;
+        let offset_cov = self
+            .cov
+            .as_ref()
+            .zip(self.residual_variance(prob))
+            .map(|(inv, s2)| {
+                // offset = inner − outer: var = Cii + Coo − 2·Cio per axis, and the cross terms.
+                let c = |a: usize, b: usize| inv[(a, b)] * s2;
+                let e = |a: usize, b: usize| {
+                    let (ia, oa) = ([CXI, CYI][a], [CXO, CYO][a]);
+                    let (ib, ob) = ([CXI, CYI][b], [CXO, CYO][b]);
+                    c(ia, ib) - c(ia, ob) - c(oa, ib) + c(oa, ob)
+                };
+                [[e(0, 0), e(0, 1)], [e(1, 0), e(1, 1)]]
+            });
+        CentreEstimate {
+            outer_px: [p[CXO], p[CYO]],
+            inner_px: [p[CXI], p[CYI]],
+            outer_radius_px: p[RIM],
+            inner_radius_px: p[RI],
+            offset_cov_px2: offset_cov,
+        }
+    }
+}
+
+/// Whether the fit's contrast gradients differ from 0 beyond their noise (Wald test).
+fn gradients_significant(prob: &Problem, fit: &Fit) -> bool {
+    let (Some(inv), Some(s2)) = (&fit.cov, fit.residual_variance(prob)) else {
+        return true;
+    };
+    let cov = DMatrix::from_fn(4, 4, |a, b| inv[(GRADIENTS[a], GRADIENTS[b])] * s2);
+    let g = DVector::from_fn(4, |a, _| fit.p[GRADIENTS[a]]);
+    match cov.try_inverse() {
+        Some(w) => (g.transpose() * w * &g)[(0, 0)] > GRADIENTS_CHI2,
+        None => true,
+    }
+}
+
+/// Why parameters `q` are not a target (radii out of order, the blur or the centre out of
+/// reach of the guess), if they are not.
+fn insane(q: &[f64; MAXP], np: usize, k: f64, g: &Candidate) -> Option<String> {
+    if q[..np].iter().any(|v| !v.is_finite()) {
+        return Some("non-finite parameter".into());
+    }
+    if !(q[S] > 0.05 * k && q[S] < 0.5 * q[HOLE]) {
+        return Some(format!("blur width {:.3} px out of range", q[S]));
+    }
+    if !(q[HOLE] > 0.0 && q[RIM] > q[HOLE] && q[RI] > 0.0) {
+        return Some(format!(
+            "radii out of order: hole {:.2}, rim {:.2}, inner {:.2}",
+            q[HOLE], q[RIM], q[RI]
+        ));
+    }
+    if np == MAXP && !(q[RIH] > 0.0 && q[RIH] < q[RI]) {
+        return Some(format!(
+            "inner ring radii out of order: {:.2}, {:.2}",
+            q[RIH], q[RI]
+        ));
+    }
+    let moved = (q[CXO] - g.outer_centre_px[0]).hypot(q[CYO] - g.outer_centre_px[1]);
+    let limit = 3.0 * k + 0.25 * g.outer_radii_px[0];
+    if moved > limit {
+        return Some(format!("outer centre moved {moved:.2} px from the guess"));
+    }
+    None
+}
+
+/// Levenberg–Marquardt from `p` to the minimum.
+fn solve(prob: &Problem, mut p: [f64; MAXP], k: f64, g: &Candidate) -> Result<Fit, EstimateError> {
+    let np = prob.np;
+    let sane = |q: &[f64; MAXP]| insane(q, np, k, g);
     let diverged =
         |iterations: usize, reason: String| EstimateError::Diverged { iterations, reason };
-    let sane = |q: &[f64; MAXP]| -> Option<String> {
-        if q[..np].iter().any(|v| !v.is_finite()) {
-            return Some("non-finite parameter".into());
-        }
-        if !(q[S] > 0.05 * k && q[S] < 0.5 * q[HOLE]) {
-            return Some(format!("blur width {:.3} px out of range", q[S]));
-        }
-        if !(q[HOLE] > 0.0 && q[RIM] > q[HOLE] && q[RI] > 0.0) {
-            return Some(format!(
-                "radii out of order: hole {:.2}, rim {:.2}, inner {:.2}",
-                q[HOLE], q[RIM], q[RI]
-            ));
-        }
-        if ring_inner && !(q[RIH] > 0.0 && q[RIH] < q[RI]) {
-            return Some(format!(
-                "inner ring radii out of order: {:.2}, {:.2}",
-                q[RIH], q[RI]
-            ));
-        }
-        let moved = (q[CXO] - g.outer_centre_px[0]).hypot(q[CYO] - g.outer_centre_px[1]);
-        let limit = 3.0 * k + 0.25 * g.outer_radii_px[0];
-        if moved > limit {
-            return Some(format!("outer centre moved {moved:.2} px from the guess"));
-        }
-        None
-    };
-
     let mut cur = prob.normal(&p);
     let mut lambda = 1e-3;
     let mut iterations = 0;
@@ -294,9 +421,9 @@ pub(super) fn estimate(
             .fold(0.0, f64::max);
         let step_geometry = (0..=S).map(|i| delta[i].abs()).fold(0.0, f64::max);
         if lambda <= 1e-2 && step_geometry < 1e-2 * k && sane(&q).is_none() {
-            // A Gauss–Newton step this small lands within ~1e-4 px (0.1 µm) of the minimum: take it
-            // without paying for another pass (the curvature and residual variance for the
-            // covariance change by far less than their own uncertainty).
+            // A Gauss–Newton step this small lands within ~1e-4 px (0.1 µm) of the minimum:
+            // take it without paying for another pass (the curvature and residual variance
+            // for the covariance change by far less than their own uncertainty).
             p = q;
             converged = true;
             break;
@@ -334,28 +461,10 @@ pub(super) fn estimate(
             format!("no convergence in {MAX_ITER} iterations"),
         ));
     }
-    let dof = cur.n.saturating_sub(np);
-    let offset_cov = if dof > 0 {
-        prob.matrix(&cur).try_inverse().map(|inv| {
-            let s2 = cur.cost / dof as f64;
-            // offset = inner − outer: var = Cii + Coo − 2·Cio per axis, and the cross terms.
-            let c = |a: usize, b: usize| inv[(a, b)] * s2;
-            let e = |a: usize, b: usize| {
-                let (ia, oa) = ([CXI, CYI][a], [CXO, CYO][a]);
-                let (ib, ob) = ([CXI, CYI][b], [CXO, CYO][b]);
-                c(ia, ib) - c(ia, ob) - c(oa, ib) + c(oa, ob)
-            };
-            [[e(0, 0), e(0, 1)], [e(1, 0), e(1, 1)]]
-        })
-    } else {
-        None
-    };
-    Ok(CentreEstimate {
-        outer_px: [p[CXO], p[CYO]],
-        inner_px: [p[CXI], p[CYI]],
-        outer_radius_px: p[RIM],
-        inner_radius_px: p[RI],
-        offset_cov_px2: offset_cov,
+    Ok(Fit {
+        p,
+        normal: cur,
+        cov: None,
     })
 }
 
