@@ -14,7 +14,7 @@ use crate::acquisition::study::{calibration_table, tables, StudySummary};
 use crate::daemon::calibration::Calibrated;
 use crate::sim::CameraModel;
 use crate::acquisition::{JobSpec, PaperCase};
-use crate::cli::client::{follow, report_end, Client};
+use crate::cli::client::{follow, report_end, Client, Ended};
 use crate::config::DaemonSettings;
 use crate::daemon::ownership::Ownership;
 use crate::daemon::protocol::Request;
@@ -107,18 +107,7 @@ pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
         true => None,
         false => Some(calibrate(&mut c, &a)?),
     };
-    let r = c.request(&Request::Submit {
-        job: paper_study(a.repeats, scale),
-    })?;
-    let id = r["job_id"].as_u64().unwrap_or_default();
-    let total = r["total_frames"].as_u64().unwrap_or_default() as u32;
-    if !a.json {
-        eprintln!(
-            "rigctl demo: the paper's study on the simulated rig: {} repeats x 3 cases = {total} frames",
-            a.repeats
-        );
-    }
-    let end = follow(&mut c, id, total, a.json)?;
+    let (id, end) = run_study(&mut c, &a, scale)?;
     let fetched = c.request(&Request::Result { job_id: id });
     drop(c);
     daemon.stop()?;
@@ -163,7 +152,31 @@ pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
             dir.join("report.txt").display(),
             figures.len().saturating_sub(1) / 2
         );
-        match a.keep {
+        where_it_is(a.keep, &dir, failed);
+    }
+    Ok(())
+}
+
+/// The paper's study submitted to the demo's daemon and followed to its end.
+fn run_study(c: &mut Client, a: &DemoArgs, scale: f64) -> anyhow::Result<(u64, Ended)> {
+    let r = c.request(&Request::Submit {
+        job: paper_study(a.repeats, scale),
+    })?;
+    let id = r["job_id"].as_u64().unwrap_or_default();
+    let total = r["total_frames"].as_u64().unwrap_or_default() as u32;
+    if !a.json {
+        eprintln!(
+            "rigctl demo: the paper's study on the simulated rig: {} repeats x 3 cases = {total} frames",
+            a.repeats
+        );
+    }
+    Ok((id, follow(c, id, total, a.json)?))
+}
+
+/// Where the session is, what was kept of it, and the runs that failed.
+fn where_it_is(keep: bool, dir: &std::path::Path, failed: usize) {
+    {
+        match keep {
             true => println!(
                 "Session kept whole (frames and reconstructions): {}",
                 dir.display()
@@ -178,7 +191,6 @@ pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
             println!("{failed} runs could not be processed (see result.json)");
         }
     }
-    Ok(())
 }
 
 /// The daemon's calibration job on the demo's rig, followed to its end; its record.
