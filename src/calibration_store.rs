@@ -44,8 +44,7 @@ pub fn current(data_root: &Path) -> anyhow::Result<Option<Applied>> {
     };
     let name = String::from_utf8(bytes).unwrap_or_default();
     let name = name.trim();
-    if name.is_empty() || name.contains('/') || !name.ends_with(".json") || name.starts_with('.')
-    {
+    if name.is_empty() || name.contains('/') || !name.ends_with(".json") || name.starts_with('.') {
         anyhow::bail!(
             "{}: names no calibration record (want `<id>.json`, got {name:?})",
             pointer.display()
@@ -76,6 +75,9 @@ mod tests {
         std::fs::write(dir(root.path()).join(CURRENT), "cal-1.json\n").unwrap();
         std::fs::write(dir(root.path()).join("cal-1.json"), "{not json").unwrap();
         let e = format!("{:#}", current(root.path()).unwrap_err());
-        assert!(e.contains("cal-1.json") && e.contains("not a calibration"), "{e}");
+        assert!(
+            e.contains("cal-1.json") && e.contains("not a calibration"),
+            "{e}"
+        );
     }
 }

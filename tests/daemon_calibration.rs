@@ -112,7 +112,10 @@ fn a_calibration_job_is_kept_in_the_data_root_and_applied_by_the_next_job() {
                 .fold(0.0, f64::max)
         })
         .fold(0.0, f64::max);
-    assert!(most > 5.0, "calibrated and global offsets differ by at most {most} µm");
+    assert!(
+        most > 5.0,
+        "calibrated and global offsets differ by at most {most} µm"
+    );
 }
 
 /// A calibration record for `frame_size` frames dated `date`, fitted on `board`: the
@@ -157,7 +160,10 @@ fn a_stale_or_mismatched_calibration_warns_and_a_corrupt_one_fails_by_name() {
     let n = note(&ev);
     assert!(!n.applied, "{n:?}");
     let w = n.warnings.join("\n");
-    assert!(w.contains("was fitted on 1280x720 frames; these are 300x200"), "{w}");
+    assert!(
+        w.contains("was fitted on 1280x720 frames; these are 300x200"),
+        "{w}"
+    );
     assert!(result(&d, id)["runs"][0]["result"]["calibration"].is_null());
     let m = session_of(&d.data, &ev).manifest.calibration.unwrap();
     assert!(!m.applied && m.id.as_deref() == Some("cal-big"), "{m:?}");
@@ -170,10 +176,20 @@ fn a_stale_or_mismatched_calibration_warns_and_a_corrupt_one_fails_by_name() {
     let n = note(&ev);
     assert!(n.applied && n.age_days.unwrap() > 300.0, "{n:?}");
     let w = n.warnings.join("\n");
-    assert!(w.contains("days old") && w.contains("calibration_max_age_days"), "{w}");
-    assert!(w.contains("fitted on board paper, this run has board small"), "{w}");
+    assert!(
+        w.contains("days old") && w.contains("calibration_max_age_days"),
+        "{w}"
+    );
+    assert!(
+        w.contains("fitted on board paper, this run has board small"),
+        "{w}"
+    );
     let r = result(&d, id);
-    assert_eq!(r["calibration"]["warnings"].as_array().unwrap().len(), 2, "{r}");
+    assert_eq!(
+        r["calibration"]["warnings"].as_array().unwrap().len(),
+        2,
+        "{r}"
+    );
     assert_eq!(r["runs"][0]["result"]["calibration"]["id"], "cal-old");
 
     // Corrupt: the job fails before it starts, naming the file; the daemon still serves.

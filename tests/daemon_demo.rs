@@ -11,7 +11,15 @@ use std::process::Command;
 fn demo_json_reports_three_cases_and_averaging_beats_raw_frames() {
     let dir = tempfile::tempdir().unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_rigctl"))
-        .args(["demo", "--json", "--camera", "ideal", "--repeats", "3", "--data-root"])
+        .args([
+            "demo",
+            "--json",
+            "--camera",
+            "ideal",
+            "--repeats",
+            "3",
+            "--data-root",
+        ])
         .arg(dir.path())
         .output()
         .unwrap();
@@ -91,7 +99,9 @@ fn demo_on_the_webcam_calibrates_first_and_reports_calibrated_beside_global_figu
     );
     let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(r["camera"], "webcam");
-    let id = r["calibrated"]["id"].as_str().expect("a calibration was made");
+    let id = r["calibrated"]["id"]
+        .as_str()
+        .expect("a calibration was made");
     assert_eq!(r["calibration"]["applied"], true, "{}", r["calibration"]);
     assert_eq!(r["calibration"]["id"], id);
     assert_eq!(r["runs_failed"], 0);
@@ -105,7 +115,11 @@ fn demo_on_the_webcam_calibrates_first_and_reports_calibrated_beside_global_figu
         let (cal, global) = (f("rms_bias_um"), f("rms_bias_global_um"));
         // The global scale is a few per cent off across a tilted, distorted frame (up to
         // ~200 µm on 5 mm offsets): the calibration takes most of that bias away.
-        assert!(cal < global, "{}: RMS |bias| {cal:.1} calibrated, {global:.1} global", c["name"]);
+        assert!(
+            cal < global,
+            "{}: RMS |bias| {cal:.1} calibrated, {global:.1} global",
+            c["name"]
+        );
         assert!(f("rms_std_global_um") > 0.0);
     }
 }

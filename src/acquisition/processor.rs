@@ -80,7 +80,10 @@ impl Processor {
     }
 
     /// Convert every run's offsets with `calibration` (none: the global scale).
-    pub fn with_calibration(mut self, calibration: Option<crate::calibration_file::Applied>) -> Processor {
+    pub fn with_calibration(
+        mut self,
+        calibration: Option<crate::calibration_file::Applied>,
+    ) -> Processor {
         self.calibration = calibration;
         self
     }

@@ -74,8 +74,7 @@ pub struct StudySummary {
 }
 
 /// The paper's RMS std per case (Alzarok et al., Table 3), µm.
-pub const PAPER_RMS_STD_UM: [(&str, f64); 3] =
-    [("case1", 281.5), ("case2", 96.6), ("case3", 69.9)];
+pub const PAPER_RMS_STD_UM: [(&str, f64); 3] = [("case1", 281.5), ("case2", 96.6), ("case3", 69.9)];
 
 /// RMS over a case's targets of |bias|, µm (NaN: none has one).
 fn rms_bias_um(c: &CaseStats) -> f64 {
@@ -179,7 +178,12 @@ pub fn calibration_table(s: &StudySummary) -> String {
     );
     out.push_str(&format!(
         "  {:<6} {:>14} {:>14} {:>16} {:>16} {:>15}\n",
-        "case", "RMS std cal", "RMS std global", "RMS |bias| cal", "RMS |bias| glob", "paper RMS std"
+        "case",
+        "RMS std cal",
+        "RMS std global",
+        "RMS |bias| cal",
+        "RMS |bias| glob",
+        "paper RMS std"
     ));
     for c in &s.cases {
         let paper = PAPER_RMS_STD_UM

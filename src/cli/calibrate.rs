@@ -127,7 +127,10 @@ fn on_the_rig(args: &CalibrateArgs, reference: Reference) -> anyhow::Result<()> 
     let r = c.request(&Request::Submit { job })?;
     let id = r["job_id"].as_u64().unwrap_or_default();
     let total = r["total_frames"].as_u64().unwrap_or_default() as u32;
-    eprintln!("calibration job {id}: {total} frames of {} µm", args.step_um);
+    eprintln!(
+        "calibration job {id}: {total} frames of {} µm",
+        args.step_um
+    );
     let end = follow(&mut c, id, total, args.json)?;
     report_end(id, &end)?;
     let fetched = c.request(&Request::Result { job_id: id })?;
@@ -139,7 +142,10 @@ fn on_the_rig(args: &CalibrateArgs, reference: Reference) -> anyhow::Result<()> 
     let made: crate::daemon::calibration::Calibrated = serde_json::from_value(made.clone())
         .context("the calibration job's result names no calibration")?;
     print!("{}", made.summary);
-    println!("written to {} (the daemon's current calibration)", made.path);
+    println!(
+        "written to {} (the daemon's current calibration)",
+        made.path
+    );
     Ok(())
 }
 

@@ -11,15 +11,15 @@
 
 use crate::acquisition::calibration_job::CalibrationScan;
 use crate::acquisition::study::{calibration_table, tables, StudySummary};
-use crate::daemon::calibration::Calibrated;
-use crate::sim::CameraModel;
 use crate::acquisition::{JobSpec, PaperCase};
 use crate::cli::client::{follow, report_end, Client, Ended};
 use crate::config::DaemonSettings;
+use crate::daemon::calibration::Calibrated;
 use crate::daemon::ownership::Ownership;
 use crate::daemon::protocol::Request;
 use crate::daemon::server;
 use crate::rig::{simulated, SimSettings};
+use crate::sim::CameraModel;
 use anyhow::Context;
 use std::path::PathBuf;
 use std::time::Instant;

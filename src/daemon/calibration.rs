@@ -166,8 +166,16 @@ pub fn rig_description(rig: &RigInfo) -> String {
     let camera = c["camera_profile"]
         .as_str()
         .map(|p| format!("sim camera profile {p}"))
-        .or_else(|| c["camera"]["device"].as_str().map(|d| format!("camera {d}")))
-        .or_else(|| c["camera"]["driver"].as_str().map(|d| format!("camera {d}")))
+        .or_else(|| {
+            c["camera"]["device"]
+                .as_str()
+                .map(|d| format!("camera {d}"))
+        })
+        .or_else(|| {
+            c["camera"]["driver"]
+                .as_str()
+                .map(|d| format!("camera {d}"))
+        })
         .unwrap_or_else(|| "camera (unnamed model)".into());
     format!(
         "{} rig: {camera}, board {}, {} µm/px, {}x{} frames",

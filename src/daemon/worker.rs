@@ -180,7 +180,14 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
         calibration: Some(note),
         calibrated: None,
     };
-    let outcome = fit_calibration(shared, job, &rig.info, session.as_ref(), outcome, &mut result);
+    let outcome = fit_calibration(
+        shared,
+        job,
+        &rig.info,
+        session.as_ref(),
+        outcome,
+        &mut result,
+    );
     let facts = session.as_ref().map(|s| SessionFacts::of(s.manifest()));
     let outcome = close(session, outcome, &result, &images);
     if let (Some(facts), true) = (facts, job.spec.process) {
@@ -240,14 +247,18 @@ fn fit_calibration(
         })
     };
     if !matches!(job.source, JobSource::Live) {
-        return failed("a replayed or resumed calibration scan is not fitted: calibrate again".into());
+        return failed(
+            "a replayed or resumed calibration scan is not fitted: calibrate again".into(),
+        );
     }
     let root = &shared.settings.data_root;
     match calibration::fit_session(root, session.dir(), session.name(), info, scan) {
         Ok(made) => {
             tracing::info!(job = job.id, calibration = %made.id, path = %made.path,
                 residual_rms_um = made.residual_rms_um, "calibration made, now the current one");
-            shared.events.emit(job.id, EventBody::Calibrated(Box::new(made.clone())));
+            shared
+                .events
+                .emit(job.id, EventBody::Calibrated(Box::new(made.clone())));
             result.calibrated = Some(made);
             outcome
         }
