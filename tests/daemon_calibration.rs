@@ -54,7 +54,7 @@ fn a_calibration_job_is_kept_in_the_data_root_and_applied_by_the_next_job() {
         ..CalibrationScan::default()
     };
     let job = JobSpec {
-        calibrate: Some(scan),
+        calibrate: Some(Box::new(scan)),
         settle_ms: 0,
         ..JobSpec::default()
     };
@@ -131,7 +131,7 @@ fn record(id: &str, frame_size: [u32; 2], date: &str, board: Option<&str>) -> Va
         "field": {"layout": "free", "model": {"centre_px": [cx, cy],
             "norm_radius_px": cx.hypot(cy), "a_px_per_um": [[1.0 / 774.0, 0.0], [0.0, 1.0 / 774.0]],
             "g_per_um": [0.0, 0.0], "k1": 0.0, "k2": 0.0},
-            "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.14159,
+            "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.0,
             "print_scale": null, "residual_rms_px": 0.01, "residual_rms_um": 7.7,
             "residual_max_um": 20.0}
     })

@@ -248,7 +248,7 @@ pub struct JobSpec {
     /// A calibration job (docs/calibration.md): this scan on the axis, fitted into a record
     /// in the data root that later jobs apply. It sets the scan and processing itself.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub calibrate: Option<crate::acquisition::calibration_job::CalibrationScan>,
+    pub calibrate: Option<Box<crate::acquisition::calibration_job::CalibrationScan>>,
 }
 
 impl Default for JobSpec {

@@ -177,7 +177,7 @@ pub fn calibration_table(s: &StudySummary) -> String {
          board's nominal offsets (the sim's truth):\n",
     );
     out.push_str(&format!(
-        "  {:<6} {:>14} {:>14} {:>16} {:>16} {:>15}\n",
+        "  {:<6} {:>15} {:>15} {:>16} {:>16} {:>15}\n",
         "case",
         "RMS std cal",
         "RMS std global",
@@ -192,7 +192,7 @@ pub fn calibration_table(s: &StudySummary) -> String {
             .map(|p| p.1);
         let um = |v: Option<f64>| format!("{} µm", fixed(v.filter(|x| x.is_finite()), 1));
         out.push_str(&format!(
-            "  {:<6} {:>14} {:>14} {:>16} {:>16} {:>15}\n",
+            "  {:<6} {:>15} {:>15} {:>16} {:>16} {:>15}\n",
             c.name,
             um(Some(c.rms_std_um)),
             um(c.rms_std_global_um),

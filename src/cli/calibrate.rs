@@ -108,7 +108,7 @@ fn on_the_rig(args: &CalibrateArgs, reference: Reference) -> anyhow::Result<()> 
         );
     }
     let job = crate::acquisition::JobSpec {
-        calibrate: Some(CalibrationScan {
+        calibrate: Some(Box::new(CalibrationScan {
             steps: args.steps,
             step_um: args.step_um,
             registration: match reference {
@@ -116,7 +116,7 @@ fn on_the_rig(args: &CalibrateArgs, reference: Reference) -> anyhow::Result<()> 
                 Reference::Interferometer => ScanReference::Interferometer,
             },
             reference_rel_u: args.reference_rel_u,
-        }),
+        })),
         start_um: args.start_um,
         settle_ms: 0,
         label: Some("calibration".into()),

@@ -9,7 +9,6 @@
 //! report and its figures (`rigctl report`'s). The frames (~1 GB) and reconstructions are
 //! removed afterwards unless `--keep`: a demo user wants the tables, not the pixels.
 
-use crate::acquisition::calibration_job::CalibrationScan;
 use crate::acquisition::study::{calibration_table, tables, StudySummary};
 use crate::acquisition::{JobSpec, PaperCase};
 use crate::cli::client::{follow, report_end, Client, Ended};
@@ -196,7 +195,7 @@ fn where_it_is(keep: bool, dir: &std::path::Path, failed: usize) {
 /// The daemon's calibration job on the demo's rig, followed to its end; its record.
 fn calibrate(c: &mut Client, a: &DemoArgs) -> anyhow::Result<Calibrated> {
     let job = JobSpec {
-        calibrate: Some(CalibrationScan::default()),
+        calibrate: Some(Box::default()),
         settle_ms: 0,
         label: Some("calibration (demo)".into()),
         ..JobSpec::default()
@@ -216,7 +215,7 @@ fn calibrate(c: &mut Client, a: &DemoArgs) -> anyhow::Result<Calibrated> {
     let made: Calibrated = serde_json::from_value(fetched["result"]["calibrated"].clone())
         .context("the calibration job's result names no calibration")?;
     if !a.json {
-        print!("{}", made.summary);
+        println!("{}", made.summary);
     }
     Ok(made)
 }
