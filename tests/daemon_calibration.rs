@@ -210,3 +210,49 @@ fn a_stale_or_mismatched_calibration_warns_and_a_corrupt_one_fails_by_name() {
     let (_, ev) = run_job(&mut c, measure());
     assert_finished(&ev);
 }
+
+/// `rigctl calibrate` without a DIR: the calibration job on `rigd --sim`'s rig, its
+/// summary printed, the record the daemon's current one.
+#[test]
+fn rigctl_calibrate_without_a_folder_runs_the_daemons_job_and_prints_its_summary() {
+    let dir = tempfile::tempdir().unwrap();
+    let (socket, data) = (dir.path().join("rigd.sock"), dir.path().join("data"));
+    let _rigd = support::daemon::RigdProcess::spawn_sim(&socket, &data);
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args([
+            "calibrate",
+            "--steps",
+            "11",
+            "--step-um",
+            "2000",
+            "--socket",
+        ])
+        .arg(&socket)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("field model residual RMS"), "{stdout}");
+    let current = calibration_store::current(&data)
+        .unwrap()
+        .expect("a current one");
+    assert!(
+        stdout.contains(&format!("written to {}", current.source)),
+        "{stdout}"
+    );
+    // Offline flags go with a DIR only.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args(["calibrate", "--out", "x.json", "--socket"])
+        .arg(&socket)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("go with DIR"),
+        "{err}"
+    );
+}
