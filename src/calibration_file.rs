@@ -8,9 +8,14 @@ use std::sync::Arc;
 
 /// Read and check a calibration file: errors name the file.
 pub fn load(path: &Path) -> anyhow::Result<Arc<Calibration>> {
-    let text = std::fs::read_to_string(path)
+    let bytes = std::fs::read(path)
         .with_context(|| format!("{}: cannot read the calibration", path.display()))?;
-    let v: serde_json::Value = serde_json::from_str(&text)
+    parse(&bytes, path)
+}
+
+/// Check and decode a calibration record read from `path` (errors name it).
+pub fn parse(bytes: &[u8], path: &Path) -> anyhow::Result<Arc<Calibration>> {
+    let v: serde_json::Value = serde_json::from_slice(bytes)
         .with_context(|| format!("{}: not a calibration record (JSON)", path.display()))?;
     let version = v.get("version").and_then(|x| x.as_u64());
     if version != Some(CALIBRATION_VERSION as u64) {

@@ -335,6 +335,9 @@ pub struct DaemonSettings {
     pub max_job_memory_mb: u64,
     /// A controller's feed hold mid-job: `pause` the job (resume goes on) or `fail` it.
     pub on_feed_hold: crate::acquisition::HoldPolicy,
+    /// A current calibration older than this, days, still applies, with a warning in every
+    /// job's events, result and manifest and in the log.
+    pub calibration_max_age_days: f64,
 }
 
 /// `[daemon] max_connections` when the config leaves it out.
@@ -354,6 +357,7 @@ impl Default for DaemonSettings {
             idle_timeout_s: 600,
             max_job_memory_mb: 2048,
             on_feed_hold: crate::acquisition::HoldPolicy::Pause,
+            calibration_max_age_days: crate::daemon::calibration::DEFAULT_MAX_AGE_DAYS,
         }
     }
 }

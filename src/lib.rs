@@ -5,6 +5,8 @@
 //! - `pipeline`, `board`: frames + positions -> measured target offsets (the science), and
 //!   the target boards; re-exported from the `rigd-core` crate.
 //! - `folder`: the `rigctl process` folder contract (frames/*.png + steps.csv).
+//! - `calibration_file`, `calibration_store`: calibration records on disk, and the ones a
+//!   daemon keeps in its data root (`calibrations/<id>.json`, `current`).
 //! - `atomic_file`: files written whole or not at all (temporary name, sync, rename).
 //! - `nofollow`: opening files below a folder without following a symlink.
 //! - `lock`: exclusive flock'd lock files that name their holder (one owner per resource).
@@ -21,6 +23,7 @@
 pub mod acquisition;
 pub mod atomic_file;
 pub mod calibration_file;
+pub mod calibration_store;
 pub mod cli;
 pub mod config;
 pub mod daemon;

@@ -286,12 +286,14 @@ fn a_daemons_traffic_validates_against_the_schema() {
         let e = errors(v, result);
         assert!(e.is_empty(), "{name} (the reply to {req}): {result}: {e:?}");
     }
-    // What the traffic held: every reply body, every event kind but `failed`.
+    // What the traffic held: every reply body, every event kind but `failed` and
+    // `calibrated` (the small board's two targets are too few for a field model: a
+    // calibration job on the webcam rig, tests/daemon_calibration.rs, sends it).
     let seen: BTreeSet<&str> = tap.got.iter().filter_map(|l| l["event"].as_str()).collect();
     let want: BTreeSet<&str> = EVENT_KINDS
         .iter()
         .copied()
-        .filter(|k| *k != "failed")
+        .filter(|k| !matches!(*k, "failed" | "calibrated"))
         .collect();
     assert_eq!(seen, want, "event kinds in the traffic");
     assert_eq!(

@@ -245,6 +245,10 @@ pub struct JobSpec {
     pub process: bool,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub label: Option<String>,
+    /// A calibration job (docs/calibration.md): this scan on the axis, fitted into a record
+    /// in the data root that later jobs apply. It sets the scan and processing itself.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibrate: Option<Box<crate::acquisition::calibration_job::CalibrationScan>>,
 }
 
 impl Default for JobSpec {
@@ -267,6 +271,7 @@ impl Default for JobSpec {
             repeat_shift_um: 0.0,
             process: true,
             label: None,
+            calibrate: None,
         }
     }
 }
@@ -313,6 +318,7 @@ impl JobSpec {
     /// unset.
     pub fn with_defaults(&self, d: &Processing) -> JobSpec {
         let mut s = self.clone();
+        crate::acquisition::calibration_job::resolve(&mut s);
         s.estimator = s.estimator.or(d.estimator).or(Some(Estimator::default()));
         s.combine = s.combine.or(d.combine);
         if s.study.is_none() {

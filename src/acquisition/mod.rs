@@ -11,9 +11,11 @@
 //!   motion path; `processor`: the pipeline as a sink;
 //! - `pause`: a job's pause switch (a client's pause, a controller's feed hold);
 //! - `outcome`: how a job ended, typed; `study`: a job's runs reduced to the paper's tables;
+//! - `calibration_job`: the calibration job's scan (`job.calibrate`) and its checks;
 //! - `fake`: scripted devices for testing the engine without hardware or time.
 
 pub mod budget;
+pub mod calibration_job;
 pub mod engine;
 pub mod fake;
 pub mod interferometer;

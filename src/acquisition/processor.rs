@@ -61,6 +61,8 @@ pub struct Processor {
     pub images: Vec<(String, Image16)>,
     /// A resumed job's earlier frames: a run's are pushed before this job's frames of it.
     prior: Option<Prior>,
+    /// The calibration every run's pipeline converts its offsets with.
+    calibration: Option<crate::calibration_file::Applied>,
 }
 
 impl Processor {
@@ -73,7 +75,17 @@ impl Processor {
             results: Vec::new(),
             images: Vec::new(),
             prior: None,
+            calibration: None,
         }
+    }
+
+    /// Convert every run's offsets with `calibration` (none: the global scale).
+    pub fn with_calibration(
+        mut self,
+        calibration: Option<crate::calibration_file::Applied>,
+    ) -> Processor {
+        self.calibration = calibration;
+        self
     }
 
     /// Process the frames of `prior` too: a run's before this job's frames of it; the runs
@@ -124,7 +136,11 @@ impl Processor {
             .processing
             .clone()
             .ok_or_else(|| format!("run {run} has no processing options"))?;
-        Ok(Pipeline::new(opts, self.board.clone()))
+        let mut p = Pipeline::new(opts, self.board.clone());
+        if let Some(c) = &self.calibration {
+            c.apply(&mut p);
+        }
+        Ok(p)
     }
 
     fn record(&mut self, run: u32, outcome: Result<Finished, String>) {

@@ -2,7 +2,7 @@
 //! offset over the repeats (`pipeline::stats`), and each case's improvement over raw frames.
 //! The tables themselves are `report::study_tables`.
 
-use crate::pipeline::stats::{study_stats, CaseRuns, StudyStats};
+use crate::pipeline::stats::{study_stats, CaseRuns, CaseStats, StudyStats};
 use crate::pipeline::ProcessResult;
 use serde::{Deserialize, Serialize};
 
@@ -27,6 +27,13 @@ pub struct RunResult {
 pub struct JobResult {
     pub runs: Vec<RunResult>,
     pub study: Option<StudySummary>,
+    /// The calibration the job applied, or why none (absent from results written before
+    /// the daemon kept calibrations).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<crate::daemon::calibration::CalibrationNote>,
+    /// A calibration job's record.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibrated: Option<crate::daemon::calibration::Calibrated>,
 }
 
 /// One line of the study's summary (what `rigctl demo --json` lists as `cases`).
@@ -44,12 +51,56 @@ pub struct CaseLine {
     pub improvement: Option<f64>,
     pub runs_ok: usize,
     pub runs_failed: usize,
+    /// RMS over targets of |bias| (mean minus the board's nominal offset: the truth on the
+    /// sim), µm; null when no target has a nominal.
+    #[serde(default, deserialize_with = "crate::pipeline::stats::nan_if_null")]
+    pub rms_bias_um: f64,
+    /// With a calibration applied: the same two figures at the global scale
+    /// (`offset_global_um`), the uncalibrated measurement of the same frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rms_std_global_um: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rms_bias_global_um: Option<f64>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StudySummary {
     pub cases: Vec<CaseLine>,
     pub stats: StudyStats,
+    /// With a calibration applied: `stats` of the same runs at the global scale
+    /// (each object's `offset_global_um`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub global: Option<StudyStats>,
+}
+
+/// The paper's RMS std per case (Alzarok et al., Table 3), µm.
+pub const PAPER_RMS_STD_UM: [(&str, f64); 3] = [("case1", 281.5), ("case2", 96.6), ("case3", 69.9)];
+
+/// RMS over a case's targets of |bias|, µm (NaN: none has one).
+fn rms_bias_um(c: &CaseStats) -> f64 {
+    let b: Vec<f64> = c
+        .targets
+        .iter()
+        .map(|t| t.bias_um)
+        .filter(|b| b.is_finite())
+        .collect();
+    (b.iter().map(|x| x * x).sum::<f64>() / b.len() as f64).sqrt()
+}
+
+/// The runs with each object's global-scale offset in place of its calibrated one; None
+/// when no object was calibrated.
+fn at_global_scale(case_runs: &[CaseRuns]) -> Option<Vec<CaseRuns>> {
+    let calibrated = case_runs
+        .iter()
+        .flat_map(|c| c.runs.iter().flatten())
+        .any(|o| o.offset_global_um.is_some());
+    calibrated.then(|| {
+        let mut global = case_runs.to_vec();
+        for o in global.iter_mut().flat_map(|c| c.runs.iter_mut().flatten()) {
+            o.offset_um = o.offset_global_um.unwrap_or(o.offset_um);
+        }
+        global
+    })
 }
 
 /// Reduce a job's runs, grouped by case in the order they first ran. `names` are the
@@ -78,6 +129,7 @@ pub fn summarize(runs: &[RunResult], names: &[&str], scale_um_per_px: f64) -> St
         })
         .collect();
     let stats = study_stats(&case_runs, names, scale_um_per_px);
+    let global = at_global_scale(&case_runs).map(|g| study_stats(&g, names, scale_um_per_px));
     let raw = stats
         .cases
         .iter()
@@ -88,8 +140,10 @@ pub fn summarize(runs: &[RunResult], names: &[&str], scale_um_per_px: f64) -> St
         .cases
         .iter()
         .zip(&case_runs)
-        .map(|(c, cr)| {
+        .enumerate()
+        .map(|(i, (c, cr))| {
             let total = runs.iter().filter(|r| r.case == c.name).count();
+            let g = global.as_ref().map(|g| &g.cases[i]);
             CaseLine {
                 name: c.name.clone(),
                 frames: c.frames as u32,
@@ -101,10 +155,53 @@ pub fn summarize(runs: &[RunResult], names: &[&str], scale_um_per_px: f64) -> St
                     .map(|r| r / c.rms_std_um),
                 runs_ok: cr.runs.len(),
                 runs_failed: total - cr.runs.len(),
+                rms_bias_um: rms_bias_um(c),
+                rms_std_global_um: g.map(|g| g.rms_std_um),
+                rms_bias_global_um: g.map(rms_bias_um),
             }
         })
         .collect();
-    StudySummary { cases, stats }
+    StudySummary {
+        cases,
+        stats,
+        global,
+    }
+}
+
+/// Per case: RMS std and RMS |bias| of the offsets as measured (calibrated when a
+/// calibration was applied) and at the global scale, beside the paper's RMS std.
+pub fn calibration_table(s: &StudySummary) -> String {
+    use crate::cli::text::fixed;
+    let mut out = String::from(
+        "\nCalibrated (offset_um) against the global scale (offset_global_um); bias against the \
+         board's nominal offsets (the sim's truth):\n",
+    );
+    out.push_str(&format!(
+        "  {:<6} {:>15} {:>15} {:>16} {:>16} {:>15}\n",
+        "case",
+        "RMS std cal",
+        "RMS std global",
+        "RMS |bias| cal",
+        "RMS |bias| glob",
+        "paper RMS std"
+    ));
+    for c in &s.cases {
+        let paper = PAPER_RMS_STD_UM
+            .iter()
+            .find(|(n, _)| *n == c.name)
+            .map(|p| p.1);
+        let um = |v: Option<f64>| format!("{} µm", fixed(v.filter(|x| x.is_finite()), 1));
+        out.push_str(&format!(
+            "  {:<6} {:>15} {:>15} {:>16} {:>16} {:>15}\n",
+            c.name,
+            um(Some(c.rms_std_um)),
+            um(c.rms_std_global_um),
+            um(Some(c.rms_bias_um)),
+            um(c.rms_bias_global_um),
+            um(paper)
+        ));
+    }
+    out
 }
 
 /// Tables 1-3 and a line per case with its improvement over raw frames.

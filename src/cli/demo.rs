@@ -1,19 +1,24 @@
 //! `rigctl demo`: the paper's study on the simulated rig, through the daemon's socket.
 //!
-//! Starts a simulated rig and a daemon in-process on a temporary socket, submits the study
-//! (20 repeats of case 1: one raw frame; case 2: 10 frames at 100 µm, k = 5; case 3: 20
-//! frames at 50 µm, k = 10; each repeat from a different sub-pixel start), prints Tables 1-3
-//! and writes the session, the report and its figures (`rigctl report`'s). The frames (~1 GB) and reconstructions are
+//! Starts a simulated rig (the sim's `webcam` camera unless `--camera`) and a daemon
+//! in-process on a temporary socket, runs the daemon's calibration job (40 x 500 µm; not
+//! with `--no-calibrate`), then submits the study (20 repeats of case 1: one raw frame;
+//! case 2: 10 frames at 100 µm, k = 5; case 3: 20 frames at 50 µm, k = 10; each repeat from
+//! a different sub-pixel start), which applies the calibration; prints Tables 1-3, the
+//! calibrated and global-scale figures beside the paper's, and writes the session, the
+//! report and its figures (`rigctl report`'s). The frames (~1 GB) and reconstructions are
 //! removed afterwards unless `--keep`: a demo user wants the tables, not the pixels.
 
-use crate::acquisition::study::{tables, StudySummary};
+use crate::acquisition::study::{calibration_table, tables, StudySummary};
 use crate::acquisition::{JobSpec, PaperCase};
-use crate::cli::client::{follow, report_end, Client};
+use crate::cli::client::{follow, report_end, Client, Ended};
 use crate::config::DaemonSettings;
+use crate::daemon::calibration::Calibrated;
 use crate::daemon::ownership::Ownership;
 use crate::daemon::protocol::Request;
 use crate::daemon::server;
 use crate::rig::{simulated, SimSettings};
+use crate::sim::CameraModel;
 use anyhow::Context;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -37,6 +42,30 @@ pub struct DemoArgs {
     /// Print the report as JSON.
     #[arg(long)]
     pub json: bool,
+    /// The sim's camera profile: ideal (clean, matched), webcam (tilt, distortion, Bayer,
+    /// MJPEG: docs/sim.md) or stress.
+    #[arg(long, value_name = "PROFILE", default_value = "webcam",
+          value_parser = ["ideal", "webcam", "stress"])]
+    pub camera: String,
+    /// Skip the calibration job: the study's offsets use the global scale only.
+    #[arg(long)]
+    pub no_calibrate: bool,
+}
+
+/// The demo's sim: the camera of `profile` on a fast frame clock (the ideal camera as it
+/// always was in the demo: 5 ms frames, 2 ms exposure), so the study takes about a minute.
+pub fn sim_settings(profile: &str) -> anyhow::Result<SimSettings> {
+    let mut camera = CameraModel::profile(profile)?;
+    camera.supersample = 4;
+    match profile {
+        "ideal" => (camera.frame_period_ms, camera.exposure_ms) = (5.0, 2.0),
+        _ => camera.frame_period_ms = (camera.exposure_ms + 2.0).max(5.0),
+    }
+    Ok(SimSettings {
+        camera,
+        camera_profile: Some(profile.to_string()),
+        ..SimSettings::default()
+    })
 }
 
 /// The paper's study as a job: each repeat starts 1/repeats of a pixel further.
@@ -68,23 +97,16 @@ pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
     // root) the demo stops here, and never submits the study to a rig it did not start.
     let owner = Ownership::claim(&settings, &[], "rigctl demo")
         .context("rigctl demo starts its own daemon")?;
-    let sim = SimSettings::default();
+    let sim = sim_settings(&a.camera)?;
     let scale = sim.camera.scale_um_per_px;
     let mut daemon = server::Background::start_owned(owner, simulated(&sim)?)?;
     let mut c = Client::connect(&socket)?;
     c.request(&Request::Subscribe { job_id: None })?;
-    let r = c.request(&Request::Submit {
-        job: paper_study(a.repeats, scale),
-    })?;
-    let id = r["job_id"].as_u64().unwrap_or_default();
-    let total = r["total_frames"].as_u64().unwrap_or_default() as u32;
-    if !a.json {
-        eprintln!(
-            "rigctl demo: the paper's study on the simulated rig: {} repeats x 3 cases = {total} frames",
-            a.repeats
-        );
-    }
-    let end = follow(&mut c, id, total, a.json)?;
+    let calibrated = match a.no_calibrate {
+        true => None,
+        false => Some(calibrate(&mut c, &a)?),
+    };
+    let (id, end) = run_study(&mut c, &a, scale)?;
     let fetched = c.request(&Request::Result { job_id: id });
     drop(c);
     daemon.stop()?;
@@ -104,14 +126,21 @@ pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
         "cases": study.cases,
         "stats": study.stats,
         "paper_rms_std_um": { "case1": 281.5, "case2": 96.6, "case3": 69.9 },
+        "camera": a.camera,
+        "calibrated": calibrated,
+        "calibration": fetched["result"]["calibration"],
     });
     let dir = a.data_root.join(&session);
-    let text = tables(&study);
+    let mut text = tables(&study);
+    text.push_str(&calibration_table(&study));
     std::fs::write(dir.join("report.json"), serde_json::to_vec_pretty(&report)?)?;
     // report.txt and the figures (Figures 4 and 5, the per-step residuals), as `rigctl report`.
     let figures = crate::cli::report::write(&dir, &dir)?;
     if !a.keep {
         drop_bulk(&dir)?;
+        if let Some(made) = &calibrated {
+            drop_bulk(&a.data_root.join(&made.session))?;
+        }
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -122,7 +151,31 @@ pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
             dir.join("report.txt").display(),
             figures.len().saturating_sub(1) / 2
         );
-        match a.keep {
+        where_it_is(a.keep, &dir, failed);
+    }
+    Ok(())
+}
+
+/// The paper's study submitted to the demo's daemon and followed to its end.
+fn run_study(c: &mut Client, a: &DemoArgs, scale: f64) -> anyhow::Result<(u64, Ended)> {
+    let r = c.request(&Request::Submit {
+        job: paper_study(a.repeats, scale),
+    })?;
+    let id = r["job_id"].as_u64().unwrap_or_default();
+    let total = r["total_frames"].as_u64().unwrap_or_default() as u32;
+    if !a.json {
+        eprintln!(
+            "rigctl demo: the paper's study on the simulated rig: {} repeats x 3 cases = {total} frames",
+            a.repeats
+        );
+    }
+    Ok((id, follow(c, id, total, a.json)?))
+}
+
+/// Where the session is, what was kept of it, and the runs that failed.
+fn where_it_is(keep: bool, dir: &std::path::Path, failed: usize) {
+    {
+        match keep {
             true => println!(
                 "Session kept whole (frames and reconstructions): {}",
                 dir.display()
@@ -137,7 +190,34 @@ pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
             println!("{failed} runs could not be processed (see result.json)");
         }
     }
-    Ok(())
+}
+
+/// The daemon's calibration job on the demo's rig, followed to its end; its record.
+fn calibrate(c: &mut Client, a: &DemoArgs) -> anyhow::Result<Calibrated> {
+    let job = JobSpec {
+        calibrate: Some(Box::default()),
+        settle_ms: 0,
+        label: Some("calibration (demo)".into()),
+        ..JobSpec::default()
+    };
+    let r = c.request(&Request::Submit { job })?;
+    let id = r["job_id"].as_u64().unwrap_or_default();
+    let total = r["total_frames"].as_u64().unwrap_or_default() as u32;
+    if !a.json {
+        eprintln!(
+            "rigctl demo: calibrating the {} camera first: {total} frames of 500 µm",
+            a.camera
+        );
+    }
+    let end = follow(c, id, total, a.json)?;
+    report_end(id, &end)?;
+    let fetched = c.request(&Request::Result { job_id: id })?;
+    let made: Calibrated = serde_json::from_value(fetched["result"]["calibrated"].clone())
+        .context("the calibration job's result names no calibration")?;
+    if !a.json {
+        println!("{}", made.summary);
+    }
+    Ok(made)
 }
 
 /// The session's bulk: its frames and reconstructions (about 1 GB for the paper's study).

@@ -135,6 +135,8 @@ mod tests {
                 run("scan", &[("A", [1002.0, -4.0], Some([0.5, 1.0]))]),
             ],
             study: None,
+            calibration: None,
+            calibrated: None,
         };
         let text = results_table(&r).render();
         let lines: Vec<&str> = text.lines().collect();

@@ -120,6 +120,7 @@ impl SubmitArgs {
             repeat_shift_um: self.repeat_shift_um,
             process: !self.no_process,
             label: self.label.clone(),
+            calibrate: None,
         }
     }
 }

@@ -120,6 +120,7 @@ fn submit(shared: &Shared, job: JobSpec) -> Result<SubmitReply, ProtoError> {
     if let Some(f) = shared.rig().fault.clone() {
         return Err(ProtoError::new(ErrorCode::Rejected, f.refusal()));
     }
+    crate::acquisition::calibration_job::check_submitted(&job).map_err(rejected)?;
     // What the client leaves out, the rig's configuration decides; the job is recorded and
     // echoed as resolved.
     let job = job.with_defaults(&shared.rig_info.job_defaults);

@@ -13,12 +13,15 @@
 //! - `rig_state`: the rig's `ready`/`busy`/`fault` state; `rig_commands`: `unlock`, `home`,
 //!   `reconnect`, run by the worker beside the job queue; `manual`: `position`, `move`,
 //!   `stop` outside jobs; `pausing`: `pause`/`resume` and the `paused`/`resumed` events;
+//! - `calibration`: the calibration a job applies (the data root's current one, checked)
+//!   and the record a calibration job makes;
 //! - `live_view`: `snap` and `preview` (the job's frames, or frames the worker grabs
 //!   between jobs, with the targets found in them).
 //!
 //! The rig a job runs on is `crate::rig`; the daemon's settings are `config::DaemonSettings`.
 
 pub mod accept;
+pub mod calibration;
 pub mod commands;
 pub mod connection;
 pub mod events;

@@ -489,6 +489,11 @@ pub enum EventBody {
     Resumed {
         next_index: u32,
     },
+    /// At the start of a job: the calibration it applies (or why none), with its warnings
+    /// (stale, another scale, board or frame size).
+    Calibration(crate::daemon::calibration::CalibrationNote),
+    /// A calibration job fitted its scan: the record, now the data root's current one.
+    Calibrated(Box<crate::daemon::calibration::Calibrated>),
 }
 
 /// The event kinds this daemon sends, one per [`EventBody`] variant (`hello` lists them).
@@ -505,6 +510,8 @@ pub const EVENT_KINDS: &[&str] = &[
     "preview",
     "paused",
     "resumed",
+    "calibration",
+    "calibrated",
 ];
 
 impl EventBody {

@@ -130,6 +130,10 @@ pub struct Manifest {
     pub interferometer: Option<LogSource>,
     pub versions: Versions,
     pub frames_captured: u32,
+    /// The calibration the job applied, or why none (absent from sessions recorded before
+    /// the daemon kept calibrations).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<crate::daemon::calibration::CalibrationNote>,
 }
 
 /// One row of `steps.csv`: the `rigctl process` contract (`index,position_um`) first.
@@ -269,6 +273,7 @@ impl SessionWriter {
                 protocol: PROTOCOL_VERSION,
             },
             frames_captured: 0,
+            calibration: None,
         };
         let steps_path = dir.join(STEPS);
         write_atomic(&steps_path, STEPS_HEADER.as_bytes())?;
@@ -318,6 +323,15 @@ impl SessionWriter {
             message: format!("PNG encoding: {e}"),
         })?;
         write_atomic(&path, &png)
+    }
+
+    /// Name the calibration the job applies (or why none) in the manifest.
+    pub fn note_calibration(
+        &mut self,
+        note: crate::daemon::calibration::CalibrationNote,
+    ) -> Result<(), SessionError> {
+        self.manifest.calibration = Some(note);
+        self.write_manifest()
     }
 
     /// The job has an interferometer log: record its source in the manifest and start

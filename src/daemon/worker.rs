@@ -8,6 +8,8 @@ use crate::acquisition::study::{summarize, JobResult, RunResult};
 use crate::acquisition::{
     Devices, Engine, EngineSettings, JobError, Outcome, StageKind, StepSink, Threaded,
 };
+use crate::calibration_file::Applied;
+use crate::daemon::calibration::{self, JobCalibration};
 use crate::daemon::jobs::{JobRecord, JobSource, JobState};
 use crate::daemon::live_view::{self, tap::Tap};
 use crate::daemon::protocol::EventBody;
@@ -139,11 +141,19 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
         _ => None,
     };
     let links = (replay_of, resumed_from);
-    let session = match SessionWriter::create(root, id, &job.spec, &job.plan, &rig.info, links) {
+    let calibration = match job_calibration(shared, job, &rig.info) {
+        Ok(c) => c,
+        Err(e) => return end(shared, id, None, failed_setup(e)),
+    };
+    let mut session = match SessionWriter::create(root, id, &job.spec, &job.plan, &rig.info, links)
+    {
         Ok(s) => s,
         Err(e) => return end(shared, id, None, failed_setup(format!("disk: {e}"))),
     };
     let name = session.name().to_string();
+    if let Err(e) = session.note_calibration(calibration.note.clone()) {
+        return end(shared, id, Some(name), failed_setup(format!("disk: {e}")));
+    }
     if let Some(r) = shared.jobs().get_mut(id) {
         r.session = Some(name.clone());
     }
@@ -153,7 +163,9 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
         total_frames: job.plan.total_frames,
     };
     shared.events.emit(id, started);
-    let (outcome, session, runs, images) = capture(shared, job, rig, session);
+    let note = calibration.note.clone();
+    shared.events.emit(id, EventBody::Calibration(note.clone()));
+    let (outcome, session, runs, images) = capture(shared, job, rig, session, calibration.applied);
     let names: Vec<&str> = rig
         .info
         .board
@@ -162,7 +174,20 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
         .collect();
     let study = (job.spec.process && !runs.is_empty())
         .then(|| summarize(&runs, &names, rig.info.scale_um_per_px));
-    let result = JobResult { runs, study };
+    let mut result = JobResult {
+        runs,
+        study,
+        calibration: Some(note),
+        calibrated: None,
+    };
+    let outcome = fit_calibration(
+        shared,
+        job,
+        &rig.info,
+        session.as_ref(),
+        outcome,
+        &mut result,
+    );
     let facts = session.as_ref().map(|s| SessionFacts::of(s.manifest()));
     let outcome = close(session, outcome, &result, &images);
     if let (Some(facts), true) = (facts, job.spec.process) {
@@ -177,6 +202,68 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
         }
     }
     end(shared, id, Some(name), outcome);
+}
+
+/// The calibration the job applies (`daemon::calibration::for_job`), its warnings logged;
+/// an unreadable current calibration is logged and the job does not run.
+fn job_calibration(
+    shared: &Shared,
+    job: &JobRecord,
+    info: &crate::rig::RigInfo,
+) -> Result<JobCalibration, String> {
+    let s = &shared.settings;
+    let calibrating = job.spec.calibrate.is_some();
+    let c = calibration::for_job(&s.data_root, s.calibration_max_age_days, info, calibrating)
+        .inspect_err(|e| tracing::error!(job = job.id, "{e}"))?;
+    for w in &c.note.warnings {
+        tracing::warn!(job = job.id, "{w}");
+    }
+    if let (true, Some(cal)) = (c.note.applied, c.note.id.as_deref()) {
+        tracing::info!(job = job.id, calibration = cal, "calibration applied");
+    }
+    Ok(c)
+}
+
+/// A calibration job that captured its scan: the fit of its session (the code path of
+/// `rigctl calibrate DIR`), kept as the data root's current calibration and announced. A
+/// fit that fails fails the job, naming why.
+fn fit_calibration(
+    shared: &Shared,
+    job: &JobRecord,
+    info: &crate::rig::RigInfo,
+    session: Option<&SessionWriter>,
+    outcome: Outcome,
+    result: &mut JobResult,
+) -> Outcome {
+    let (Some(scan), Outcome::Finished, Some(session)) = (&job.spec.calibrate, &outcome, session)
+    else {
+        return outcome;
+    };
+    let failed = |message: String| {
+        tracing::error!(job = job.id, "{message}");
+        Outcome::Failed(JobError::Processing {
+            message,
+            stopped: None,
+        })
+    };
+    if !matches!(job.source, JobSource::Live) {
+        return failed(
+            "a replayed or resumed calibration scan is not fitted: calibrate again".into(),
+        );
+    }
+    let root = &shared.settings.data_root;
+    match calibration::fit_session(root, session.dir(), session.name(), info, scan) {
+        Ok(made) => {
+            tracing::info!(job = job.id, calibration = %made.id, path = %made.path,
+                residual_rms_um = made.residual_rms_um, "calibration made, now the current one");
+            shared
+                .events
+                .emit(job.id, EventBody::Calibrated(Box::new(made.clone())));
+            result.calibrated = Some(made);
+            outcome
+        }
+        Err(e) => failed(format!("calibration: {e:#}")),
+    }
 }
 
 /// Add a processed job's results to the data root's index (`rigctl results`). The index is
@@ -219,6 +306,7 @@ fn capture(
     job: &JobRecord,
     rig: &mut Rig,
     mut session: SessionWriter,
+    calibration: Option<Applied>,
 ) -> Captured {
     if let Some(log) = rig.log.as_deref_mut() {
         log.begin(SystemTime::now());
@@ -228,7 +316,7 @@ fn capture(
             return (Outcome::Failed(e), Some(session), Vec::new(), Vec::new());
         }
     }
-    let mut sink = job_sink(shared, job, rig, session);
+    let mut sink = job_sink(shared, job, rig, session, calibration);
     let engine = Engine {
         plan: &job.plan,
         settings: EngineSettings {
@@ -274,13 +362,15 @@ fn job_sink(
     job: &JobRecord,
     rig: &mut Rig,
     session: SessionWriter,
+    calibration: Option<Applied>,
 ) -> JobSink {
     let processor = job.spec.process.then(|| {
         let mut p = Processor::new(
             job.plan.runs.clone(),
             rig.info.board.clone(),
             processor_events(shared, job.id),
-        );
+        )
+        .with_calibration(calibration);
         // A resumed job's runs are processed from the original's frames too.
         if let JobSource::Resume(origin) = &job.source {
             p = p.with_prior(origin.prior());

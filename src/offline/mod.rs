@@ -3,6 +3,7 @@
 //!
 //! | module | job |
 //! |---|---|
+//! | `calibrate` | a calibration fitted from a folder's scan (`rigctl calibrate DIR`, the daemon's calibration job) |
 //! | `push` | frames on disk through one run's pipeline, decoded ahead on threads |
 //! | `overrides` | the command line's processing settings and their folder name |
 //! | `session_runs` | a session's runs processed as the daemon processed them |
@@ -10,6 +11,7 @@
 //! | `reprocess` | many sessions on a rayon pool, failures reported per session |
 //! | `index` | the SQLite results index: rows, queries, rebuild, merge |
 
+pub mod calibrate;
 pub mod index;
 pub mod outputs;
 pub mod overrides;

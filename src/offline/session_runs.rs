@@ -196,6 +196,8 @@ pub fn process_session(
         result: JobResult {
             runs: results,
             study,
+            calibration: None,
+            calibrated: None,
         },
         images,
         runs: settings,

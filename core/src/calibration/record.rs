@@ -50,6 +50,9 @@ pub struct ScanSummary {
     pub step_um: f64,
     pub travel_um: f64,
     pub piezo_travel_um: Option<f64>,
+    /// The session the scan was recorded in, when a daemon's calibration job took it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub session: Option<String>,
 }
 
 /// A value with its standard uncertainty.
@@ -417,6 +420,7 @@ fn summarise(scan: &Scan) -> ScanSummary {
         step_um: steps.get(steps.len() / 2).copied().unwrap_or(0.0),
         travel_um: span(&scan.positions_um),
         piezo_travel_um: scan.piezo_um.as_deref().map(span),
+        session: None,
     }
 }
 

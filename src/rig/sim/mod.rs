@@ -86,6 +86,9 @@ pub struct SimSettings {
     /// axis's (+y) by default, so a grid over the axis and the piezo moves the image in 2-D.
     pub piezo_dir: [f64; 2],
     pub faults: Vec<Fault>,
+    /// The camera's profile name (`CameraModel::profile`), when `camera` is one: the
+    /// sessions and calibration records name it.
+    pub camera_profile: Option<String>,
 }
 
 impl Default for SimSettings {
@@ -116,6 +119,7 @@ impl Default for SimSettings {
             piezo_limits_um: [0.0, 1_400.0],
             piezo_dir: [0.0, 1.0],
             faults: Vec::new(),
+            camera_profile: None,
         }
     }
 }
@@ -264,6 +268,7 @@ fn sim_info(s: &SimSettings, rc: &SimRigConfig, board: crate::board::Board) -> R
             "axis": s.axis,
             "piezo": s.piezo,
             "camera": s.camera,
+            "camera_profile": s.camera_profile,
             "board": board.name,
             "axis_driver": "grbl (emulated, pty)",
             "piezo_driver": "gcs (emulated, pty)",

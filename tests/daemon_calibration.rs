@@ -1,0 +1,258 @@
+//! Issue 11: the daemon's calibration job over its real socket, on the simulated rig. The
+//! job scans, fits (the code path of `rigctl calibrate DIR`) and keeps the record in the
+//! data root as the current calibration; the next job applies it and names it in its
+//! events, manifest and result; a stale or mismatched record warns, a corrupt one fails the
+//! job naming the file while the daemon keeps serving.
+
+#![cfg(feature = "sim")] // the simulated rig (default feature)
+
+mod support;
+
+use rigd::acquisition::calibration_job::CalibrationScan;
+use rigd::acquisition::JobSpec;
+use rigd::calibration_store;
+use rigd::daemon::calibration::CalibrationNote;
+use rigd::daemon::protocol::{EventBody, Request};
+use rigd::rig::simulated;
+use serde_json::Value;
+use std::path::Path;
+use support::daemon::{assert_finished, run_job, session_of, small_board_sim, Daemon};
+
+/// The calibration note of a job's `calibration` event.
+fn note(events: &[EventBody]) -> CalibrationNote {
+    events
+        .iter()
+        .find_map(|e| match e {
+            EventBody::Calibration(n) => Some(n.clone()),
+            _ => None,
+        })
+        .unwrap_or_else(|| panic!("no calibration event: {events:?}"))
+}
+
+/// A measurement job: 3 frames 100 µm apart, each target's mean offset.
+fn measure() -> JobSpec {
+    JobSpec {
+        step_um: Some(100.0),
+        steps: Some(3),
+        k: Some(1),
+        settle_ms: 0,
+        ..JobSpec::default()
+    }
+}
+
+fn result(d: &Daemon, id: u64) -> Value {
+    d.client().request(&Request::Result { job_id: id }).unwrap()["result"].clone()
+}
+
+#[test]
+fn a_calibration_job_is_kept_in_the_data_root_and_applied_by_the_next_job() {
+    let d = Daemon::start(simulated(&rigd::cli::demo::sim_settings("webcam").unwrap()).unwrap());
+    let mut c = d.subscribed();
+    let scan = CalibrationScan {
+        steps: 11,
+        step_um: 2000.0,
+        ..CalibrationScan::default()
+    };
+    let job = JobSpec {
+        calibrate: Some(Box::new(scan)),
+        settle_ms: 0,
+        ..JobSpec::default()
+    };
+    let (id, ev) = run_job(&mut c, job);
+    assert_finished(&ev);
+    assert!(!note(&ev).applied, "a calibration scan applies none");
+    let made = ev
+        .iter()
+        .find_map(|e| match e {
+            EventBody::Calibrated(m) => Some(m.clone()),
+            _ => None,
+        })
+        .expect("a calibrated event");
+    // The record, where the result says, loads as `rigctl process --calibration` reads it.
+    let r = result(&d, id);
+    assert_eq!(r["calibrated"]["id"], made.id.as_str());
+    let cal = rigd::calibration_file::load(Path::new(&made.path)).unwrap();
+    assert_eq!(cal.id, made.id);
+    assert_eq!(cal.scan.frames, 11);
+    assert_eq!(cal.scan.session.as_deref(), Some(made.session.as_str()));
+    assert!(cal.targets.len() >= 4, "{}", made.summary);
+    let rig = cal.rig.as_deref().unwrap();
+    assert!(rig.contains("webcam") && rig.contains("paper"), "{rig}");
+    let pointer = calibration_store::dir(&d.data).join(calibration_store::CURRENT);
+    assert_eq!(
+        std::fs::read_to_string(pointer).unwrap().trim(),
+        format!("{}.json", cal.id)
+    );
+    assert!(made.residual_rms_um < 30.0, "{}", made.summary);
+
+    // The next job applies it: events, manifest and result name it, offsets calibrated.
+    let (id, ev) = run_job(&mut c, measure());
+    assert_finished(&ev);
+    let n = note(&ev);
+    assert!(n.applied && n.warnings.is_empty(), "{n:?}");
+    assert_eq!(n.id.as_deref(), Some(cal.id.as_str()));
+    let m = session_of(&d.data, &ev).manifest;
+    let named = m.calibration.expect("the manifest names the calibration");
+    assert_eq!(named.id.as_deref(), Some(cal.id.as_str()));
+    assert_eq!(named.source.as_deref(), Some(made.path.as_str()));
+    let r = result(&d, id);
+    assert_eq!(r["calibration"]["id"], cal.id.as_str());
+    let run = &r["runs"][0]["result"];
+    assert_eq!(run["calibration"]["id"], cal.id.as_str());
+    let objects = run["objects"].as_array().unwrap();
+    assert!(objects.len() >= 4, "{run}");
+    // Across a tilted, distorted webcam frame the local scale differs from the global one
+    // by a few per cent: a calibrated offset is not the global scale's.
+    let most = objects
+        .iter()
+        .map(|o| {
+            let (a, g) = (&o["offset_um"], &o["offset_global_um"]);
+            (0..2)
+                .map(|i| (a[i].as_f64().unwrap() - g[i].as_f64().unwrap()).abs())
+                .fold(0.0, f64::max)
+        })
+        .fold(0.0, f64::max);
+    assert!(
+        most > 5.0,
+        "calibrated and global offsets differ by at most {most} µm"
+    );
+}
+
+/// A calibration record for `frame_size` frames dated `date`, fitted on `board`: the
+/// field model a plain scale of 774 µm/px about the frame centre.
+fn record(id: &str, frame_size: [u32; 2], date: &str, board: Option<&str>) -> Value {
+    let [w, h] = frame_size;
+    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    serde_json::json!({
+        "version": 1, "id": id, "date": date, "method": "commanded", "rig": null,
+        "fingerprint": {"frame_size": frame_size, "scale_um_per_px": 774.0, "board": board},
+        "scan": {"frames": 30, "step_um": 500.0, "travel_um": 14500.0, "piezo_travel_um": null},
+        "reference_rel_u": 1e-4, "targets": [],
+        "field": {"layout": "free", "model": {"centre_px": [cx, cy],
+            "norm_radius_px": cx.hypot(cy), "a_px_per_um": [[1.0 / 774.0, 0.0], [0.0, 1.0 / 774.0]],
+            "g_per_um": [0.0, 0.0], "k1": 0.0, "k2": 0.0},
+            "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.0,
+            "print_scale": null, "residual_rms_px": 0.01, "residual_rms_um": 7.7,
+            "residual_max_um": 20.0}
+    })
+}
+
+/// Make `text` the data root's current calibration, as `<id>.json`.
+fn install(data: &Path, id: &str, text: &str) {
+    let dir = calibration_store::dir(data);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join(format!("{id}.json")), text).unwrap();
+    std::fs::write(dir.join(calibration_store::CURRENT), format!("{id}.json\n")).unwrap();
+}
+
+#[test]
+fn a_stale_or_mismatched_calibration_warns_and_a_corrupt_one_fails_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let rig = simulated(&small_board_sim(dir.path())).unwrap();
+    let d = Daemon::start_in(rig, dir);
+    let mut c = d.subscribed();
+
+    // Fitted on 1280x720 frames; this rig's are 300x200: not applied, and said so.
+    let other = record("cal-big", [1280, 720], "2026-01-01T00:00:00Z", None);
+    install(&d.data, "cal-big", &other.to_string());
+    let (id, ev) = run_job(&mut c, measure());
+    assert_finished(&ev);
+    let n = note(&ev);
+    assert!(!n.applied, "{n:?}");
+    let w = n.warnings.join("\n");
+    assert!(
+        w.contains("was fitted on 1280x720 frames; these are 300x200"),
+        "{w}"
+    );
+    assert!(result(&d, id)["runs"][0]["result"]["calibration"].is_null());
+    let m = session_of(&d.data, &ev).manifest.calibration.unwrap();
+    assert!(!m.applied && m.id.as_deref() == Some("cal-big"), "{m:?}");
+
+    // Old, and fitted on another board: applied, with both warnings, in events and result.
+    let old = record("cal-old", [300, 200], "2020-01-01T00:00:00Z", Some("paper"));
+    install(&d.data, "cal-old", &old.to_string());
+    let (id, ev) = run_job(&mut c, measure());
+    assert_finished(&ev);
+    let n = note(&ev);
+    assert!(n.applied && n.age_days.unwrap() > 300.0, "{n:?}");
+    let w = n.warnings.join("\n");
+    assert!(
+        w.contains("days old") && w.contains("calibration_max_age_days"),
+        "{w}"
+    );
+    assert!(
+        w.contains("fitted on board paper, this run has board small"),
+        "{w}"
+    );
+    let r = result(&d, id);
+    assert_eq!(
+        r["calibration"]["warnings"].as_array().unwrap().len(),
+        2,
+        "{r}"
+    );
+    assert_eq!(r["runs"][0]["result"]["calibration"]["id"], "cal-old");
+
+    // Corrupt: the job fails before it starts, naming the file; the daemon still serves.
+    install(&d.data, "cal-bad", "{\"version\": 1, \"id\": ");
+    let (_, ev) = run_job(&mut c, measure());
+    let reason = match ev.last() {
+        Some(EventBody::Failed { reason, .. }) => reason.clone(),
+        other => panic!("{other:?}"),
+    };
+    let file = calibration_store::dir(&d.data).join("cal-bad.json");
+    assert!(
+        reason.contains(&file.display().to_string()) && reason.contains("not a calibration record"),
+        "{reason}"
+    );
+    assert!(c.request(&Request::Hello {}).is_ok());
+    // A readable record made current again: jobs run.
+    install(&d.data, "cal-old", &old.to_string());
+    let (_, ev) = run_job(&mut c, measure());
+    assert_finished(&ev);
+}
+
+/// `rigctl calibrate` without a DIR: the calibration job on `rigd --sim`'s rig, its
+/// summary printed, the record the daemon's current one.
+#[test]
+fn rigctl_calibrate_without_a_folder_runs_the_daemons_job_and_prints_its_summary() {
+    let dir = tempfile::tempdir().unwrap();
+    let (socket, data) = (dir.path().join("rigd.sock"), dir.path().join("data"));
+    let _rigd = support::daemon::RigdProcess::spawn_sim(&socket, &data);
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args([
+            "calibrate",
+            "--steps",
+            "11",
+            "--step-um",
+            "2000",
+            "--socket",
+        ])
+        .arg(&socket)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("field model residual RMS"), "{stdout}");
+    let current = calibration_store::current(&data)
+        .unwrap()
+        .expect("a current one");
+    assert!(
+        stdout.contains(&format!("written to {}", current.source)),
+        "{stdout}"
+    );
+    // Offline flags go with a DIR only.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args(["calibrate", "--out", "x.json", "--socket"])
+        .arg(&socket)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("go with DIR"),
+        "{err}"
+    );
+}
