@@ -163,15 +163,15 @@ fn a_slow_subscriber_loses_events_with_one_notice_and_a_fast_one_loses_none() {
     slow.request(r#"{"kind":"subscribe"}"#);
     let label = "y".repeat(40_000);
     let mut total = 0;
-    // 40 jobs x (accepted with the 40 kB label, started, step, finished): 1.6 MB, far
-    // more than the 64 KiB queue and the kernel's socket buffers (~210 kB).
+    // 40 jobs x (accepted with the 40 kB label, started, calibration, step, finished):
+    // 1.6 MB, far more than the 64 KiB queue and the kernel's socket buffers (~210 kB).
     for _ in 0..40 {
         let id = ctl.request(&capture_job(1, 0, &label))["result"]["job_id"]
             .as_u64()
             .unwrap();
         total += follow(&mut fast, id).len();
     }
-    assert_eq!(total, 160);
+    assert_eq!(total, 200);
     // Now the slow one reads: what was queued, one notice, nothing after it yet.
     slow.w
         .set_read_timeout(Some(Duration::from_millis(500)))
