@@ -215,6 +215,11 @@ pub struct CameraConfig {
     /// Deadline for each dequeue.
     #[serde(default = "default_frame_timeout_ms")]
     pub frame_timeout_ms: u64,
+    /// The camera's output curve, "linear" or "srgb": frames are measured in linear light.
+    /// Absent: the sim camera's own curve; "srgb" for v4l2 (UVC webcams encode sRGB; set
+    /// "linear" for a machine-vision camera with its gamma at 1).
+    #[serde(default)]
+    pub response: Option<crate::pipeline::Response>,
     /// sim: the simulated camera's model (defaults when absent).
     #[serde(default)]
     pub sim: Option<SimCameraTable>,

@@ -136,6 +136,7 @@ mod tests {
             axis_dir: [-1.0, 0.0],
             piezo_dir: None,
             frame_size,
+            response: Default::default(),
             interferometer: false,
             board: Some(crate::board::Board::paper()),
             config: serde_json::Value::Null,

@@ -81,6 +81,7 @@ pub fn run_options(spec: &JobSpec, k: u32, rig: &RigInfo) -> Result<ValidOptions
         axis_dir: rig.dir(stage),
         piezo_dir: moves_piezo.then(|| rig.dir(StageKind::Piezo)),
         whole_frame: spec.whole_frame.unwrap_or(false),
+        response: rig.response,
     }
     .validate()
     .map_err(|e| rejected(e.to_string()))
@@ -430,6 +431,7 @@ mod tests {
             axis_dir: [-1.0, 0.0],
             piezo_dir: None,
             frame_size: (64, 48),
+            response: Default::default(),
             interferometer: false,
             board: None,
             config: serde_json::Value::Null,

@@ -318,6 +318,7 @@ mod tests {
             axis_dir: [-1.0, 0.0],
             piezo_dir: Some([0.0, -1.0]),
             frame_size: (64, 48),
+            response: Default::default(),
             interferometer: false,
             board: None,
             config: serde_json::Value::Null,

@@ -40,6 +40,9 @@ pub struct CalibrateArgs {
     /// interferometer 1e-6].
     #[arg(long, value_name = "REL")]
     pub reference_rel_u: Option<f64>,
+    /// The camera's output curve (DIR): the scan is measured in linear light.
+    #[arg(long, value_enum, default_value = "linear")]
+    pub response: crate::pipeline::Response,
     /// The daemon's scan (without DIR): frames.
     #[arg(long, value_name = "N", default_value_t = crate::acquisition::calibration_job::DEFAULT_STEPS)]
     pub steps: u32,
@@ -87,6 +90,7 @@ fn offline(args: &CalibrateArgs, dir: PathBuf, reference: Reference) -> anyhow::
         axis_dir: args.axis_dir,
         reference_rel_u: args.reference_rel_u,
         rig: None,
+        response: args.response,
     };
     let cal = fit_folder(&dir, &fit)?;
     crate::calibration_file::save(out, &cal)?;

@@ -46,6 +46,10 @@ pub struct ProcessingFlags {
     /// Also reconstruct the whole frame [session: recorded].
     #[arg(long)]
     pub whole_frame: bool,
+    /// The camera's output curve: frames are measured in linear light [folder: linear;
+    /// session: recorded].
+    #[arg(long, value_enum)]
+    pub response: Option<crate::pipeline::Response>,
     /// A calibration record (`rigctl calibrate --out`): offsets converted by its field
     /// model instead of the global scale, with its type-B uncertainty; a calibration of
     /// another frame size is refused (docs/calibration.md).
@@ -78,6 +82,7 @@ impl ProcessingFlags {
             scale_um_per_px: self.scale_um_per_px,
             axis_dir: self.axis_dir,
             piezo_dir: self.piezo_dir,
+            response: self.response,
         }
     }
 
@@ -96,6 +101,7 @@ impl ProcessingFlags {
             axis_dir: self.axis_dir.unwrap_or([-1.0, 0.0]),
             piezo_dir: self.piezo_dir,
             whole_frame: self.whole_frame,
+            response: self.response.unwrap_or_default(),
         }
         .validate()
     }

@@ -203,6 +203,7 @@ pub fn fit_session(
         axis_dir: rig.axis_dir,
         reference_rel_u: scan.reference_rel_u,
         rig: Some(rig_description(rig)),
+        response: rig.response,
     };
     let mut cal = fit_folder(dir, &fit)?;
     cal.scan.session = Some(session.to_string());

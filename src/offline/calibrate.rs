@@ -27,6 +27,8 @@ pub struct FolderFit {
     pub reference_rel_u: Option<f64>,
     /// The rig as the caller knows it (None: the frame size, folder and scale).
     pub rig: Option<String>,
+    /// The camera's output curve: the scan is measured in linear light.
+    pub response: crate::pipeline::Response,
 }
 
 /// Measure every frame of `dir` and fit its calibration; errors name `dir`.
@@ -40,6 +42,7 @@ pub fn fit_folder(dir: &Path, fit: &FolderFit) -> anyhow::Result<Calibration> {
         axis_dir: fit.axis_dir,
         piezo_dir: None,
         whole_frame: false,
+        response: fit.response,
     }
     .validate()?;
     let folder = folder::open(dir, None)?;

@@ -26,6 +26,9 @@ pub struct Overrides {
     pub axis_dir: Option<[f64; 2]>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub piezo_dir: Option<[f64; 2]>,
+    /// The camera's output curve, for sessions recorded before it was kept (or wrong).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub response: Option<crate::pipeline::Response>,
 }
 
 impl Overrides {
@@ -56,6 +59,9 @@ impl Overrides {
         }
         if let Some(d) = self.piezo_dir {
             r.piezo_dir = Some(d);
+        }
+        if let Some(c) = self.response {
+            r.response = c;
         }
         r
     }
@@ -90,6 +96,9 @@ impl Overrides {
         }
         if let Some([x, y]) = self.piezo_dir {
             parts.push(format!("piezo{}_{}", number(x), number(y)));
+        }
+        if let Some(c) = &self.response {
+            parts.push(wire(c));
         }
         match parts.is_empty() {
             true => "recorded".into(),

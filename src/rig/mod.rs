@@ -91,6 +91,10 @@ pub struct RigInfo {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub piezo_dir: Option<[f64; 2]>,
     pub frame_size: (u32, u32),
+    /// The camera's output curve (`[camera] response`): frames are measured in linear light.
+    /// Sessions recorded before it was kept were measured as linear.
+    #[serde(default)]
+    pub response: crate::pipeline::Response,
     /// Whether the rig has an interferometer log (`registration: interferometer` needs one).
     #[serde(default)]
     pub interferometer: bool,

@@ -91,6 +91,7 @@ pub fn from_config(cfg: &Config) -> Result<Rig, HwError> {
         piezo_dir: cfg.pipeline.piezo_dir,
         // What the camera delivers (a V4L2 driver may adjust the configured size).
         frame_size: devices.camera.size(),
+        response: camera_response(cam_cfg),
         // An all-sim rig runs the sim's XL-80; otherwise `[xl80]` names the log.
         interferometer: devices.log.is_some(),
         board,
@@ -199,6 +200,19 @@ pub fn open_camera(cfg: &CameraConfig, board: Option<&Path>) -> Result<Box<dyn C
             let _ = board;
             Err(no_sim("camera"))
         }
+    }
+}
+
+/// The camera's output curve: `[camera] response`, else the sim camera's own, else sRGB (a
+/// UVC webcam's).
+fn camera_response(cfg: &CameraConfig) -> crate::pipeline::Response {
+    if let Some(r) = cfg.response {
+        return r;
+    }
+    match cfg.driver {
+        #[cfg(feature = "sim")]
+        CameraDriver::Sim => super::sim::response(&cfg.sim.clone().unwrap_or_default()),
+        _ => crate::pipeline::Response::Srgb,
     }
 }
 

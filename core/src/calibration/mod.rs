@@ -26,17 +26,20 @@
 //! | `model` | the field model: forward, inverse, local Jacobian, apparent circle centres |
 //! | `lm` | Levenberg–Marquardt with the parameters' covariance |
 //! | `fit` | each target's line, the field model's parameterisation and start |
+//! | `outliers` | centres off their target's line, targets off the model: left out, recorded |
 //! | `record` | the [`Calibration`] record, its fit, its check and [`Calibration::convert`] |
 
 mod fit;
 mod lm;
 pub mod model;
+mod outliers;
 mod record;
 pub mod scan;
 #[cfg(test)]
 mod tests;
 
 pub use model::FieldModel;
+pub use outliers::Rejected;
 pub use record::{
     Calibration, Converted, Estimate, FieldFit, Fingerprint, FitOptions, Radii, ScanSummary,
     TargetCalibration, CALIBRATION_VERSION, MIN_STEPS, MIN_TARGETS, MIN_TRAVEL_PX,

@@ -2,7 +2,9 @@
 //! from a [`Scan`] and converting a measured offset with it.
 
 use super::fit::{line_fit, FieldProblem, Layout, LineFit};
+use super::lm::LmResult;
 use super::model::{FieldModel, PARAM_NAMES};
+use super::outliers::{self, Rejected};
 use super::scan::{CalibrationError, Reference, Scan};
 use crate::board::Board;
 use nalgebra::{DMatrix, DVector, Matrix2, Vector2};
@@ -126,6 +128,9 @@ pub struct Calibration {
     pub reference_rel_u: f64,
     pub targets: Vec<TargetCalibration>,
     pub field: FieldFit,
+    /// Centres and targets left out of the fit as outliers (`outliers`), with why.
+    #[serde(default)]
+    pub rejected: Vec<Rejected>,
 }
 
 /// The circles' radii on the board, for the apparent-centre correction: the outer shape's
@@ -172,38 +177,25 @@ impl Calibration {
         }
         let piezo = scan.moves_piezo();
         let min_steps = (frames / 2).max(MIN_STEPS);
-        let mut used: Vec<(usize, LineFit)> = (0..scan.targets.len())
-            .filter_map(|t| Some((t, line_fit(scan, t, min_steps, piezo)?)))
-            .collect();
-        let nominal = |t: usize| -> Option<[f64; 2]> {
-            let b = opts.board.as_ref()?;
-            Some(b.target(scan.targets[t].name.as_deref()?)?.centre_um)
-        };
-        let layout = match &opts.board {
-            Some(_) => {
-                used.retain(|(t, _)| nominal(*t).is_some());
-                Layout::Board {
-                    nominal_um: used.iter().map(|(t, _)| nominal(*t).unwrap()).collect(),
-                }
-            }
-            None => Layout::Free,
-        };
-        if used.len() < MIN_TARGETS {
-            return Err(CalibrationError::TooFewTargets {
-                got: used.len(),
-                need: MIN_TARGETS,
-                steps: min_steps,
+        let (clean, mut rejected) = outliers::reject_points(scan, min_steps, piezo);
+        let scan = &clean;
+        let mut used = usable_targets(scan, opts, min_steps, piezo);
+        let (mut problem, mut sol) = solve_field(scan, &used, opts, min_steps)?;
+        while used.len() > MIN_TARGETS {
+            let rms = target_rms_px(&problem, &sol.residuals);
+            let Some((j, reason)) = outliers::worst_target(&rms) else {
+                break;
+            };
+            let (t, _) = used.remove(j);
+            rejected.push(Rejected {
+                target_index: t,
+                target: scan.targets[t].name.clone(),
+                step: None,
+                residual_px: rms[j],
+                reason,
             });
+            (problem, sol) = solve_field(scan, &used, opts, min_steps)?;
         }
-        let problem = FieldProblem {
-            scan,
-            targets: used.iter().map(|(t, _)| *t).collect(),
-            layout,
-            piezo,
-            base: FieldModel::plain(scan.frame_size, scan.scale_um_per_px),
-        };
-        let lines: Vec<LineFit> = used.iter().map(|(_, l)| l.clone()).collect();
-        let sol = problem.solve(&lines)?;
         let reference_rel_u = opts
             .reference_rel_u
             .unwrap_or(scan.reference.default_rel_u());
@@ -228,6 +220,7 @@ impl Calibration {
             reference_rel_u,
             targets,
             field,
+            rejected,
         };
         cal.id = cal.content_id();
         Ok(cal)
@@ -398,6 +391,80 @@ fn linear_part(m: &FieldModel, c: [f64; 2], off: [f64; 2], r: Radii) -> [[f64; 2
     };
     let (cx, cy) = (col(0), col(1));
     [[cx[0], cy[0]], [cx[1], cy[1]]]
+}
+
+/// The targets with a line over at least `min_steps` centres (and, with a board, a name on
+/// it), by scan index.
+fn usable_targets(
+    scan: &Scan,
+    opts: &FitOptions,
+    min_steps: usize,
+    piezo: bool,
+) -> Vec<(usize, LineFit)> {
+    let mut used: Vec<(usize, LineFit)> = (0..scan.targets.len())
+        .filter_map(|t| Some((t, line_fit(scan, t, min_steps, piezo)?)))
+        .collect();
+    if opts.board.is_some() {
+        used.retain(|(t, _)| nominal_um(scan, opts, *t).is_some());
+    }
+    used
+}
+
+/// Target `t`'s centre on the board's print, when it is named on it.
+fn nominal_um(scan: &Scan, opts: &FitOptions, t: usize) -> Option<[f64; 2]> {
+    let b = opts.board.as_ref()?;
+    Some(b.target(scan.targets[t].name.as_deref()?)?.centre_um)
+}
+
+/// The field model fitted over the `used` targets.
+fn solve_field<'a>(
+    scan: &'a Scan,
+    used: &[(usize, LineFit)],
+    opts: &FitOptions,
+    min_steps: usize,
+) -> Result<(FieldProblem<'a>, LmResult), CalibrationError> {
+    if used.len() < MIN_TARGETS {
+        return Err(CalibrationError::TooFewTargets {
+            got: used.len(),
+            need: MIN_TARGETS,
+            steps: min_steps,
+        });
+    }
+    let layout = match &opts.board {
+        Some(_) => Layout::Board {
+            nominal_um: used
+                .iter()
+                .map(|(t, _)| nominal_um(scan, opts, *t).expect("usable_targets kept named ones"))
+                .collect(),
+        },
+        None => Layout::Free,
+    };
+    let problem = FieldProblem {
+        scan,
+        targets: used.iter().map(|(t, _)| *t).collect(),
+        layout,
+        piezo: scan.moves_piezo(),
+        base: FieldModel::plain(scan.frame_size, scan.scale_um_per_px),
+    };
+    let lines: Vec<LineFit> = used.iter().map(|(_, l)| l.clone()).collect();
+    let sol = problem.solve(&lines)?;
+    Ok((problem, sol))
+}
+
+/// Each fitted target's RMS residual (px, per centre) against the model, from the fit's
+/// residual vector (`FieldProblem::residuals`' order: target by target, x and y).
+fn target_rms_px(problem: &FieldProblem, residuals: &[f64]) -> Vec<f64> {
+    let mut at = 0;
+    problem
+        .targets
+        .iter()
+        .map(|&t| {
+            let n = problem.scan.targets[t].centres_px.iter().flatten().count();
+            let r = &residuals[at..at + 2 * n];
+            at += 2 * n;
+            (r.iter().map(|v| v * v).sum::<f64>() / n.max(1) as f64).sqrt()
+        })
+        .collect()
 }
 
 fn summarise(scan: &Scan) -> ScanSummary {

@@ -19,10 +19,12 @@ pub mod options;
 pub mod plane;
 pub mod reconstruct;
 pub mod register;
+pub mod response;
 pub mod run;
 pub mod stats;
 
 pub use options::{OptionError, ProcessOptions, ValidOptions, K_RANGE, MAX_K};
+pub use response::Response;
 pub use run::{process_frames, Pipeline};
 
 use serde::{Deserialize, Serialize};

@@ -41,6 +41,8 @@ pub struct ProcessOptions {
     pub piezo_dir: Option<[f64; 2]>,
     /// Also reconstruct the whole frame (not only per-target ROIs) and keep it.
     pub whole_frame: bool,
+    /// The camera's output curve: frames are measured in linear light (`response`).
+    pub response: super::Response,
 }
 
 impl Default for ProcessOptions {
@@ -54,6 +56,7 @@ impl Default for ProcessOptions {
             axis_dir: [-1.0, 0.0],
             piezo_dir: None,
             whole_frame: false,
+            response: super::Response::Linear,
         }
     }
 }

@@ -1,5 +1,6 @@
 //! One image channel as f32, row-major: what the estimators and reconstructions work on.
 
+use super::response::Response;
 use serde::{Deserialize, Serialize};
 
 /// A rectangle of pixels: columns `x..x+w`, rows `y..y+h`.
@@ -40,8 +41,18 @@ impl Plane {
     /// # Panics
     /// If `ch > 2` (a programming error, not bad input).
     pub fn from_channel(img: &image::RgbImage, ch: usize) -> Plane {
+        Plane::from_channel_in(img, ch, Response::Linear)
+    }
+
+    /// Channel `ch` in linear light through the camera's output curve `response`.
+    pub fn from_channel_in(img: &image::RgbImage, ch: usize, response: Response) -> Plane {
         assert!(ch < 3, "channel {ch} out of 0..3");
-        let data = img.as_raw().chunks_exact(3).map(|p| p[ch] as f32).collect();
+        let lut = response.table();
+        let data = img
+            .as_raw()
+            .chunks_exact(3)
+            .map(|p| lut[p[ch] as usize])
+            .collect();
         Plane {
             width: img.width() as usize,
             height: img.height() as usize,
@@ -52,7 +63,18 @@ impl Plane {
     /// Channel `ch` of the pixels of `roi` only (cheaper than the whole frame then `crop`).
     /// The part of `roi` outside the image is dropped.
     pub fn from_channel_roi(img: &image::RgbImage, ch: usize, roi: Roi) -> Plane {
+        Plane::from_channel_roi_in(img, ch, roi, Response::Linear)
+    }
+
+    /// [`Plane::from_channel_roi`] in linear light through `response`.
+    pub fn from_channel_roi_in(
+        img: &image::RgbImage,
+        ch: usize,
+        roi: Roi,
+        response: Response,
+    ) -> Plane {
         assert!(ch < 3, "channel {ch} out of 0..3");
+        let lut = response.table();
         let (iw, ih) = (img.width() as usize, img.height() as usize);
         let x0 = (roi.x as usize).min(iw);
         let y0 = (roi.y as usize).min(ih);
@@ -62,7 +84,7 @@ impl Plane {
         let mut data = Vec::with_capacity((x1 - x0) * (y1 - y0));
         for y in y0..y1 {
             let row = &raw[(y * iw + x0) * 3..(y * iw + x1) * 3];
-            data.extend(row.chunks_exact(3).map(|p| p[ch] as f32));
+            data.extend(row.chunks_exact(3).map(|p| lut[p[ch] as usize]));
         }
         Plane {
             width: x1 - x0,

@@ -187,7 +187,7 @@ impl Pipeline {
     /// the target's reconstruction; the crop is dropped at once.
     fn add_windows(&mut self, frame: &RgbImage, shift_px: [f64; 2]) {
         let (w, h) = (frame.width() as usize, frame.height() as usize);
-        let (ch, k) = (self.channel, self.opts.k as usize);
+        let (ch, k, response) = (self.channel, self.opts.k as usize, self.opts.response);
         // The integer part of the displacement moves the window, the rest is resampled.
         let (cx, cy) = (shift_px[0].round(), shift_px[1].round());
         let fine = reconstruct::fine_shift([shift_px[0] - cx, shift_px[1] - cy], k);
@@ -207,7 +207,7 @@ impl Pipeline {
                 w: tw.side,
                 h: tw.side,
             };
-            let crop = Plane::from_channel_roi(frame, ch, roi);
+            let crop = Plane::from_channel_roi_in(frame, ch, roi, response);
             tw.acc
                 .add(View::new(&crop.data, crop.width, crop.height), fine);
         });
@@ -383,7 +383,15 @@ impl Pipeline {
         let est: Vec<Option<CentreEstimate>> = self
             .targets
             .par_iter()
-            .map(|c| measure_in_frame(frame, self.channel, c, predicted, self.opts.estimator))
+            .map(|c| {
+                measure_in_frame(
+                    frame,
+                    (self.channel, self.opts.response),
+                    c,
+                    predicted,
+                    self.opts.estimator,
+                )
+            })
             .collect();
         let found = est.iter().filter(|e| e.is_some()).count();
         let shift = if index == 0 {
@@ -457,7 +465,7 @@ impl Pipeline {
             self.add_windows(frame, recon_px);
         }
         if let Some(whole) = self.whole.as_mut() {
-            let plane = Plane::from_channel(frame, self.channel);
+            let plane = Plane::from_channel_in(frame, self.channel, self.opts.response);
             let fine = reconstruct::fine_shift(recon_px, self.opts.k as usize);
             whole.add(View::new(&plane.data, plane.width, plane.height), fine);
         }
@@ -774,13 +782,13 @@ fn measure_window(c: &Candidate, shift_px: [f64; 2]) -> (f64, f64, u32) {
 /// channel `ch`. `None` when it cannot be measured (out of frame, estimator failure).
 fn measure_in_frame(
     frame: &RgbImage,
-    ch: usize,
+    (ch, response): (usize, Response),
     c: &Candidate,
     shift_px: [f64; 2],
     estimator: Estimator,
 ) -> Option<CentreEstimate> {
     let (x0, y0, side) = measure_window(c, shift_px);
-    let crop = Plane::from_channel_roi(
+    let crop = Plane::from_channel_roi_in(
         frame,
         ch,
         Roi {
@@ -789,6 +797,7 @@ fn measure_in_frame(
             w: side,
             h: side,
         },
+        response,
     );
     let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
     let guess = Candidate {

@@ -137,6 +137,14 @@ fn limits(device: &str, l: [f64; 2]) -> Result<TravelLimits, HwError> {
 
 /// Build the simulated rig: start the `SimRig`, serve its axis and piezo on two ptys and
 /// connect rigd's drivers to them.
+/// The simulated camera's output curve, as a user would configure it for that camera.
+pub fn response(cam: &CameraModel) -> crate::pipeline::Response {
+    match cam.gamma {
+        rigd_sim::camera::Gamma::Srgb => crate::pipeline::Response::Srgb,
+        rigd_sim::camera::Gamma::Linear => crate::pipeline::Response::Linear,
+    }
+}
+
 pub fn simulated(s: &SimSettings) -> Result<Rig, HwError> {
     simulated_with_truth(s).map(|(rig, _)| rig)
 }
@@ -262,6 +270,7 @@ fn sim_info(s: &SimSettings, rc: &SimRigConfig, board: crate::board::Board) -> R
         axis_dir: [-rc.axis_dir[0], -rc.axis_dir[1]],
         piezo_dir: Some([-rc.piezo_dir[0], -rc.piezo_dir[1]]),
         frame_size: (s.camera.width, s.camera.height),
+        response: response(&s.camera),
         interferometer: true,
         config: serde_json::json!({
             "sim": true,

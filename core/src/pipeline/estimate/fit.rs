@@ -45,8 +45,8 @@ const RIH: usize = CI + NC;
 const MAXP: usize = RIH + 1;
 /// The contrast planes' gradients.
 const GRADIENTS: [usize; 4] = [C + 1, C + 2, CI + 1, CI + 2];
-/// Uneven ink is kept in the model only where the data show it: the gradients' Wald χ²
-/// (4 degrees of freedom) above its 99.9 % point. On evenly printed targets the four
+/// Uneven ink enters the model only where the data show it: the gradients' score statistic
+/// (χ², 4 degrees of freedom) above its 99.9 % point. On evenly printed targets the four
 /// parameters would only add scatter (~40 % on the offset).
 const GRADIENTS_CHI2: f64 = 18.47;
 
@@ -281,35 +281,52 @@ pub(super) fn estimate(
         ],
         inv_half: 1.0 / half.max(1.0),
         reach_centre: g.outer_centre_px,
-        planes: true,
-    };
-    let full = solve(&prob, p, k, g)?;
-    let with_planes = Fit {
-        cov: prob.matrix(&full.normal).try_inverse(),
-        ..full
-    };
-    if gradients_significant(&prob, &with_planes) {
-        return Ok(with_planes.estimate(&prob));
-    }
-    let even = Problem {
         planes: false,
+    };
+    // The even-ink model first (as fast as the fit before the planes); the planes only when
+    // a score test at its minimum shows uneven ink: one more pass on evenly printed targets.
+    let even = solve(&prob, p, k, g)?;
+    let uneven = Problem {
+        planes: true,
         ..prob
     };
-    let mut p0 = with_planes.p;
-    GRADIENTS.iter().for_each(|&i| p0[i] = 0.0);
-    let fit = solve(&even, p0, k, g)?;
-    Ok(Fit {
-        cov: even.matrix(&fit.normal).try_inverse(),
-        ..fit
+    if uneven_ink_shows(&prob, &uneven, &even) {
+        return Ok(solve(&uneven, even.p, k, g)?.estimate(&uneven));
     }
-    .estimate(&even))
+    Ok(even.estimate(&prob))
 }
 
-/// A converged fit: the parameters, the normal equations there and their inverse.
+/// The score (Lagrange multiplier) test of the contrast gradients at the even-ink minimum:
+/// how much further a Gauss–Newton step with them free would lower the cost, in units of
+/// the residual variance; χ² with 4 degrees of freedom when the ink is even.
+fn uneven_ink_shows(even: &Problem, uneven: &Problem, fit: &Fit) -> bool {
+    let Some(s2) = fit.residual_variance(even) else {
+        return false;
+    };
+    let at = uneven.normal(&fit.p);
+    let all: Vec<usize> = (0..uneven.np).collect();
+    let held: Vec<usize> = all
+        .iter()
+        .copied()
+        .filter(|i| !GRADIENTS.contains(i))
+        .collect();
+    match (gn_gain(&at, &all), gn_gain(&at, &held)) {
+        (Some(full), Some(reduced)) => (full - reduced) / s2 > GRADIENTS_CHI2,
+        _ => false,
+    }
+}
+
+/// The cost a Gauss–Newton step in parameters `idx` would remove: `gᵀ H⁻¹ g`.
+fn gn_gain(n: &Normal, idx: &[usize]) -> Option<f64> {
+    let h = DMatrix::from_fn(idx.len(), idx.len(), |a, b| n.h[idx[a]][idx[b]]);
+    let g = DVector::from_fn(idx.len(), |a, _| n.g[idx[a]]);
+    h.cholesky().map(|c| g.dot(&c.solve(&g)))
+}
+
+/// A converged fit: the parameters and the normal equations there.
 struct Fit {
     p: [f64; MAXP],
     normal: Normal,
-    cov: Option<DMatrix<f64>>,
 }
 
 impl Fit {
@@ -320,9 +337,9 @@ impl Fit {
 
     fn estimate(&self, prob: &Problem) -> CentreEstimate {
         let p = &self.p;
-        let offset_cov = self
-            .cov
-            .as_ref()
+        let offset_cov = prob
+            .matrix(&self.normal)
+            .try_inverse()
             .zip(self.residual_variance(prob))
             .map(|(inv, s2)| {
                 // offset = inner − outer: var = Cii + Coo − 2·Cio per axis, and the cross terms.
@@ -341,19 +358,6 @@ impl Fit {
             inner_radius_px: p[RI],
             offset_cov_px2: offset_cov,
         }
-    }
-}
-
-/// Whether the fit's contrast gradients differ from 0 beyond their noise (Wald test).
-fn gradients_significant(prob: &Problem, fit: &Fit) -> bool {
-    let (Some(inv), Some(s2)) = (&fit.cov, fit.residual_variance(prob)) else {
-        return true;
-    };
-    let cov = DMatrix::from_fn(4, 4, |a, b| inv[(GRADIENTS[a], GRADIENTS[b])] * s2);
-    let g = DVector::from_fn(4, |a, _| fit.p[GRADIENTS[a]]);
-    match cov.try_inverse() {
-        Some(w) => (g.transpose() * w * &g)[(0, 0)] > GRADIENTS_CHI2,
-        None => true,
     }
 }
 
@@ -461,11 +465,7 @@ fn solve(prob: &Problem, mut p: [f64; MAXP], k: f64, g: &Candidate) -> Result<Fi
             format!("no convergence in {MAX_ITER} iterations"),
         ));
     }
-    Ok(Fit {
-        p,
-        normal: cur,
-        cov: None,
-    })
+    Ok(Fit { p, normal: cur })
 }
 
 #[cfg(test)]
