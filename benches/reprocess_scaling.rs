@@ -52,6 +52,7 @@ fn rig(board: &Board, cam: &CameraModel) -> RigInfo {
         axis_dir: [-1.0, 0.0],
         piezo_dir: None,
         frame_size: (cam.width, cam.height),
+        response: Default::default(),
         interferometer: false,
         board: Some(board.clone()),
         config: serde_json::Value::Null,

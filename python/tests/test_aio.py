@@ -86,5 +86,10 @@ def test_async_events_of_a_job_from_its_submit(daemon: Daemon) -> None:
                     break
             return events
 
-    kinds = [ev.kind for ev in arun(main())]
-    assert kinds == ["accepted", "started", "step", "step", "finished"]
+    events = arun(main())
+    kinds = [ev.kind for ev in events]
+    assert kinds == ["accepted", "started", "calibration", "step", "step", "finished"]
+    # No calibration in a fresh data root: the event says so and why.
+    cal = events[2]
+    assert isinstance(cal, rigd.Calibration) and not cal.applied, cal
+    assert cal.reason and "no current calibration" in cal.reason, cal

@@ -24,6 +24,8 @@ from .errors import (
 )
 from .events import (
     Accepted,
+    Calibrated,
+    Calibration,
     Cancelled,
     Event,
     Failed,
@@ -45,7 +47,7 @@ from .session import Session
 __version__ = "0.1.0"
 
 __all__ = [
-    "Accepted", "AsyncClient", "BadRequest", "Busy", "Cancelled", "Client", "ConnectionClosed",
+    "Accepted", "AsyncClient", "BadRequest", "Busy", "Calibrated", "Calibration", "Cancelled", "Client", "ConnectionClosed",
     "Event", "Failed", "Finished", "Hardware", "Internal", "JobFailed", "LineTooLong",
     "Malformed", "NotFound", "Paused", "Preview", "Processed", "ProtocolError", "Rejected",
     "Result", "Resumed", "RigdError", "Session", "Started", "Step", "Timings", "Unavailable",

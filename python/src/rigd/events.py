@@ -156,6 +156,40 @@ class Preview(Event):
 
 
 @dataclass(frozen=True, kw_only=True)
+class Calibration(Event):
+    """After `started`: the stage calibration the job applies (`applied`), or why none
+    (`reason`); `warnings` when it is stale or fitted for another scale, board or frame."""
+
+    kind: ClassVar[str] = "calibration"
+    applied: bool
+    id: Optional[str] = None
+    date: Optional[str] = None
+    method: Optional[str] = None
+    source: Optional[str] = None
+    age_days: Optional[float] = None
+    reason: Optional[str] = None
+    warnings: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Calibrated(Event):
+    """A calibration job fitted its scan and made it the data root's current one."""
+
+    kind: ClassVar[str] = "calibrated"
+    id: str
+    path: str
+    date: Optional[str] = None
+    method: Optional[str] = None
+    session: Optional[str] = None
+    frames: Optional[int] = None
+    step_um: Optional[float] = None
+    targets: Optional[int] = None
+    residual_rms_um: Optional[float] = None
+    residual_max_um: Optional[float] = None
+    summary: Optional[str] = None
+
+
+@dataclass(frozen=True, kw_only=True)
 class UnknownEvent(Event):
     """An event kind this package does not know: `name` is its kind, `raw` the line."""
 
@@ -180,6 +214,8 @@ KNOWN: dict[str, type[Event]] = {
         Paused,
         Resumed,
         Preview,
+        Calibration,
+        Calibrated,
     )
 }
 
