@@ -5,7 +5,7 @@ use criterion::{criterion_group, Criterion};
 use rigd::pipeline::detect::{detect, measurement_channel, DetectConfig};
 use rigd::pipeline::estimate::{estimate, estimate_targets};
 use rigd::pipeline::plane::Plane;
-use rigd::pipeline::Estimator;
+use rigd::pipeline::{Estimator, Response};
 use rigd::sim::render::render_frame;
 use rigd::sim::{Board, CameraModel, View};
 use std::hint::black_box;
@@ -32,7 +32,7 @@ fn bench(c: &mut Criterion) {
                 b.iter(|| {
                     let det = detect(black_box(&img), &cfg);
                     let ch = measurement_channel(&img, &det);
-                    let r = estimate_targets(&img, &det, ch, est);
+                    let r = estimate_targets(&img, &det, (ch, Response::Linear), est);
                     assert!(r.iter().all(|r| r.is_ok()));
                     r
                 })
@@ -74,7 +74,12 @@ fn cpu_report() {
     for _ in 0..n {
         let det = detect(black_box(&img), &cfg);
         let ch = measurement_channel(&img, &det);
-        black_box(estimate_targets(&img, &det, ch, Estimator::Fit));
+        black_box(estimate_targets(
+            &img,
+            &det,
+            (ch, Response::Linear),
+            Estimator::Fit,
+        ));
     }
     let t2 = cpu_s();
     println!(

@@ -143,7 +143,7 @@ pub fn targets_by(img: &RgbImage, info: &RigInfo, estimator: Estimator) -> Vec<V
         return Vec::new();
     }
     let channel = measurement_channel(img, &det);
-    let ests = estimate_targets(img, &det, channel, estimator);
+    let ests = estimate_targets(img, &det, (channel, info.response), estimator);
     let found: Vec<[f64; 2]> = det.targets.iter().map(|c| c.outer_centre_px).collect();
     let names = match &info.board {
         Some(b) => layout::name_targets(&found, b, info.scale_um_per_px),

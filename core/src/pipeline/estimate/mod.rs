@@ -84,18 +84,19 @@ pub fn estimate(
 }
 
 /// Measure every detected target of a frame on the ROI path: each target's ROI of channel
-/// `channel` only, estimated in parallel. Results in frame coordinates, in `det`'s order.
+/// `channel` only, in linear light through the camera's `response`, estimated in parallel.
+/// Results in frame coordinates, in `det`'s order.
 pub fn estimate_targets(
     img: &image::RgbImage,
     det: &Detection,
-    channel: usize,
+    (channel, response): (usize, super::Response),
     estimator: Estimator,
 ) -> Vec<Result<CentreEstimate, EstimateError>> {
     use rayon::prelude::*;
     det.targets
         .par_iter()
         .map(|c| {
-            let plane = Plane::from_channel_roi(img, channel, c.roi);
+            let plane = Plane::from_channel_roi_in(img, channel, c.roi, response);
             let origin = [c.roi.x as f64, c.roi.y as f64];
             let e = estimate(
                 &plane,
