@@ -7,20 +7,14 @@
 
 use std::process::Command;
 
-#[test]
-fn demo_json_reports_three_cases_and_averaging_beats_raw_frames() {
-    let dir = tempfile::tempdir().unwrap();
+/// `rigctl demo --json ARGS --data-root DIR`'s report; the command must succeed.
+fn demo_json(args: &[&str], dir: &std::path::Path) -> serde_json::Value {
     let out = Command::new(env!("CARGO_BIN_EXE_rigctl"))
-        .args([
-            "demo",
-            "--json",
-            "--camera",
-            "ideal",
-            "--repeats",
-            "3",
-            "--data-root",
-        ])
-        .arg(dir.path())
+        .arg("demo")
+        .arg("--json")
+        .args(args)
+        .arg("--data-root")
+        .arg(dir)
         .output()
         .unwrap();
     assert!(
@@ -28,7 +22,13 @@ fn demo_json_reports_three_cases_and_averaging_beats_raw_frames() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn demo_json_reports_three_cases_and_averaging_beats_raw_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = demo_json(&["--camera", "ideal", "--repeats", "3"], dir.path());
     let cases = r["cases"].as_array().unwrap();
     let got: Vec<(String, u64, f64)> = cases
         .iter()
@@ -87,17 +87,7 @@ fn demo_json_reports_three_cases_and_averaging_beats_raw_frames() {
 #[test]
 fn demo_on_the_webcam_calibrates_first_and_reports_calibrated_beside_global_figures() {
     let dir = tempfile::tempdir().unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_rigctl"))
-        .args(["demo", "--json", "--repeats", "2", "--data-root"])
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let r = demo_json(&["--repeats", "2"], dir.path());
     assert_eq!(r["camera"], "webcam");
     let id = r["calibrated"]["id"]
         .as_str()
