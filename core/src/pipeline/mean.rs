@@ -106,6 +106,8 @@ mod tests {
             outer_radius_px: 5.0,
             inner_radius_px: 2.0,
             offset_cov_px2: cov,
+            seed: None,
+            even_ink: None,
         }
     }
 

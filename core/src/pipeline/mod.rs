@@ -111,9 +111,15 @@ pub struct ObjectResult {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub u_a_um: Option<[f64; 2]>,
     /// Type B: the calibration's (field model, reference scale), else the global scale's
-    /// assumed `calibration::UNCALIBRATED_SCALE_REL_U` of the offset's length.
+    /// assumed `calibration::UNCALIBRATED_SCALE_REL_U` of the offset's length; and
+    /// `u_ink_um` when there is one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub u_b_um: Option<[f64; 2]>,
+    /// Type B of the ink model, part of `u_b_um`: on a target whose print the fit found
+    /// uneven (it freed the contrast planes), the correction the planes made to the offset
+    /// as the half-width of a rectangular distribution (|planes − even-ink| / √3).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub u_ink_um: Option<[f64; 2]>,
     /// `offset_px` x `scale_um_per_px`, when a calibration gave `offset_um` instead.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub offset_global_um: Option<[f64; 2]>,

@@ -13,7 +13,7 @@
 
 use super::accumulate::{Accumulator, Method};
 use super::detect::{self, Candidate, DetectConfig};
-use super::estimate::{estimate, CentreEstimate};
+use super::estimate::{estimate_from, CentreEstimate, EvenInk, Seed, Start};
 use super::mean::OffsetMean;
 use super::options::WINDOW_MARGIN_PX;
 use super::plane::{Plane, Roi};
@@ -383,11 +383,20 @@ impl Pipeline {
         let est: Vec<Option<CentreEstimate>> = self
             .targets
             .par_iter()
-            .map(|c| {
+            .enumerate()
+            .map(|(t, c)| {
+                // Later frames start from frame 0's fit, moved: one or two passes, not five.
+                // Where they only register the frame and give its scatter (a reconstruction
+                // measures the target), with the even-ink model: see `Seed::even_ink`.
+                let seed = self.first.get(t).and_then(|e| e.as_ref()?.seed);
+                let seed = match self.opts.combine {
+                    Combine::Mean => seed,
+                    _ => seed.map(|s| s.even_ink()),
+                };
                 measure_in_frame(
                     frame,
                     (self.channel, self.opts.response),
-                    c,
+                    (c, seed),
                     predicted,
                     self.opts.estimator,
                 )
@@ -488,15 +497,15 @@ impl Pipeline {
             .map(|(t, c)| self.measure_target(t, c?, k))
             .collect();
         let mut objects = Vec::new();
-        let mut type_a_px = Vec::new();
+        let mut uncertain = Vec::new();
         for (t, m) in measured.into_iter().enumerate() {
             match m {
-                Ok((o, fine, a)) => {
+                Ok((o, fine, u)) => {
                     if let Some(f) = fine.filter(|_| self.keep_images) {
                         images.push((objects.len(), f));
                     }
                     objects.push(o);
-                    type_a_px.push(a);
+                    uncertain.push(u);
                 }
                 Err(reason) => skipped.push(Skipped {
                     centre_px: self.targets[t].outer_centre_px,
@@ -518,7 +527,7 @@ impl Pipeline {
         if let Some(board) = &self.board {
             name_objects(&mut objects, board, self.opts.scale_um_per_px);
         }
-        self.convert_objects(&mut objects, &type_a_px);
+        self.convert_objects(&mut objects, &uncertain);
         let tracks = self.take_tracks();
         let mut named: Vec<NamedImage> = images
             .into_iter()
@@ -599,11 +608,12 @@ impl Pipeline {
     }
 
     /// Each object's offset in µm (through the calibration when there is one) and its
-    /// uncertainty: type A from `type_a_px`, type B from the calibration or the global
-    /// scale's assumed uncertainty.
-    fn convert_objects(&self, objects: &mut [ObjectResult], type_a_px: &[Option<[f64; 2]>]) {
+    /// uncertainty: type A from the frames, type B from the calibration or the global
+    /// scale's assumed uncertainty, and from the ink model.
+    fn convert_objects(&self, objects: &mut [ObjectResult], uncertain: &[Uncertain]) {
         let s = self.opts.scale_um_per_px;
-        for (o, a) in objects.iter_mut().zip(type_a_px) {
+        for (o, u) in objects.iter_mut().zip(uncertain) {
+            let a = &u.type_a_px;
             let (m, u_b) = match &self.calibration {
                 Some((cal, _)) => {
                     let c = cal.convert(o.centre_px, o.offset_px, self.radii(o));
@@ -617,6 +627,12 @@ impl Pipeline {
                 }
             };
             o.u_a_um = a.map(|a| std::array::from_fn(|i| (m[i][0] * a[0]).hypot(m[i][1] * a[1])));
+            // The ink's: a length in any direction, through the local scale of each axis.
+            o.u_ink_um = u
+                .ink_px
+                .map(|d| std::array::from_fn(|i| d * m[i][0].hypot(m[i][1])));
+            let ink = o.u_ink_um.unwrap_or([0.0; 2]);
+            let u_b = [u_b[0].hypot(ink[0]), u_b[1].hypot(ink[1])];
             o.u_b_um = Some(u_b);
             o.u_um = o.u_a_um.map(|a| [a[0].hypot(u_b[0]), a[1].hypot(u_b[1])]);
         }
@@ -671,14 +687,7 @@ impl Pipeline {
             }
         };
         let off = est.offset_px();
-        // Type A: the per-frame offsets' standard error, never below the fit's own figure.
-        let type_a = match (
-            self.scatter.get(t).and_then(|m| m.scatter_sigma()),
-            sigma_px,
-        ) {
-            (Some(a), Some(b)) => Some([a[0].max(b[0]), a[1].max(b[1])]),
-            (a, b) => a.or(b),
-        };
+        let type_a = type_a_px(self.scatter.get(t), &est, sigma_px);
         Ok((
             ObjectResult {
                 name: None,
@@ -694,7 +703,10 @@ impl Pipeline {
                 ..ObjectResult::default()
             },
             fine,
-            type_a,
+            Uncertain {
+                type_a_px: type_a,
+                ink_px: ink_model_px(&est),
+            },
         ))
     }
 
@@ -731,7 +743,9 @@ impl Pipeline {
                 h: fine_h as u32,
             },
         };
-        let e = estimate(&plane, &guess, self.opts.estimator, kf)
+        let seed = first.seed.map(|s| s.mapped(to_fine, kf));
+        let start = seed.as_ref().map_or(Start::Guess, Start::Near);
+        let e = estimate_from(&plane, &guess, self.opts.estimator, kf, start)
             .map_err(|e| format!("on its reconstruction: {e}"))?;
         let from_fine = |p: [f64; 2]| [(p[0] + 0.5) / kf - 0.5 + x0, (p[1] + 0.5) / kf - 0.5 + y0];
         let back = CentreEstimate {
@@ -742,6 +756,13 @@ impl Pipeline {
             offset_cov_px2: e
                 .offset_cov_px2
                 .map(|c| c.map(|r| r.map(|v| v / (kf * kf)))),
+            seed: None,
+            even_ink: e.even_ink.map(|v| EvenInk {
+                offset_px: v.offset_px.map(|o| o / kf),
+                offset_cov_px2: v
+                    .offset_cov_px2
+                    .map(|c| c.map(|r| r.map(|x| x / (kf * kf)))),
+            }),
         };
         let fine = Fine {
             width: fine_w,
@@ -753,8 +774,53 @@ impl Pipeline {
     }
 }
 
-/// One target's result, its reconstruction (if any) and its type-A uncertainty in px.
-type Measured = (ObjectResult, Option<Fine>, Option<[f64; 2]>);
+/// One target's result, its reconstruction (if any) and its uncertainties in px.
+type Measured = (ObjectResult, Option<Fine>, Uncertain);
+
+/// A target's uncertainties in camera pixels, before the conversion to µm.
+#[derive(Debug, Clone, Copy, Default)]
+struct Uncertain {
+    type_a_px: Option<[f64; 2]>,
+    /// The ink model's standard uncertainty (type B), on each axis.
+    ink_px: Option<f64>,
+}
+
+/// Type A: the per-frame offsets' standard error, never below the fit's own figure. The
+/// frames are registered with the even-ink model; when the measuring fit freed the contrast
+/// planes, their scatter is scaled by how much noisier the planes' offset is on the same
+/// pixels (the ratio of the two fits' standard deviations).
+fn type_a_px(
+    scatter: Option<&OffsetMean>,
+    est: &CentreEstimate,
+    fit_sigma_px: Option<[f64; 2]>,
+) -> Option<[f64; 2]> {
+    let ratio = |i: usize| -> f64 {
+        let planes = est.offset_cov_px2.map(|c| c[i][i]);
+        let even = est.even_ink.and_then(|e| e.offset_cov_px2).map(|c| c[i][i]);
+        match (planes, even) {
+            (Some(p), Some(e)) if e > 0.0 && p > e => (p / e).sqrt(),
+            _ => 1.0,
+        }
+    };
+    let scatter = scatter
+        .and_then(|m| m.scatter_sigma())
+        .map(|a| [a[0] * ratio(0), a[1] * ratio(1)]);
+    match (scatter, fit_sigma_px) {
+        (Some(a), Some(b)) => Some([a[0].max(b[0]), a[1].max(b[1])]),
+        (a, b) => a.or(b),
+    }
+}
+
+/// The ink model's type-B uncertainty: where the fit had to free the contrast planes, the
+/// print is uneven in a way only partly modelled, and the offset is known no better than
+/// the correction the planes made. GUM's rectangular distribution of that half-width
+/// (|planes − even| / √3), on each axis.
+fn ink_model_px(est: &CentreEstimate) -> Option<f64> {
+    let even = est.even_ink?;
+    let off = est.offset_px();
+    let d = (off[0] - even.offset_px[0]).hypot(off[1] - even.offset_px[1]);
+    Some(d / 3f64.sqrt())
+}
 
 /// A target's reconstruction window: its place in frame 0 and the reconstruction its
 /// frames' crops (moved by each frame's whole-pixel displacement) accumulate into.
@@ -779,11 +845,12 @@ fn measure_window(c: &Candidate, shift_px: [f64; 2]) -> (f64, f64, u32) {
 }
 
 /// Measure one target in a frame at its frame-0 place moved by `shift_px`, on a window of
-/// channel `ch`. `None` when it cannot be measured (out of frame, estimator failure).
+/// channel `ch`, the fit started from frame 0's `seed` (frame coordinates) when there is
+/// one. `None` when it cannot be measured (out of frame, estimator failure).
 fn measure_in_frame(
     frame: &RgbImage,
     (ch, response): (usize, Response),
-    c: &Candidate,
+    (c, seed): (&Candidate, Option<Seed>),
     shift_px: [f64; 2],
     estimator: Estimator,
 ) -> Option<CentreEstimate> {
@@ -812,9 +879,13 @@ fn measure_in_frame(
             h: crop.height as u32,
         },
     };
-    let mut e = estimate(&crop, &guess, estimator, 1.0).ok()?;
-    e.outer_px = [e.outer_px[0] + x0, e.outer_px[1] + y0];
-    e.inner_px = [e.inner_px[0] + x0, e.inner_px[1] + y0];
+    let seed = seed.map(|s| s.mapped(|p| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0], 1.0));
+    let start = seed.as_ref().map_or(Start::Guess, Start::Track);
+    let mut e = estimate_from(&crop, &guess, estimator, 1.0, start).ok()?;
+    let back = |p: [f64; 2]| [p[0] + x0, p[1] + y0];
+    e.outer_px = back(e.outer_px);
+    e.inner_px = back(e.inner_px);
+    e.seed = e.seed.map(|s| s.mapped(back, 1.0));
     Some(e)
 }
 

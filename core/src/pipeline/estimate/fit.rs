@@ -51,6 +51,9 @@ const GRADIENTS: [usize; 4] = [C + 1, C + 2, CI + 1, CI + 2];
 const GRADIENTS_CHI2: f64 = 18.47;
 
 const MAX_ITER: usize = 60;
+/// A step shorter than 0.1 σ of the parameters (in Mahalanobis distance, squared) is the
+/// last one.
+const SHORT_STEP_SIGMAS2: f64 = 1e-2;
 /// Beyond this many blur widths an edge is flat (Φ(−4) = 3e-5 of the contrast, 0.006 DN on
 /// the paper rig, against 2.5 DN of noise, and symmetric about the circle): skip its
 /// special functions.
@@ -236,11 +239,49 @@ impl Problem<'_> {
     }
 }
 
+/// A converged fit's whole state, to start a later fit of the same target from (see
+/// [`super::Start`]): the parameters in the plane's pixels of that fit and whether the
+/// contrast planes were free.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct State {
+    p: [f64; MAXP],
+    np: usize,
+    planes: bool,
+}
+
+impl State {
+    /// The same state in other coordinates: `to` maps a point (both centres), lengths (radii,
+    /// blur) scale by `k`. Levels and contrasts are the same in any grid.
+    pub fn mapped(&self, to: impl Fn([f64; 2]) -> [f64; 2], k: f64) -> State {
+        let mut p = self.p;
+        [p[CXO], p[CYO]] = to([p[CXO], p[CYO]]);
+        [p[CXI], p[CYI]] = to([p[CXI], p[CYI]]);
+        for i in [HOLE, RIM, RI, S, RIH] {
+            p[i] *= k;
+        }
+        State { p, ..*self }
+    }
+
+    /// The even-ink model's state: the contrast gradients held at 0.
+    pub fn even_ink(&self) -> State {
+        let mut p = self.p;
+        for i in GRADIENTS {
+            p[i] = 0.0;
+        }
+        State {
+            p,
+            planes: false,
+            ..*self
+        }
+    }
+}
+
 pub(super) fn estimate(
     plane: &Plane,
     win: &Window,
     g: &Candidate,
     k: f64,
+    start: super::Start,
 ) -> Result<CentreEstimate, EstimateError> {
     // On a k-times finer grid (a reconstruction) neighbouring pixels are interpolated from
     // the same camera pixels: every ⌊k/3⌋-th one in x and y (still 3 per camera pixel, more
@@ -256,19 +297,6 @@ pub(super) fn estimate(
     }
     let ring_inner = g.inner_radii_px[0] > 0.0;
     let np = if ring_inner { MAXP } else { MAXP - 1 };
-    let mut p = [0.0; MAXP];
-    p[CXO] = g.outer_centre_px[0];
-    p[CYO] = g.outer_centre_px[1];
-    p[HOLE] = g.outer_radii_px[0];
-    p[RIM] = g.outer_radii_px[1];
-    p[CXI] = g.inner_centre_px[0];
-    p[CYI] = g.inner_centre_px[1];
-    p[RI] = g.inner_radii_px[1];
-    p[RIH] = g.inner_radii_px[0];
-    p[S] = 0.8 * k;
-    p[B0] = paper;
-    p[C] = 1.0 - ink / paper;
-    p[CI] = p[C];
     let half = 0.5 * (win.x1 - win.x0).max(win.y1 - win.y0) as f64;
     let prob = Problem {
         plane,
@@ -283,17 +311,64 @@ pub(super) fn estimate(
         reach_centre: g.outer_centre_px,
         planes: false,
     };
-    // The even-ink model first (as fast as the fit before the planes); the planes only when
-    // a score test at its minimum shows uneven ink: one more pass on evenly printed targets.
-    let even = solve(&prob, p, k, g)?;
     let uneven = Problem {
         planes: true,
         ..prob
     };
-    if uneven_ink_shows(&prob, &uneven, &even) {
-        return Ok(solve(&uneven, even.p, k, g)?.estimate(&uneven));
-    }
-    Ok(even.estimate(&prob))
+    let seed = match start {
+        super::Start::Guess => None,
+        super::Start::Near(s) | super::Start::Track(s) => Some(s.0).filter(|s| s.np == np),
+    };
+    let fit = match (seed, start) {
+        // The same target a moment later: its ink has not changed, nor has the model.
+        (Some(s), super::Start::Track(_)) if s.planes => solve(&uneven, s.p, k, g)?,
+        (Some(s), super::Start::Track(_)) => solve(&prob, s.p, k, g)?,
+        _ => {
+            // (The even-ink model holds the gradients where they start: at 0.)
+            let p = seed.map_or_else(|| first_guess(g, k, paper, ink), |s| s.even_ink().p);
+            // The even-ink model first (as fast as the fit before the planes); the planes
+            // only when a score test at its minimum shows uneven ink: one more pass on
+            // evenly printed targets.
+            let even = solve(&prob, p, k, g)?;
+            if !uneven_ink_shows(&prob, &uneven, &even) {
+                return Ok(even.estimate(&prob));
+            }
+            let mut p = even.p;
+            if let Some(s) = seed.filter(|s| s.planes) {
+                // Start the gradients where the seed had them.
+                for i in GRADIENTS {
+                    p[i] = s.p[i];
+                }
+            }
+            let mut est = solve(&uneven, p, k, g)?.estimate(&uneven);
+            let e = even.estimate(&prob);
+            est.even_ink = Some(super::EvenInk {
+                offset_px: e.offset_px(),
+                offset_cov_px2: e.offset_cov_px2,
+            });
+            return Ok(est);
+        }
+    };
+    Ok(fit.estimate(if fit.planes { &uneven } else { &prob }))
+}
+
+/// The starting point from the guess alone: its centres and radii, a blur of 0.8 camera
+/// pixels, the window's paper and ink levels.
+fn first_guess(g: &Candidate, k: f64, paper: f64, ink: f64) -> [f64; MAXP] {
+    let mut p = [0.0; MAXP];
+    p[CXO] = g.outer_centre_px[0];
+    p[CYO] = g.outer_centre_px[1];
+    p[HOLE] = g.outer_radii_px[0];
+    p[RIM] = g.outer_radii_px[1];
+    p[CXI] = g.inner_centre_px[0];
+    p[CYI] = g.inner_centre_px[1];
+    p[RI] = g.inner_radii_px[1];
+    p[RIH] = g.inner_radii_px[0];
+    p[S] = 0.8 * k;
+    p[B0] = paper;
+    p[C] = 1.0 - ink / paper;
+    p[CI] = p[C];
+    p
 }
 
 /// The score (Lagrange multiplier) test of the contrast gradients at the even-ink minimum:
@@ -327,6 +402,7 @@ fn gn_gain(n: &Normal, idx: &[usize]) -> Option<f64> {
 struct Fit {
     p: [f64; MAXP],
     normal: Normal,
+    planes: bool,
 }
 
 impl Fit {
@@ -357,6 +433,12 @@ impl Fit {
             outer_radius_px: p[RIM],
             inner_radius_px: p[RI],
             offset_cov_px2: offset_cov,
+            seed: Some(super::Seed(State {
+                p: *p,
+                np: prob.np,
+                planes: self.planes,
+            })),
+            even_ink: None,
         }
     }
 }
@@ -423,11 +505,16 @@ fn solve(prob: &Problem, mut p: [f64; MAXP], k: f64, g: &Candidate) -> Result<Fi
             .iter()
             .map(|&i| delta[i].abs())
             .fold(0.0, f64::max);
-        let step_geometry = (0..=S).map(|i| delta[i].abs()).fold(0.0, f64::max);
-        if lambda <= 1e-2 && step_geometry < 1e-2 * k && sane(&q).is_none() {
-            // A Gauss–Newton step this small lands within ~1e-4 px (0.1 µm) of the minimum:
-            // take it without paying for another pass (the curvature and residual variance
-            // for the covariance change by far less than their own uncertainty).
+        // The step's length in the parameters' own uncertainty (Mahalanobis distance²,
+        // δᵀ(JᵀJ)δ/σ̂² ≈ the cost it removes over σ̂²): it counts every parameter, the
+        // contrasts that move the edges too, where a length in pixels counts the geometry only.
+        let sigma2 = cur.cost / cur.n.saturating_sub(prob.free()).max(1) as f64;
+        let step_sigmas2 = (0..np).map(|i| delta[i] * rhs[i]).sum::<f64>() / sigma2.max(1e-300);
+        if lambda <= 1e-2 && step_sigmas2 < SHORT_STEP_SIGMAS2 && sane(&q).is_none() {
+            // A Gauss–Newton step this short lands far within the noise of the minimum
+            // (a tenth of a standard deviation away, and converging): take it without
+            // paying for another pass (the curvature and residual variance for the
+            // covariance change by far less than their own uncertainty).
             p = q;
             converged = true;
             break;
@@ -465,7 +552,11 @@ fn solve(prob: &Problem, mut p: [f64; MAXP], k: f64, g: &Candidate) -> Result<Fi
             format!("no convergence in {MAX_ITER} iterations"),
         ));
     }
-    Ok(Fit { p, normal: cur })
+    Ok(Fit {
+        p,
+        normal: cur,
+        planes: prob.planes,
+    })
 }
 
 #[cfg(test)]

@@ -106,5 +106,7 @@ pub(super) fn estimate(
         outer_radius_px: ring.annulus()[1],
         inner_radius_px: inner_radius,
         offset_cov_px2: None,
+        seed: None,
+        even_ink: None,
     })
 }
