@@ -319,10 +319,12 @@ pub(super) fn estimate(
         super::Start::Guess => None,
         super::Start::Near(s) | super::Start::Track(s) => Some(s.0).filter(|s| s.np == np),
     };
-    let fit = match (seed, start) {
+    match (seed, start) {
         // The same target a moment later: its ink has not changed, nor has the model.
-        (Some(s), super::Start::Track(_)) if s.planes => solve(&uneven, s.p, k, g)?,
-        (Some(s), super::Start::Track(_)) => solve(&prob, s.p, k, g)?,
+        (Some(s), super::Start::Track(_)) => {
+            let model = if s.planes { &uneven } else { &prob };
+            Ok(solve(model, s.p, k, g)?.estimate(model))
+        }
         _ => {
             // (The even-ink model holds the gradients where they start: at 0.)
             let p = seed.map_or_else(|| first_guess(g, k, paper, ink), |s| s.even_ink().p);
@@ -346,10 +348,9 @@ pub(super) fn estimate(
                 offset_px: e.offset_px(),
                 offset_cov_px2: e.offset_cov_px2,
             });
-            return Ok(est);
+            Ok(est)
         }
-    };
-    Ok(fit.estimate(if fit.planes { &uneven } else { &prob }))
+    }
 }
 
 /// The starting point from the guess alone: its centres and radii, a blur of 0.8 camera
@@ -402,7 +403,6 @@ fn gn_gain(n: &Normal, idx: &[usize]) -> Option<f64> {
 struct Fit {
     p: [f64; MAXP],
     normal: Normal,
-    planes: bool,
 }
 
 impl Fit {
@@ -436,7 +436,7 @@ impl Fit {
             seed: Some(super::Seed(State {
                 p: *p,
                 np: prob.np,
-                planes: self.planes,
+                planes: prob.planes,
             })),
             even_ink: None,
         }
@@ -552,11 +552,7 @@ fn solve(prob: &Problem, mut p: [f64; MAXP], k: f64, g: &Candidate) -> Result<Fi
             format!("no convergence in {MAX_ITER} iterations"),
         ));
     }
-    Ok(Fit {
-        p,
-        normal: cur,
-        planes: prob.planes,
-    })
+    Ok(Fit { p, normal: cur })
 }
 
 #[cfg(test)]
