@@ -276,11 +276,20 @@ async fn position(shared: &Arc<Shared>) -> Result<ReplyBody, ProtoError> {
 }
 
 /// The running manual move's latest reading. A move that has just been handed to the worker
-/// has none until its first poll (every 5 ms): wait for that rather than answer `busy`.
+/// has none until its first poll (every 5 ms), and one sent but not yet taken by the worker
+/// has not started: wait for its first poll rather than queue behind the whole move.
 async fn move_reading(shared: &Shared) -> Option<(StageReading, StageReading, StageKind)> {
     let deadline = tokio::time::Instant::now() + Duration::from_secs(2);
-    while shared.rig().request == Some(RigAction::Move) {
-        if let Some(last) = shared.manual.last() {
+    loop {
+        let (moving, waiting) = {
+            let cond = shared.rig();
+            let waiting = shared.manual.waiting.load(Ordering::SeqCst);
+            (cond.request == Some(RigAction::Move), waiting)
+        };
+        if !moving && waiting == 0 {
+            break;
+        }
+        if let Some(last) = shared.manual.last().filter(|_| moving) {
             return Some(last);
         }
         if tokio::time::Instant::now() >= deadline {

@@ -131,11 +131,13 @@ fn default_stage(fault: Option<&RigFault>) -> StageKind {
 
 /// The worker's side: run the request on the rig (on a blocking thread) and answer it.
 pub async fn serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
-    if req.action == RigAction::Move {
-        shared.manual.move_dequeued();
-    }
     {
         let mut cond = shared.rig();
+        // Uncounted under the lock that marks it running, so a `position` never sees the
+        // move neither waiting nor running.
+        if req.action == RigAction::Move {
+            shared.manual.move_dequeued();
+        }
         if cond.jobs_started != req.jobs_started {
             let _ = req.reply.send(Err(busy(format!(
                 "a job started before `{}` could run: send it again once the job ends",
