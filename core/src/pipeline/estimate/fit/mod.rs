@@ -23,6 +23,11 @@ use crate::pipeline::detect::Candidate;
 use crate::pipeline::plane::Plane;
 use nalgebra::{DMatrix, DVector};
 
+mod edge;
+mod normal;
+
+use normal::Normal;
+
 const CXO: usize = 0;
 const CYO: usize = 1;
 const HOLE: usize = 2;
@@ -54,49 +59,6 @@ const MAX_ITER: usize = 60;
 /// A step shorter than 0.1 σ of the parameters (in Mahalanobis distance, squared) is the
 /// last one.
 const SHORT_STEP_SIGMAS2: f64 = 1e-2;
-/// Beyond this many blur widths an edge is flat (Φ(−4) = 3e-5 of the contrast, 0.006 DN on
-/// the paper rig, against 2.5 DN of noise, and symmetric about the circle): skip its
-/// special functions.
-const FLAT: f64 = 4.0;
-
-/// ½·erfc(x) and e^(−x²) for x ≥ 0, sharing the one exponential (Abramowitz & Stegun
-/// 7.1.26, absolute error < 1.5e-7: far below a DN on any contrast).
-#[inline]
-fn half_erfc(x: f64) -> (f64, f64) {
-    let t = 1.0 / (1.0 + 0.327_591_1 * x);
-    let poly = t
-        * (0.254_829_592
-            + t * (-0.284_496_736
-                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
-    let g = (-x * x).exp();
-    (0.5 * poly * g, g)
-}
-
-/// Blurred edge: coverage E and its derivative dE/dd at signed distance `d`.
-#[inline]
-fn edge(d: f64, s: f64) -> (f64, f64) {
-    let t = d / s;
-    if t > FLAT {
-        (0.0, 0.0)
-    } else if t < -FLAT {
-        (1.0, 0.0)
-    } else {
-        let (h, g) = half_erfc(t.abs() * std::f64::consts::FRAC_1_SQRT_2);
-        let e = if t >= 0.0 { h } else { 1.0 - h };
-        // dE/dd = −φ(t)/s, and e^(−x²) with x = t/√2 is e^(−t²/2).
-        let de = -g / (s * (2.0 * std::f64::consts::PI).sqrt());
-        (e, de)
-    }
-}
-
-/// Normal equations and cost at one parameter vector.
-struct Normal {
-    h: [[f64; MAXP]; MAXP],
-    g: [f64; MAXP],
-    cost: f64,
-    n: usize,
-}
-
 struct Problem<'a> {
     plane: &'a Plane,
     win: &'a Window,
@@ -112,112 +74,6 @@ struct Problem<'a> {
 }
 
 impl Problem<'_> {
-    fn normal(&self, p: &[f64; MAXP]) -> Normal {
-        let mut out = Normal {
-            h: [[0.0; MAXP]; MAXP],
-            g: [0.0; MAXP],
-            cost: 0.0,
-            n: 0,
-        };
-        let ring_inner = self.np == MAXP;
-        let s = p[S];
-        let reach2 = self.win.reach * self.win.reach;
-        for y in (self.win.y0..self.win.y1).step_by(self.step) {
-            let fy = y as f64;
-            let row = &self.plane.data[y * self.plane.width..(y + 1) * self.plane.width];
-            let xs = row
-                .iter()
-                .enumerate()
-                .take(self.win.x1)
-                .skip(self.win.x0)
-                .step_by(self.step);
-            for (x, &v) in xs {
-                let fx = x as f64;
-                let (rx, ry) = (fx - self.reach_centre[0], fy - self.reach_centre[1]);
-                if rx * rx + ry * ry > reach2 {
-                    continue;
-                }
-                let (dxo, dyo) = (fx - p[CXO], fy - p[CYO]);
-                let ro = (dxo * dxo + dyo * dyo).sqrt().max(1e-9);
-                let (dxi, dyi) = (fx - p[CXI], fy - p[CYI]);
-                let ri = (dxi * dxi + dyi * dyi).sqrt().max(1e-9);
-                let (e_rim, d_rim) = edge(ro - p[RIM], s);
-                let (e_hole, d_hole) = edge(ro - p[HOLE], s);
-                let (e_in, d_in) = edge(ri - p[RI], s);
-                let (e_ih, d_ih) = if ring_inner {
-                    edge(ri - p[RIH], s)
-                } else {
-                    (0.0, 0.0)
-                };
-                let (cov_o, cov_i) = (e_rim - e_hole, e_in - e_ih);
-                let (bx, by) = (
-                    (fx - self.mid[0]) * self.inv_half,
-                    (fy - self.mid[1]) * self.inv_half,
-                );
-                let l = p[B0] + p[BX] * bx + p[BY] * by;
-                let mono = [1.0, bx, by];
-                let poly = |at: usize| -> f64 {
-                    mono.iter().zip(&p[at..at + NC]).map(|(m, q)| m * q).sum()
-                };
-                let (c_o, c_i) = (poly(C), poly(CI));
-                let shade = 1.0 - c_o * cov_o - c_i * cov_i;
-                let r = v as f64 - l * shade;
-                out.cost += r * r;
-                out.n += 1;
-                // The Jacobian row: the background terms always, the contrast inside the
-                // shapes, the geometry only near an edge (zero elsewhere).
-                let mut j = [0f64; MAXP];
-                j[B0] = shade;
-                j[BX] = bx * shade;
-                j[BY] = by * shade;
-                let terms = if self.planes { NC } else { 1 };
-                for (at, cov) in [(C, cov_o), (CI, cov_i)] {
-                    if cov != 0.0 {
-                        for (jc, m) in j[at..at + terms].iter_mut().zip(&mono) {
-                            *jc = -l * cov * m;
-                        }
-                    }
-                }
-                let (lco, lci) = (-l * c_o, -l * c_i);
-                let douter = d_rim - d_hole;
-                if douter != 0.0 {
-                    // dρ/dcx = −dx/ρ.
-                    j[CXO] = lco * douter * (-dxo / ro);
-                    j[CYO] = lco * douter * (-dyo / ro);
-                    j[RIM] = lco * -d_rim;
-                    j[HOLE] = lco * d_hole;
-                }
-                let dinner = d_in - d_ih;
-                if dinner != 0.0 {
-                    j[CXI] = lci * dinner * (-dxi / ri);
-                    j[CYI] = lci * dinner * (-dyi / ri);
-                    j[RI] = lci * -d_in;
-                    j[RIH] = lci * d_ih;
-                }
-                if douter != 0.0 || dinner != 0.0 {
-                    // dE/ds = −E'(d)·d/s.
-                    let ds_o = -(d_rim * (ro - p[RIM]) - d_hole * (ro - p[HOLE])) / s;
-                    let ds_i = -(d_in * (ri - p[RI])
-                        - d_ih * if ring_inner { ri - p[RIH] } else { 0.0 })
-                        / s;
-                    j[S] = lco * ds_o + lci * ds_i;
-                }
-                // Jᵀr and JᵀJ from the dense row: fixed-size loops the compiler vectorises,
-                // skipping the row's zeros (most pixels touch only the background terms).
-                for (a, &va) in j.iter().enumerate() {
-                    if va == 0.0 {
-                        continue;
-                    }
-                    out.g[a] += va * r;
-                    for (h, &vb) in out.h[a].iter_mut().zip(&j) {
-                        *h += va * vb;
-                    }
-                }
-            }
-        }
-        out
-    }
-
     /// `JᵀJ`, with a unit diagonal for the held gradients (their steps are then 0).
     fn matrix(&self, n: &Normal) -> DMatrix<f64> {
         DMatrix::from_fn(self.np, self.np, |a, b| {
@@ -553,29 +409,4 @@ fn solve(prob: &Problem, mut p: [f64; MAXP], k: f64, g: &Candidate) -> Result<Fi
         ));
     }
     Ok(Fit { p, normal: cur })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn fast_edge_matches_erfc() {
-        for i in -700..=700 {
-            let d = i as f64 * 0.01;
-            let (e, de) = edge(d, 0.8);
-            let want = 0.5 * libm::erfc(d / 0.8 * std::f64::consts::FRAC_1_SQRT_2);
-            // Beyond FLAT·s the edge is cut to 0 or 1.
-            let tol = if d.abs() > 3.1 { 4e-5 } else { 4e-7 };
-            assert!((e - want).abs() < tol, "E({d}) = {e} vs {want}");
-            let h = 1e-5;
-            let num = (0.5 * libm::erfc((d + h) / 0.8 * std::f64::consts::FRAC_1_SQRT_2)
-                - 0.5 * libm::erfc((d - h) / 0.8 * std::f64::consts::FRAC_1_SQRT_2))
-                / (2.0 * h);
-            assert!(
-                (de - num).abs() < 1e-6 || d.abs() > 3.1,
-                "E'({d}) = {de} vs {num}"
-            );
-        }
-    }
 }
