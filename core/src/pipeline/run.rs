@@ -372,10 +372,18 @@ impl Pipeline {
             self.skipped = skipped;
             self.size = Some(got);
         }
-        // Where the targets should be: the last frame's displacement, or the positions'.
+        // Where the targets should be: the positions' displacement, or the last frame's
+        // moved by the step the positions say was made (a start within the stage's jitter
+        // saves the fits a pass).
         let predicted = match (self.opts.registration, self.first_position_um) {
             (Registration::Positions, Some(p0)) => self.dirs().shift_px(at, p0),
-            _ => self.last_image_shift_px,
+            _ => {
+                let step = self
+                    .last_position_um
+                    .map_or([0.0; 2], |p| self.dirs().shift_px(at, p));
+                let last = self.last_image_shift_px;
+                [last[0] + step[0], last[1] + step[1]]
+            }
         };
         if partial && self.rows_read(predicted, None) > valid_rows as f64 {
             return Ok(None);

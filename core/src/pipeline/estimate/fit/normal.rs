@@ -120,18 +120,18 @@ impl Problem<'_> {
             r[l] = res * w;
         }
         sums.n += batch.len;
-        for l in 0..LANES {
-            sums.cost[l] += r[l] * r[l];
+        for (c, &rl) in sums.cost.iter_mut().zip(&r) {
+            *c += rl * rl;
         }
         // Only the parameters the fit moves: the held gradients' rows are zero.
         let free = &sums.free[..sums.nfree];
         for (i, &a) in free.iter().enumerate() {
-            for l in 0..LANES {
-                sums.g[a][l] += j[a][l] * r[l];
+            for (g, (&ja, &rl)) in sums.g[a].iter_mut().zip(j[a].iter().zip(&r)) {
+                *g += ja * rl;
             }
             for &b in &free[i..] {
-                for l in 0..LANES {
-                    sums.h[a][b][l] += j[a][l] * j[b][l];
+                for (h, (&ja, &jb)) in sums.h[a][b].iter_mut().zip(j[a].iter().zip(&j[b])) {
+                    *h += ja * jb;
                 }
             }
         }
