@@ -268,9 +268,9 @@ impl ValidOptions {
         let fine_of = |s: u64| 4 * k * k * s * s;
         let fine: u64 = sides.iter().map(|&s| fine_of(s)).sum();
         let largest = sides.iter().copied().max().unwrap_or(0);
-        // The fit samples the fine window every k/3 pixels, the paper's estimator every one.
+        // The fit samples the fine window every k/2 pixels, the paper's estimator every one.
         let stride = match self.estimator {
-            Estimator::Fit => (k / 3).max(1),
+            Estimator::Fit => (k / 2).max(1),
             Estimator::Paper => 1,
         };
         let sample = 4 * (k * largest).div_ceil(stride).pow(2);
@@ -413,8 +413,8 @@ mod tests {
             59
         );
         let fine = 12 * 590 * 590 * 4;
-        // Making one: column taps (19 kB), the fit's sample (155 kB).
-        let making = 32 * 10 * 59 + 4 * 197 * 197;
+        // Making one: column taps (19 kB), the fit's sample (every 5th pixel: 56 kB).
+        let making = 32 * 10 * 59 + 4 * 118 * 118;
         let threads = rayon::current_num_threads().min(12) as u64;
         let held = 12 * ESTIMATE_BYTES + 40 * STEP_BYTES;
         let want = held + (fine + 3 * 59 * 590 * 4 + threads * making).max(fine + 590 * 590 * 2);
