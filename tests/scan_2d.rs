@@ -296,15 +296,13 @@ fn study_subset() {
     let rows = study(4);
     print(&rows, 4);
     let y_std = |e, c, g| row(&rows, e, c, g).std_um[1];
-    // Splat from a line has one y phase: its fine rows are copies (std y 71 and 10 µm); a
-    // grid's five fill them (6.1 and 0.74 µm).
-    for e in [Estimator::Paper, Estimator::Fit] {
-        let (line, grid) = (
-            y_std(e, Combine::Splat, false),
-            y_std(e, Combine::Splat, true),
-        );
-        assert!(grid < line / 5.0, "{e:?} splat: grid {grid} line {line}");
-    }
+    // Splat from a line has one y phase: its fine rows are copies, which costs the paper's
+    // centroids (std y 72 µm; a grid's five phases fill them: 5.4 µm).
+    let (line, grid) = (
+        y_std(Estimator::Paper, Combine::Splat, false),
+        y_std(Estimator::Paper, Combine::Splat, true),
+    );
+    assert!(grid < line / 5.0, "paper splat: grid {grid} line {line}");
     // The paper's centroids err with the sampling phase: averaged over five y phases
     // (mean: 78 -> 12 µm; interp 8.6 -> 3.7 µm).
     let (line, grid) = (
@@ -317,8 +315,10 @@ fn study_subset() {
         y_std(Estimator::Paper, Combine::Interp, true),
     );
     assert!(grid < 0.6 * line, "paper interp: grid {grid} line {line}");
-    // The fit hardly depends on the phase: the two plans alike (0.67-0.79 µm).
-    for c in [Combine::Interp, Combine::Mean] {
+    // The fit hardly depends on the phase: the two plans alike (0.67-0.86 µm). With splat
+    // too, now that it samples the reconstruction every k/2 = 5 fine pixels: two samples
+    // per copied camera row (sampled every 3, unevenly, the line cost it 10 µm in y).
+    for c in [Combine::Interp, Combine::Splat, Combine::Mean] {
         let (line, grid) = (
             y_std(Estimator::Fit, c, false),
             y_std(Estimator::Fit, c, true),

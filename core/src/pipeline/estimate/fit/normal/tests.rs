@@ -1,5 +1,5 @@
 //! The batched normal equations against the per-pixel form they replaced, on a synthetic
-//! target: the same sums to rounding, and the AVX2 build the same bits as the portable one.
+//! target: the same sums to f32 rounding, and the AVX2 build the same bits as the portable one.
 
 use super::super::edge::edge;
 use super::super::{
@@ -191,8 +191,9 @@ fn batched_sums_equal_the_per_pixel_ones() {
         let case = format!("ring_inner {ring_inner}, planes {planes}, step {step}");
         assert_eq!(got.n, want.n, "{case}");
         // Some pixels are left out (outside the reach), so no batch is always full.
-        assert!(got.n % 4 != 0 || step > 1, "{case}: {} pixels", got.n);
-        let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 1e-11 * scale.max(1.0);
+        assert!(got.n % 8 != 0 || step > 1, "{case}: {} pixels", got.n);
+        // The lanes sum in f32 (measured worst 1.5e-6 of the scale); the reference in f64.
+        let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 3e-6 * scale.max(1.0);
         assert!(
             close(got.cost, want.cost, want.cost),
             "{case}: cost {} vs {}",
