@@ -124,7 +124,7 @@ impl Real for f32 {
         let n = shifted - ROUND;
         let n_bits = shifted.to_bits().wrapping_sub(ROUND.to_bits());
         // ln 2 with its low 12 mantissa bits cleared, so that n·LN2_HI is exact.
-        const LN2_HI: f32 = 0.693_145_751_953_125;
+        const LN2_HI: f32 = f32::from_bits(0x3f31_7200); // 0.693145751953125
         const LN2_LO: f32 = LN_2 - LN2_HI;
         let r = (self - n * LN2_HI) - n * LN2_LO;
         // |r| ≤ 0.35: the series to r⁷ leaves 5e-9.
