@@ -47,27 +47,34 @@ const FACT_INV: [f64; 9] = {
     f
 };
 
+/// The methods both widths take from std as they are.
+macro_rules! forward_to_std {
+    ($t:ident) => {
+        #[inline(always)]
+        fn c(v: f64) -> $t {
+            v as $t
+        }
+        #[inline(always)]
+        fn sqrt(self) -> $t {
+            $t::sqrt(self)
+        }
+        #[inline(always)]
+        fn abs(self) -> $t {
+            $t::abs(self)
+        }
+        #[inline(always)]
+        fn min(self, o: $t) -> $t {
+            $t::min(self, o)
+        }
+        #[inline(always)]
+        fn max(self, o: $t) -> $t {
+            $t::max(self, o)
+        }
+    };
+}
+
 impl Real for f64 {
-    #[inline(always)]
-    fn c(v: f64) -> f64 {
-        v
-    }
-    #[inline(always)]
-    fn sqrt(self) -> f64 {
-        f64::sqrt(self)
-    }
-    #[inline(always)]
-    fn abs(self) -> f64 {
-        f64::abs(self)
-    }
-    #[inline(always)]
-    fn min(self, o: f64) -> f64 {
-        f64::min(self, o)
-    }
-    #[inline(always)]
-    fn max(self, o: f64) -> f64 {
-        f64::max(self, o)
-    }
+    forward_to_std!(f64);
     /// To 3e-10 relative (the erfc formula it serves is good to 1.5e-7).
     #[inline(always)]
     fn exp_neg(self) -> f64 {
@@ -94,26 +101,7 @@ impl Real for f64 {
 }
 
 impl Real for f32 {
-    #[inline(always)]
-    fn c(v: f64) -> f32 {
-        v as f32
-    }
-    #[inline(always)]
-    fn sqrt(self) -> f32 {
-        f32::sqrt(self)
-    }
-    #[inline(always)]
-    fn abs(self) -> f32 {
-        f32::abs(self)
-    }
-    #[inline(always)]
-    fn min(self, o: f32) -> f32 {
-        f32::min(self, o)
-    }
-    #[inline(always)]
-    fn max(self, o: f32) -> f32 {
-        f32::max(self, o)
-    }
+    forward_to_std!(f32);
     /// To 2e-7 relative (two f32 roundings).
     #[inline(always)]
     fn exp_neg(self) -> f32 {
