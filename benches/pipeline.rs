@@ -15,26 +15,15 @@
 //! `RIGD_WRITE_FOLDER=DIR cargo bench --bench pipeline` writes the job's folder (for
 //! benches/opencv_baseline.py) and exits.
 
+#[path = "support/paper_job.rs"]
+mod paper_job;
+
 use criterion::{criterion_group, Criterion};
+use paper_job::{frames, write_folder, STEP_UM};
 use rigd::pipeline::reconstruct::{self, View};
 use rigd::pipeline::{plane::Plane, Combine, Estimator, Pipeline, ProcessOptions, ValidOptions};
-use rigd::sim::render::{render_frame, View as CamView};
-use rigd::sim::{Board, CameraModel};
 use std::hint::black_box;
 use std::time::Instant;
-
-const STEP_UM: f64 = 50.0;
-
-fn frames(n: usize) -> Vec<image::RgbImage> {
-    let board = Board::paper();
-    let cam = CameraModel::default();
-    (0..n)
-        .map(|i| {
-            let view = CamView::at([237.0 + STEP_UM * i as f64, 411.0]);
-            render_frame(&board, &cam, &view, 1.0, 100 + i as u64)
-        })
-        .collect()
-}
 
 fn opts(k: u32, combine: Combine, estimator: Estimator) -> ValidOptions {
     ProcessOptions {
@@ -70,16 +59,6 @@ fn bench_frames(c: &mut Criterion) {
 }
 
 /// Write the benchmark's folder: 20 frames of the paper's board at 50 µm steps.
-fn write_folder(dir: &std::path::Path) {
-    std::fs::create_dir_all(dir.join("frames")).unwrap();
-    let mut steps = String::from("index,position_um\n");
-    for (i, f) in frames(20).iter().enumerate() {
-        f.save(dir.join(format!("frames/{i:04}.png"))).unwrap();
-        steps.push_str(&format!("{i},{}\n", STEP_UM * i as f64));
-    }
-    std::fs::write(dir.join("steps.csv"), steps).unwrap();
-}
-
 fn bench_job(c: &mut Criterion) {
     let dir = tempfile::tempdir().unwrap();
     write_folder(dir.path());

@@ -10,6 +10,7 @@ use crate::pipeline::run::NamedImage;
 use crate::pipeline::ProcessResult;
 use image::RgbImage;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU32, Ordering};
 
 #[derive(Debug, thiserror::Error)]
 pub enum FolderError {
@@ -313,6 +314,18 @@ impl FrameReader {
         reuse: Option<RgbImage>,
         max_rows: u32,
     ) -> Result<(RgbImage, u32), FolderError> {
+        self.read_file_rows_until(file, reuse, &AtomicU32::new(max_rows))
+    }
+
+    /// [`FrameReader::read_file_rows`] with a limit that may fall while the frame is being
+    /// decoded (another thread learns how many rows it needs): it is read again before every
+    /// row, so a frame started before the limit was known still stops there.
+    pub fn read_file_rows_until(
+        &mut self,
+        file: &FrameFile,
+        reuse: Option<RgbImage>,
+        max_rows: &AtomicU32,
+    ) -> Result<(RgbImage, u32), FolderError> {
         let path = &file.path();
         self.bytes.clear();
         file.read_into(&mut self.bytes)
@@ -350,23 +363,41 @@ impl FrameReader {
             });
         }
         let (w, h) = reader.info().size();
-        let mut px = reuse.map(RgbImage::into_raw).unwrap_or_default();
-        // A reused buffer of the same size is not written here (its pages stay mapped).
-        px.resize(w as usize * h as usize * 3, 0);
-        let rows = if max_rows < h && !reader.info().interlaced {
-            for row in px.chunks_exact_mut(w as usize * 3).take(max_rows as usize) {
-                reader.read_row(row).map_err(bad)?;
+        let len = w as usize * h as usize * 3;
+        let px = match reuse.map(RgbImage::into_raw) {
+            // A reused buffer of the same size is not written here (its pages stay mapped).
+            Some(mut px) => {
+                px.resize(len, 0);
+                px
             }
-            // The rows past `max_rows` are never inflated, so check that the rest of the
-            // file is whole instead: a truncated or damaged frame is still refused.
-            check_chunks(&self.bytes).map_err(|message| FolderError::BadPng {
-                path: path.to_path_buf(),
-                message,
-            })?;
-            max_rows
-        } else {
+            // Zeroed pages from the allocator, faulted in as the rows are decoded: not
+            // cleared first and then written again.
+            None => vec![0; len],
+        };
+        let mut px = px;
+        let rows = if reader.info().interlaced {
             reader.next_frame(&mut px).map_err(bad)?;
             h
+        } else {
+            let mut done = 0;
+            for row in px.chunks_exact_mut(w as usize * 3) {
+                if done >= max_rows.load(Ordering::Relaxed) {
+                    break;
+                }
+                reader.read_row(row).map_err(bad)?;
+                done += 1;
+            }
+            if done < h {
+                // The rows past `done` are never inflated, so check that the rest of the
+                // file is whole instead: a truncated or damaged frame is still refused.
+                check_chunks(&self.bytes).map_err(|message| FolderError::BadPng {
+                    path: path.to_path_buf(),
+                    message,
+                })?;
+            } else {
+                reader.finish().map_err(bad)?;
+            }
+            done
         };
         let img = RgbImage::from_raw(w, h, px).expect("buffer matches the size");
         Ok((img, rows))

@@ -64,10 +64,9 @@ pub fn push_frames(
                 let mut reader = FrameReader::default();
                 for f in frames.iter().skip(w).step_by(workers) {
                     let reuse = pool.lock().ok().and_then(|mut p| p.pop());
-                    let rows = rows_wanted.load(Ordering::Relaxed);
                     // The receiver stops early on the first error: nothing left to do.
                     if tx
-                        .send(reader.read_file_rows(&f.file, reuse, rows))
+                        .send(reader.read_file_rows_until(&f.file, reuse, rows_wanted))
                         .is_err()
                     {
                         return;

@@ -168,7 +168,27 @@ impl Component {
 #[inline]
 fn redness_256(p: &[u8], min_r: i32) -> Option<usize> {
     let (r, g, b) = (p[0] as i32, p[1] as i32, p[2] as i32);
-    (r >= min_r).then(|| (256 * (r - g.max(b)) / r).clamp(0, 255) as usize)
+    (r >= min_r).then(|| div_by_red(256 * (r - g.max(b)).max(0) as u32, r as u32).min(255) as usize)
+}
+
+/// `⌈2³²/r⌉` for r = 1..=255 (0 for r = 0, never asked): `n·m >> 32` is then `⌊n/r⌋`
+/// exactly for every n < 2¹⁶ (the error `m·r − 2³² < r` times n stays below 2³²/r; checked
+/// for every pair in the tests). The histogram runs over every pixel of frame 0, on the
+/// critical path: a multiply instead of a division.
+const RECIP_RED: [u64; 256] = {
+    let mut m = [0u64; 256];
+    let mut r = 1;
+    while r < 256 {
+        m[r] = (1u64 << 32).div_ceil(r as u64);
+        r += 1;
+    }
+    m
+};
+
+/// `⌊n/r⌋` for n < 2¹⁶, 1 ≤ r ≤ 255.
+#[inline(always)]
+fn div_by_red(n: u32, r: u32) -> u32 {
+    ((n as u64 * RECIP_RED[r as usize]) >> 32) as u32
 }
 
 /// The redness threshold (1/256) this frame's ink and paper call for: Otsu's split of the
@@ -184,12 +204,30 @@ pub fn redness_threshold(img: &RgbImage, cfg: &DetectConfig) -> f64 {
 /// [`redness_threshold`] and the ink's median redness (the threshold when there is no ink).
 fn redness_levels(img: &RgbImage, cfg: &DetectConfig) -> (f64, f64) {
     let min_r = cfg.min_red_dn as i32;
-    let mut hist = [0u64; 256];
-    for p in img.as_raw().chunks_exact(3) {
-        if let Some(q) = redness_256(p, min_r) {
-            hist[q] += 1;
-        }
-    }
+    // Rows in parallel (frame 0's detection holds up every later frame), each chunk's
+    // histogram summed after.
+    let row = img.width() as usize * 3;
+    let hist = img
+        .as_raw()
+        .par_chunks(row.max(3) * 16)
+        .fold(
+            || [0u64; 256],
+            |mut hist, rows| {
+                for p in rows.chunks_exact(3) {
+                    if let Some(q) = redness_256(p, min_r) {
+                        hist[q] += 1;
+                    }
+                }
+                hist
+            },
+        )
+        .reduce(
+            || [0u64; 256],
+            |mut a, b| {
+                a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+                a
+            },
+        );
     let ceiling = cfg.min_redness;
     let n: u64 = hist.iter().sum();
     if n == 0 {
@@ -293,8 +331,13 @@ fn components(
     h: usize,
     labels: &mut Vec<u32>,
 ) -> Vec<Component> {
-    labels.clear();
-    labels.resize(w * h, 0);
+    if labels.capacity() < w * h {
+        // Zeroed pages from the allocator: only the rows with ink are ever touched.
+        *labels = vec![0; w * h];
+    } else {
+        labels.clear();
+        labels.resize(w * h, 0);
+    }
     let mut comps = Vec::new();
     let mut stack: Vec<(u32, u32)> = Vec::new();
     // Only rows with ink can start a component (most rows of a frame have none).
@@ -742,6 +785,24 @@ mod tests {
                 w: 5,
                 h: 5,
             },
+        }
+    }
+
+    #[test]
+    fn division_by_red_is_exact_for_every_pixel() {
+        for r in 1..=255u32 {
+            for n in 0..=256 * 255u32 {
+                assert_eq!(div_by_red(n, r), n / r, "{n} / {r}");
+            }
+        }
+        // The redness as it was defined, with a division, for every pixel value.
+        for (r, m) in (0..=255i32).flat_map(|r| (0..=255i32).map(move |m| (r, m))) {
+            let want = (r >= 20).then(|| (256 * (r - m) / r.max(1)).clamp(0, 255) as usize);
+            assert_eq!(
+                redness_256(&[r as u8, m as u8, 0], 20),
+                want,
+                "r {r}, max(g, b) {m}"
+            );
         }
     }
 
