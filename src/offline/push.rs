@@ -6,8 +6,8 @@ use crate::folder::{FolderError, FrameFile, FrameReader};
 use crate::pipeline::Pipeline;
 use crate::pipeline::PipelineError;
 use image::RgbImage;
-use std::sync::atomic::{AtomicU32, Ordering};
-use std::sync::Mutex;
+use std::sync::atomic::AtomicU32;
+use std::sync::{Arc, Mutex};
 
 /// Rows decoded below the last one the pipeline reads: room for the frames decoded ahead
 /// (up to ~2 per decoder) to move down before a frame has to be decoded again.
@@ -53,13 +53,14 @@ pub fn push_frames(
 ) -> Result<(), PushError> {
     let workers = decoders.max(1);
     let pool = Mutex::new(Vec::<RgbImage>::new());
-    let rows_wanted = AtomicU32::new(u32::MAX);
+    let rows_wanted = Arc::new(AtomicU32::new(u32::MAX));
+    pipeline.share_rows_needed(rows_wanted.clone(), ROWS_MARGIN);
     std::thread::scope(|scope| -> Result<(), PushError> {
         let mut queues = Vec::with_capacity(workers);
         for w in 0..workers {
             let (tx, rx) = std::sync::mpsc::sync_channel(1);
             queues.push(rx);
-            let (pool, rows_wanted) = (&pool, &rows_wanted);
+            let (pool, rows_wanted) = (&pool, &*rows_wanted);
             scope.spawn(move || {
                 let mut reader = FrameReader::default();
                 for f in frames.iter().skip(w).step_by(workers) {
@@ -99,9 +100,6 @@ pub fn push_frames(
                     whole
                 }
             };
-            if let Some(rows) = pipeline.rows_needed(ROWS_MARGIN) {
-                rows_wanted.store(rows, Ordering::Relaxed);
-            }
             if let Ok(mut p) = pool.lock() {
                 p.push(frame);
             }

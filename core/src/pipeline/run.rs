@@ -13,7 +13,7 @@
 
 use super::accumulate::{Accumulator, Method};
 use super::detect::{self, Candidate, DetectConfig};
-use super::estimate::{estimate_from, CentreEstimate, EvenInk, Seed, Start};
+use super::estimate::{self, estimate_from, CentreEstimate, EvenInk, Seed, Start};
 use super::mean::OffsetMean;
 use super::options::WINDOW_MARGIN_PX;
 use super::plane::{Plane, Roi};
@@ -24,6 +24,7 @@ use crate::board::{Board, Shape};
 use crate::calibration::{Calibration, Radii, TargetTrack, UNCALIBRATED_SCALE_REL_U};
 use image::RgbImage;
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -95,7 +96,14 @@ pub struct Pipeline {
     /// The calibration the offsets are converted with, and where it came from.
     calibration: Option<(Arc<Calibration>, Option<String>)>,
     calibration_warnings: Vec<String>,
+    /// Where [`Pipeline::rows_needed`] is kept for frame decoders, and its margin.
+    rows_shared: Option<(Arc<AtomicU32>, u32)>,
 }
+
+/// Rows added to the first estimate of [`Pipeline::rows_needed`], made from frame 0's
+/// detection before its fits: the reconstruction windows are then placed on the fitted
+/// centres and radii, within a pixel or two of the detected ones.
+const DETECTION_SLACK_ROWS: u32 = 4;
 
 impl Pipeline {
     /// A pipeline for one run. The options were checked by [`ProcessOptions::validate`]:
@@ -122,6 +130,7 @@ impl Pipeline {
             tracks: None,
             calibration: None,
             calibration_warnings: Vec::new(),
+            rows_shared: None,
         }
     }
 
@@ -148,6 +157,21 @@ impl Pipeline {
     /// first frame.
     pub fn keep_images(&mut self, keep: bool) {
         self.keep_images = keep;
+    }
+
+    /// Keep `cell` at [`Pipeline::rows_needed`]`(margin_rows)` (`u32::MAX` while every row is
+    /// needed) as the pipeline learns it: first from frame 0's detection, before its fits,
+    /// so that frames decoded meanwhile can stop there too, then after every frame.
+    pub fn share_rows_needed(&mut self, cell: Arc<AtomicU32>, margin_rows: u32) {
+        self.rows_shared = Some((cell, margin_rows));
+        self.publish_rows(0);
+    }
+
+    fn publish_rows(&self, slack_rows: u32) {
+        if let Some((cell, margin)) = &self.rows_shared {
+            let rows = self.rows_needed(margin + slack_rows);
+            cell.store(rows.unwrap_or(u32::MAX), Ordering::Relaxed);
+        }
     }
 
     /// Frames pushed so far.
@@ -230,11 +254,19 @@ impl Pipeline {
                 let side = (2.0 * reach).ceil() as u32 + 1;
                 // Shifts under half a pixel: at most k + 2 vertical fine shifts, none flushed.
                 let s = side as usize;
+                let origin = first.outer_px.map(|p| (p - reach).floor());
+                let mut acc = Accumulator::new(method, s, s, k, k + 2);
+                // Nobody looks at the reconstruction: compute only what the estimator reads.
+                let guess = fine_guess(first, c, origin, k, s);
+                let read = estimate::lattice_read(self.opts.estimator, &guess, k as f64);
+                if let Some(l) = read.filter(|_| !self.keep_images && method == Method::Interp) {
+                    acc = acc.only_at(l);
+                }
                 Ok(Combining::Window(TargetWindow {
-                    x0: (first.outer_px[0] - reach).floor(),
-                    y0: (first.outer_px[1] - reach).floor(),
+                    x0: origin[0],
+                    y0: origin[1],
                     side,
-                    acc: Accumulator::new(method, s, s, k, k + 2),
+                    acc,
                 }))
             })
             .collect();
@@ -371,6 +403,7 @@ impl Pipeline {
             self.targets = det.targets;
             self.skipped = skipped;
             self.size = Some(got);
+            self.publish_rows(DETECTION_SLACK_ROWS);
         }
         // Where the targets should be: the positions' displacement, or the last frame's
         // moved by the step the positions say was made (a start within the stage's jitter
@@ -441,6 +474,7 @@ impl Pipeline {
         self.frames += 1;
         self.last_position_um = Some(at);
         self.last_image_shift_px = shift;
+        self.publish_rows(0);
         Ok(Some(FrameReport {
             index,
             targets_found: found,
@@ -736,21 +770,9 @@ impl Pipeline {
             height: fine.height,
             data: fine.data,
         };
-        // The guess on the fine grid: camera coordinate x maps to fine (x + 0.5) k - 0.5.
         let kf = k as f64;
-        let to_fine = |p: [f64; 2]| [(p[0] - x0 + 0.5) * kf - 0.5, (p[1] - y0 + 0.5) * kf - 0.5];
-        let guess = Candidate {
-            outer_centre_px: to_fine(first.outer_px),
-            inner_centre_px: to_fine(first.inner_px),
-            outer_radii_px: [c.outer_radii_px[0] * kf, c.outer_radii_px[1] * kf],
-            inner_radii_px: [c.inner_radii_px[0] * kf, c.inner_radii_px[1] * kf],
-            roi: Roi {
-                x: 0,
-                y: 0,
-                w: fine_w as u32,
-                h: fine_h as u32,
-            },
-        };
+        let to_fine = to_fine_grid([x0, y0], kf);
+        let guess = fine_guess(first, c, [x0, y0], k, tw.side as usize);
         let seed = first.seed.map(|s| s.mapped(to_fine, kf));
         let start = seed.as_ref().map_or(Start::Guess, Start::Near);
         let e = estimate_from(&plane, &guess, self.opts.estimator, kf, start)
@@ -779,6 +801,37 @@ impl Pipeline {
             data: plane.data,
         };
         Ok((back, fine))
+    }
+}
+
+/// Camera coordinates of frame 0 to the fine grid of a window at `origin`: x maps to
+/// (x − x0 + 0.5)·k − 0.5.
+fn to_fine_grid(origin: [f64; 2], kf: f64) -> impl Fn([f64; 2]) -> [f64; 2] {
+    move |p| [0, 1].map(|a| (p[a] - origin[a] + 0.5) * kf - 0.5)
+}
+
+/// Where a target's reconstruction (window at `origin`, `side` px, on the `k`-times finer
+/// grid) is measured from: frame 0's fitted centres, the detected radii.
+fn fine_guess(
+    first: &CentreEstimate,
+    c: &Candidate,
+    origin: [f64; 2],
+    k: usize,
+    side: usize,
+) -> Candidate {
+    let kf = k as f64;
+    let to_fine = to_fine_grid(origin, kf);
+    Candidate {
+        outer_centre_px: to_fine(first.outer_px),
+        inner_centre_px: to_fine(first.inner_px),
+        outer_radii_px: c.outer_radii_px.map(|r| r * kf),
+        inner_radii_px: c.inner_radii_px.map(|r| r * kf),
+        roi: Roi {
+            x: 0,
+            y: 0,
+            w: (side * k) as u32,
+            h: (side * k) as u32,
+        },
     }
 }
 

@@ -10,6 +10,7 @@
 mod fit;
 mod paper;
 
+use super::accumulate::Lattice;
 use super::detect::{Candidate, Detection};
 use super::plane::Plane;
 use super::Estimator;
@@ -145,6 +146,26 @@ pub fn estimate_from(
     }
 }
 
+/// The only pixels of a reconstruction that `estimator` reads when it measures `guess` on
+/// it (`px_per_camera_px` = k): every `step`-th one in x and y from the window's origin, for
+/// the fit. `None` when it reads every pixel (the paper's estimator, or k < 2). A
+/// reconstruction needs to compute no others ([`Lattice`]).
+pub fn lattice_read(
+    estimator: Estimator,
+    guess: &Candidate,
+    px_per_camera_px: f64,
+) -> Option<Lattice> {
+    let step = match estimator {
+        Estimator::Fit => fit::sample_step(px_per_camera_px),
+        Estimator::Paper => 1,
+    };
+    let origin = Window::origin(guess, px_per_camera_px);
+    (step > 1).then(|| Lattice {
+        step,
+        phase: origin.map(|o| o % step),
+    })
+}
+
 /// Measure every detected target of a frame on the ROI path: each target's ROI of channel
 /// `channel` only, in linear light through the camera's `response`, estimated in parallel.
 /// Results in frame coordinates, in `det`'s order.
@@ -214,6 +235,13 @@ pub(crate) struct Window {
 }
 
 impl Window {
+    /// The window's first column and row for guess `g` on a `k`-times finer grid.
+    fn origin(g: &Candidate, k: f64) -> [usize; 2] {
+        let want = g.outer_radii_px[1] + 3.5 * k;
+        g.outer_centre_px
+            .map(|c| (c - want).floor().max(0.0) as usize)
+    }
+
     fn around(plane: &Plane, g: &Candidate, k: f64) -> Result<Window, EstimateError> {
         let c = g.outer_centre_px;
         let rim = g.outer_radii_px[1];
@@ -234,8 +262,7 @@ impl Window {
                 height: plane.height,
             });
         }
-        let x0 = (c[0] - want).floor().max(0.0) as usize;
-        let y0 = (c[1] - want).floor().max(0.0) as usize;
+        let [x0, y0] = Window::origin(g, k);
         let x1 = ((c[0] + want).ceil() as usize + 1).min(plane.width);
         let y1 = ((c[1] + want).ceil() as usize + 1).min(plane.height);
         Ok(Window {

@@ -132,6 +132,16 @@ impl State {
     }
 }
 
+/// The fit reads every `sample_step(k)`-th pixel of a `k`-times finer grid in x and y.
+/// On such a grid (a reconstruction) neighbouring pixels are interpolated from the same
+/// camera pixels: every ⌊k/2⌋-th one (2 per camera pixel, above the Nyquist rate of an edge
+/// blurred by ~1 px) carries the information at a 25th of the cost. (Against every
+/// ⌊k/3⌋-th, the paper study's std on k = 5 and 10 reconstructions is 1.1 and 0.8 µm, was
+/// 1.2 and 0.9; the webcam study's is unchanged.)
+pub(super) fn sample_step(k: f64) -> usize {
+    ((k / 2.0).floor() as usize).max(1)
+}
+
 pub(super) fn estimate(
     plane: &Plane,
     win: &Window,
@@ -139,12 +149,7 @@ pub(super) fn estimate(
     k: f64,
     start: super::Start,
 ) -> Result<CentreEstimate, EstimateError> {
-    // On a k-times finer grid (a reconstruction) neighbouring pixels are interpolated from
-    // the same camera pixels: every ⌊k/2⌋-th one in x and y (2 per camera pixel, above the
-    // Nyquist rate of an edge blurred by ~1 px) carries the information at a 25th of the
-    // cost. (Against every ⌊k/3⌋-th, the paper study's std on k = 5 and 10 reconstructions
-    // is 1.1 and 0.8 µm, was 1.2 and 0.9; the webcam study's is unchanged.)
-    let step = ((k / 2.0).floor() as usize).max(1);
+    let step = sample_step(k);
     let (paper, ink) = win.levels(plane, step);
     if paper - ink < 4.0 || paper <= 0.0 {
         return Err(EstimateError::NoInk {
