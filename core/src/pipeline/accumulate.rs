@@ -446,4 +446,41 @@ mod tests {
             }
         }
     }
+
+    /// A reconstruction computed only on a lattice holds, on it, exactly the whole one's
+    /// values (with and without flushed groups), and zeros elsewhere.
+    #[test]
+    fn a_lattice_is_bit_for_bit_the_whole_reconstruction() {
+        let frames: Vec<Vec<f32>> = (0..6).map(|s| pattern(11, 8, s)).collect();
+        let shifts = [[0, 0], [-3, 2], [4, -1], [-7, 0], [2, 2], [1, -1]];
+        let k = 10;
+        for (lattice, max_open) in [([3, 1], 8), ([0, 4], 8), ([4, 2], 2)] {
+            let lattice = Lattice {
+                step: 5,
+                phase: lattice,
+            };
+            let build = |only: Option<Lattice>| {
+                let mut acc = Accumulator::new(Method::Interp, 11, 8, k, max_open);
+                if let Some(l) = only {
+                    acc = acc.only_at(l);
+                }
+                for (f, s) in frames.iter().zip(&shifts) {
+                    acc.add(View::new(f, 11, 8), *s);
+                }
+                acc.finish()
+            };
+            let (whole, some) = (build(None), build(Some(lattice)));
+            let mut on = 0;
+            for (i, (w, s)) in whole.data.iter().zip(&some.data).enumerate() {
+                let (x, y) = (i % whole.width, i / whole.width);
+                if x % 5 == lattice.phase[0] && y % 5 == lattice.phase[1] {
+                    assert_eq!(w.to_bits(), s.to_bits(), "({x}, {y}) on {lattice:?}");
+                    on += 1;
+                } else {
+                    assert_eq!(*s, 0.0, "({x}, {y}) off {lattice:?}");
+                }
+            }
+            assert_eq!(on, (110 / 5) * (80 / 5));
+        }
+    }
 }

@@ -319,6 +319,55 @@ fn f32_from_key(k: u32) -> f32 {
 mod tests {
     use super::*;
 
+    /// The fit on a k = 10 grid whose pixels off [`lattice_read`]'s lattice are NaN gives
+    /// the very estimate it gives on the whole grid: it reads nothing else, so a
+    /// reconstruction may compute nothing else.
+    #[test]
+    fn the_fit_reads_only_its_lattice() {
+        let (n, k) = (200, 10.0);
+        let (co, ci) = ([100.3, 99.6], [104.1, 98.2]);
+        // A logistic edge (not the fit's erf) of ~0.5 camera px, a little pattern noise.
+        let edge = |d: f64| 1.0 / (1.0 + (d / 3.0).exp());
+        let mut plane = Plane::new(n, n);
+        for (i, v) in plane.data.iter_mut().enumerate() {
+            let (x, y) = ((i % n) as f64, (i / n) as f64);
+            let ro = (x - co[0]).hypot(y - co[1]);
+            let ri = (x - ci[0]).hypot(y - ci[1]);
+            let cov = edge(ro - 70.0) - edge(ro - 50.0) + edge(ri - 25.0);
+            *v = (200.0 - 150.0 * cov + 3.0 * ((i * 7919 % 101) as f64 / 101.0 - 0.5)) as f32;
+        }
+        let guess = Candidate {
+            outer_centre_px: [100.0, 100.0],
+            inner_centre_px: [103.0, 99.0],
+            outer_radii_px: [50.0, 70.0],
+            inner_radii_px: [0.0, 25.0],
+            roi: super::super::plane::Roi {
+                x: 0,
+                y: 0,
+                w: n as u32,
+                h: n as u32,
+            },
+        };
+        let l = lattice_read(Estimator::Fit, &guess, k).expect("the fit strides on k = 10");
+        assert_eq!(l.step, 5);
+        assert_eq!(lattice_read(Estimator::Paper, &guess, k), None);
+        let mut poisoned = plane.clone();
+        for (i, v) in poisoned.data.iter_mut().enumerate() {
+            let (x, y) = (i % n, i / n);
+            if x % l.step != l.phase[0] || y % l.step != l.phase[1] {
+                *v = f32::NAN;
+            }
+        }
+        let whole = estimate_from(&plane, &guess, Estimator::Fit, k, Start::Guess).unwrap();
+        let some = estimate_from(&poisoned, &guess, Estimator::Fit, k, Start::Guess).unwrap();
+        assert_eq!(whole.offset_px(), some.offset_px());
+        assert!(
+            (whole.offset_px()[0] - 3.8).abs() < 0.05,
+            "{:?}",
+            whole.offset_px()
+        );
+    }
+
     #[test]
     fn keys_order_as_total_cmp_and_come_back_exactly() {
         let xs = [
