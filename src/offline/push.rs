@@ -2,6 +2,7 @@
 //! the pipeline on decoder threads: what `rigctl process` (a folder, or each run of a
 //! session) and `rigctl reprocess` (each run of each session) share.
 
+use super::ahead::Ahead;
 use crate::folder::{FolderError, FrameFile, FrameReader};
 use crate::pipeline::Pipeline;
 use crate::pipeline::PipelineError;
@@ -40,7 +41,8 @@ pub enum PushError {
 }
 
 /// Push `frames` into `pipeline` in order. PNG decoding is most of a frame's cost:
-/// `decoders` threads take every W-th frame each and decode ahead while this thread pushes
+/// `decoders` threads decode ahead, each taking the next frame in order when it is free (at
+/// most two per decoder beyond the one being pushed: [`Ahead`]), while this thread pushes
 /// the frames in order (a bad frame is reported when its turn comes, so the first bad frame
 /// in order is named). Pushed frames go back to a pool whose buffers the decoders reuse.
 /// Once frame 0 has placed the targets, the decoders stop at the last row the pipeline will
@@ -55,56 +57,81 @@ pub fn push_frames(
     let pool = Mutex::new(Vec::<RgbImage>::new());
     let rows_wanted = Arc::new(AtomicU32::new(u32::MAX));
     pipeline.share_rows_needed(rows_wanted.clone(), ROWS_MARGIN);
+    let ahead = Ahead::new(frames.len(), FRAMES_AHEAD_PER_DECODER * workers);
+    // One slot per frame, filled by whichever decoder took it.
+    let (slots_in, slots_out): (Vec<_>, Vec<_>) = frames
+        .iter()
+        .map(|_| std::sync::mpsc::sync_channel(1))
+        .unzip();
     std::thread::scope(|scope| -> Result<(), PushError> {
-        let mut queues = Vec::with_capacity(workers);
-        for w in 0..workers {
-            let (tx, rx) = std::sync::mpsc::sync_channel(1);
-            queues.push(rx);
-            let (pool, rows_wanted) = (&pool, &*rows_wanted);
+        // However the pushing ends (done, a bad frame, a refusal), the decoders stop.
+        let _stop = StopOnDrop(&ahead);
+        for _ in 0..workers {
+            let (pool, rows_wanted, ahead, slots) = (&pool, &*rows_wanted, &ahead, &slots_in);
             scope.spawn(move || {
                 let mut reader = FrameReader::default();
-                for f in frames.iter().skip(w).step_by(workers) {
+                while let Some(i) = ahead.take() {
                     let reuse = pool.lock().ok().and_then(|mut p| p.pop());
-                    // The receiver stops early on the first error: nothing left to do.
-                    if tx
-                        .send(reader.read_file_rows_until(&f.file, reuse, rows_wanted))
-                        .is_err()
-                    {
+                    let read = reader.read_file_rows_until(&frames[i].file, reuse, rows_wanted);
+                    // The pusher stops early on the first error: nothing left to do.
+                    if slots[i].send(read).is_err() {
                         return;
                     }
                 }
             });
         }
         let mut again = FrameReader::default();
-        for (i, f) in frames.iter().enumerate() {
-            let (frame, rows) = queues[i % workers]
-                .recv()
-                .map_err(|_| PushError::Decoder)??;
-            let refused = |source| PushError::Pipeline {
-                nth: i,
-                file: f.file.clone(),
-                source,
-            };
-            let pushed = pipeline.push_rows_at(&frame, rows, f.position_um, f.piezo_um);
-            let frame = match pushed.map_err(refused)? {
-                Some(rep) => {
-                    tracing::debug!(?rep, "frame");
-                    frame
-                }
-                None => {
-                    let (whole, _) = again.read_file_rows(&f.file, Some(frame), u32::MAX)?;
-                    let rep = pipeline
-                        .push_at(&whole, f.position_um, f.piezo_um)
-                        .map_err(refused)?;
-                    tracing::debug!(?rep, "frame");
-                    whole
-                }
-            };
+        for (i, (f, slot)) in frames.iter().zip(&slots_out).enumerate() {
+            let (frame, rows) = slot.recv().map_err(|_| PushError::Decoder)??;
+            let frame = push_one(pipeline, (i, f), frame, rows, &mut again)?;
+            ahead.consumed(i);
             if let Ok(mut p) = pool.lock() {
                 p.push(frame);
             }
         }
         Ok(())
+    })
+}
+
+/// Frames a decoder may have decoded or be decoding beyond the one being pushed.
+const FRAMES_AHEAD_PER_DECODER: usize = 2;
+
+struct StopOnDrop<'a>(&'a Ahead);
+
+impl Drop for StopOnDrop<'_> {
+    fn drop(&mut self) {
+        self.0.stop();
+    }
+}
+
+/// Push frame `i` (decoded down to `rows`), decoding it again whole if the pipeline needs
+/// rows below; the buffer comes back for reuse.
+fn push_one(
+    pipeline: &mut Pipeline,
+    (i, f): (usize, &FrameIn),
+    frame: RgbImage,
+    rows: u32,
+    again: &mut FrameReader,
+) -> Result<RgbImage, PushError> {
+    let refused = |source| PushError::Pipeline {
+        nth: i,
+        file: f.file.clone(),
+        source,
+    };
+    let pushed = pipeline.push_rows_at(&frame, rows, f.position_um, f.piezo_um);
+    Ok(match pushed.map_err(refused)? {
+        Some(rep) => {
+            tracing::debug!(?rep, "frame");
+            frame
+        }
+        None => {
+            let (whole, _) = again.read_file_rows(&f.file, Some(frame), u32::MAX)?;
+            let rep = pipeline
+                .push_at(&whole, f.position_um, f.piezo_um)
+                .map_err(refused)?;
+            tracing::debug!(?rep, "frame");
+            whole
+        }
     })
 }
 
