@@ -80,10 +80,28 @@ fn a_calibration_job_is_kept_in_the_data_root_and_applied_by_the_next_job() {
     assert!(rig.contains("webcam") && rig.contains("paper"), "{rig}");
     let pointer = calibration_store::dir(&d.data).join(calibration_store::CURRENT);
     assert_eq!(
-        std::fs::read_to_string(pointer).unwrap().trim(),
+        std::fs::read_to_string(&pointer).unwrap().trim(),
         format!("{}.json", cal.id)
     );
     assert!(made.residual_rms_um < 30.0, "{}", made.summary);
+
+    // Its session is not replayed: refused at once, naming the offline fit, no job run.
+    let replay = Request::Replay {
+        session: made.session.clone(),
+        processing: Default::default(),
+    };
+    let err = format!("{:#}", d.client().request(&replay).unwrap_err());
+    assert!(
+        err.contains("is a calibration scan and is not replayed")
+            && err.contains("rigctl calibrate")
+            && err.contains(&made.session),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(&pointer).unwrap().trim(),
+        format!("{}.json", cal.id),
+        "the current calibration is unchanged"
+    );
 
     // The next job applies it: events, manifest and result name it, offsets calibrated.
     let (id, ev) = run_job(&mut c, measure());

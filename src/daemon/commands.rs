@@ -45,6 +45,17 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
                     format!("session {name} holds no frame"),
                 ));
             }
+            if s.manifest.job.calibrate.is_some() {
+                // Refused here, not after the frames ran: a replay is a measurement, and a
+                // calibration made from old frames must not become the rig's current one.
+                return Err(ProtoError::new(
+                    ErrorCode::Rejected,
+                    format!(
+                        "session {name} is a calibration scan and is not replayed: fit it again offline with `rigctl calibrate {} --scale-um-per-px S --out FILE` (then `rigctl process ... --calibration FILE`), or scan again with `rigctl calibrate`",
+                        dir.display()
+                    ),
+                ));
+            }
             let (spec, plan) = replay_job(&s, &processing).map_err(rejected)?;
             let source = JobSource::Replay {
                 dir,
