@@ -364,7 +364,7 @@ impl FrameReader {
         }
         let (w, h) = reader.info().size();
         let len = w as usize * h as usize * 3;
-        let px = match reuse.map(RgbImage::into_raw) {
+        let mut px = match reuse.map(RgbImage::into_raw) {
             // A reused buffer of the same size is not written here (its pages stay mapped).
             Some(mut px) => {
                 px.resize(len, 0);
@@ -374,7 +374,6 @@ impl FrameReader {
             // cleared first and then written again.
             None => vec![0; len],
         };
-        let mut px = px;
         let rows = if reader.info().interlaced {
             reader.next_frame(&mut px).map_err(bad)?;
             h

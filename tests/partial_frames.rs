@@ -107,3 +107,54 @@ fn whole_frame_runs_need_every_row_and_images_can_be_left_out() {
     assert!(without.images.is_empty());
     assert_eq!(without.result, with.result);
 }
+
+/// `push_frames` over PNG files on disk, longer than its decoders' window: on 1, 2 and 3
+/// decoders every frame is pushed, in order, to the in-memory result (the decoded rows are
+/// all the pipeline reads); a damaged frame past the window is named, and the frames
+/// before it were pushed.
+#[test]
+fn frames_from_disk_on_any_decoder_count_give_the_in_memory_result() {
+    use rigd::folder::FrameFile;
+    use rigd::offline::push::{push_frames, FrameIn, PushError};
+    let (frames, pos) = scan(11);
+    let dir = tempfile::tempdir().unwrap();
+    let files: Vec<FrameIn> = frames
+        .iter()
+        .zip(&pos)
+        .enumerate()
+        .map(|(i, (f, &x))| {
+            let path = dir.path().join(format!("{i:04}.png"));
+            f.save(&path).unwrap();
+            FrameIn {
+                file: FrameFile::Path(path),
+                position_um: x,
+                piezo_um: None,
+            }
+        })
+        .collect();
+    let o = opts(Combine::Interp);
+    let want = whole(&frames, &pos, &o);
+    for decoders in [1, 2, 3] {
+        let mut p = Pipeline::new(o.clone().validate().unwrap(), None);
+        p.keep_images(false);
+        push_frames(&mut p, &files, decoders).unwrap();
+        assert_eq!(p.frames(), 11);
+        let got = p.finish().unwrap().result;
+        assert_eq!(
+            serde_json::to_value(&got.objects).unwrap(),
+            serde_json::to_value(&want.objects).unwrap(),
+            "{decoders} decoders"
+        );
+    }
+    // Frame 9 cut short: named, after frames 0..9 went in.
+    let bad = files[9].file.path().to_path_buf();
+    let bytes = std::fs::read(&bad).unwrap();
+    std::fs::write(&bad, &bytes[..bytes.len() / 2]).unwrap();
+    for decoders in [1, 2] {
+        let mut p = Pipeline::new(o.clone().validate().unwrap(), None);
+        let err = push_frames(&mut p, &files, decoders).unwrap_err();
+        assert!(matches!(err, PushError::Read(_)), "{err}");
+        assert!(err.to_string().contains("0009.png"), "{err}");
+        assert_eq!(p.frames(), 9, "{decoders} decoders");
+    }
+}

@@ -22,10 +22,13 @@ pub struct Ahead {
 }
 
 impl Ahead {
+    /// # Panics
+    /// If `ahead` is 0 (no frame could ever be taken).
     pub fn new(n: usize, ahead: usize) -> Ahead {
+        assert!(ahead > 0, "at least one frame ahead");
         Ahead {
             n,
-            ahead: ahead.max(1),
+            ahead,
             state: Mutex::new(State {
                 next: 0,
                 consumed: 0,

@@ -57,10 +57,12 @@ pub fn push_frames(
     let pool = Mutex::new(Vec::<RgbImage>::new());
     let rows_wanted = Arc::new(AtomicU32::new(u32::MAX));
     pipeline.share_rows_needed(rows_wanted.clone(), ROWS_MARGIN);
-    let ahead = Ahead::new(frames.len(), FRAMES_AHEAD_PER_DECODER * workers);
-    // One slot per frame, filled by whichever decoder took it.
-    let (slots_in, slots_out): (Vec<_>, Vec<_>) = frames
-        .iter()
+    let window = FRAMES_AHEAD_PER_DECODER * workers;
+    let ahead = Ahead::new(frames.len(), window);
+    // Frame i goes through slot i % window, filled by whichever decoder took it: no frame is
+    // taken before the one `window` earlier was pushed, so a slot is free when it is filled
+    // (and a run of any length holds `window` slots).
+    let (slots_in, slots_out): (Vec<_>, Vec<_>) = (0..window)
         .map(|_| std::sync::mpsc::sync_channel(1))
         .unzip();
     std::thread::scope(|scope| -> Result<(), PushError> {
@@ -74,14 +76,15 @@ pub fn push_frames(
                     let reuse = pool.lock().ok().and_then(|mut p| p.pop());
                     let read = reader.read_file_rows_until(&frames[i].file, reuse, rows_wanted);
                     // The pusher stops early on the first error: nothing left to do.
-                    if slots[i].send(read).is_err() {
+                    if slots[i % window].send(read).is_err() {
                         return;
                     }
                 }
             });
         }
         let mut again = FrameReader::default();
-        for (i, (f, slot)) in frames.iter().zip(&slots_out).enumerate() {
+        for (i, f) in frames.iter().enumerate() {
+            let slot = &slots_out[i % window];
             let (frame, rows) = slot.recv().map_err(|_| PushError::Decoder)??;
             let frame = push_one(pipeline, (i, f), frame, rows, &mut again)?;
             ahead.consumed(i);
