@@ -158,3 +158,46 @@ fn frames_from_disk_on_any_decoder_count_give_the_in_memory_result() {
         assert_eq!(p.frames(), 9, "{decoders} decoders");
     }
 }
+
+/// A frame measured ahead by the pipeline's `Measurer` (as a decoder does, on its own
+/// thread) gives the very result of the pipeline measuring it; estimates handed in for
+/// another frame or position are not used; a frame whose prediction comes from a frame
+/// not pushed yet is left to the pipeline.
+#[test]
+fn frames_measured_ahead_are_the_pipelines_own_measurement() {
+    use rigd::pipeline::measure::PREDICT_LAG;
+    use std::sync::{Arc, OnceLock};
+    let n = PREDICT_LAG + 4;
+    let (frames, pos) = scan(n);
+    let o = opts(Combine::Interp);
+    let want = whole(&frames, &pos, &o);
+    let mut p = Pipeline::new(o.clone().validate().unwrap(), None);
+    let cell = Arc::new(OnceLock::new());
+    p.share_measurer(cell.clone());
+    let h = frames[0].height();
+    p.push(&frames[0], pos[0]).unwrap();
+    let m = cell.get().expect("shared once frame 0 is in").clone();
+    // Frame PREDICT_LAG + 1 is predicted from frame 1, not pushed yet.
+    let far = PREDICT_LAG + 1;
+    assert!(m.measure(&frames[far], h, far, [pos[far], 0.0]).is_none());
+    // Every frame measured ahead; frame 2 handed frame 3's estimates (ignored).
+    let ahead: Vec<_> = (1..n)
+        .map(|i| m.measure(&frames[i], h, i, [pos[i], 0.0]))
+        .take_while(Option::is_some)
+        .flatten()
+        .collect();
+    assert_eq!(ahead.len(), PREDICT_LAG, "frames 1..=PREDICT_LAG");
+    for i in 1..n {
+        let pre = match i {
+            2 => Some(ahead[2].clone()),
+            i if i <= PREDICT_LAG => Some(ahead[i - 1].clone()),
+            i => m.measure(&frames[i], h, i, [pos[i], 0.0]),
+        };
+        assert!(
+            pre.is_some(),
+            "frame {i}: the frame it is predicted from is in"
+        );
+        p.push_measured(&frames[i], h, (pos[i], None), pre).unwrap();
+    }
+    assert_eq!(p.finish().unwrap().result, want);
+}

@@ -19,12 +19,16 @@ pub fn frames(n: usize) -> Vec<image::RgbImage> {
         .collect()
 }
 
-/// The 20-frame folder, written into `dir`.
+/// The 20-frame folder, written into `dir`: each frame as the daemon records it (its PNG
+/// settings and metadata chunks: `frame_png`).
 pub fn write_folder(dir: &std::path::Path) {
     std::fs::create_dir_all(dir.join("frames")).unwrap();
     let mut steps = String::from("index,position_um\n");
+    let scale_um_per_px = CameraModel::default().scale_um_per_px;
     for (i, f) in frames(20).iter().enumerate() {
-        f.save(dir.join(format!("frames/{i:04}.png"))).unwrap();
+        let text = vec![("index".to_string(), i.to_string())];
+        let png = rigd::daemon::frame_png::encode(f, scale_um_per_px, text).unwrap();
+        std::fs::write(dir.join(format!("frames/{i:04}.png")), png).unwrap();
         steps.push_str(&format!("{i},{}\n", STEP_UM * i as f64));
     }
     std::fs::write(dir.join("steps.csv"), steps).unwrap();

@@ -4,11 +4,12 @@
 
 use super::ahead::Ahead;
 use crate::folder::{FolderError, FrameFile, FrameReader};
+use crate::pipeline::measure::{FrameEstimates, Measurer};
 use crate::pipeline::Pipeline;
 use crate::pipeline::PipelineError;
 use image::RgbImage;
 use std::sync::atomic::AtomicU32;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 /// Rows decoded below the last one the pipeline reads: room for the frames decoded ahead
 /// (up to ~2 per decoder) to move down before a frame has to be decoded again.
@@ -47,7 +48,9 @@ pub enum PushError {
 /// in order is named). Pushed frames go back to a pool whose buffers the decoders reuse.
 /// Once frame 0 has placed the targets, the decoders stop at the last row the pipeline will
 /// read (plus room for the frames decoded ahead to move); a frame that moved further is
-/// decoded again whole.
+/// decoded again whole. From frame 0 on, a decoder also measures the targets of the frame
+/// it decoded (the pipeline's [`Measurer`]): the fits run on every core in parallel,
+/// rather than behind the pushing thread, which only accumulates.
 pub fn push_frames(
     pipeline: &mut Pipeline,
     frames: &[FrameIn],
@@ -57,6 +60,8 @@ pub fn push_frames(
     let pool = Mutex::new(Vec::<RgbImage>::new());
     let rows_wanted = Arc::new(AtomicU32::new(u32::MAX));
     pipeline.share_rows_needed(rows_wanted.clone(), ROWS_MARGIN);
+    let measurer = Arc::new(OnceLock::new());
+    pipeline.share_measurer(measurer.clone());
     let window = FRAMES_AHEAD_PER_DECODER * workers;
     let ahead = Ahead::new(frames.len(), window);
     // Frame i goes through slot i % window, filled by whichever decoder took it: no frame is
@@ -70,11 +75,17 @@ pub fn push_frames(
         let _stop = StopOnDrop(&ahead);
         for _ in 0..workers {
             let (pool, rows_wanted, ahead, slots) = (&pool, &*rows_wanted, &ahead, &slots_in);
+            let measurer = &*measurer;
             scope.spawn(move || {
                 let mut reader = FrameReader::default();
                 while let Some(i) = ahead.take() {
                     let reuse = pool.lock().ok().and_then(|mut p| p.pop());
-                    let read = reader.read_file_rows_until(&frames[i].file, reuse, rows_wanted);
+                    let read = reader
+                        .read_file_rows_until(&frames[i].file, reuse, rows_wanted)
+                        .map(|(frame, rows)| {
+                            let pre = measure_ahead(measurer.get(), &frame, rows, (i, &frames[i]));
+                            (frame, rows, pre)
+                        });
                     // The pusher stops early on the first error: nothing left to do.
                     if slots[i % window].send(read).is_err() {
                         return;
@@ -85,8 +96,8 @@ pub fn push_frames(
         let mut again = FrameReader::default();
         for (i, f) in frames.iter().enumerate() {
             let slot = &slots_out[i % window];
-            let (frame, rows) = slot.recv().map_err(|_| PushError::Decoder)??;
-            let frame = push_one(pipeline, (i, f), frame, rows, &mut again)?;
+            let (frame, rows, pre) = slot.recv().map_err(|_| PushError::Decoder)??;
+            let frame = push_one(pipeline, (i, f), (frame, rows, pre), &mut again)?;
             ahead.consumed(i);
             if let Ok(mut p) = pool.lock() {
                 p.push(frame);
@@ -107,13 +118,23 @@ impl Drop for StopOnDrop<'_> {
     }
 }
 
-/// Push frame `i` (decoded down to `rows`), decoding it again whole if the pipeline needs
-/// rows below; the buffer comes back for reuse.
+/// Frame `i`'s targets measured on this (decoder's) thread, once frame 0 is in.
+fn measure_ahead(
+    m: Option<&Measurer>,
+    frame: &RgbImage,
+    rows: u32,
+    (i, f): (usize, &FrameIn),
+) -> Option<FrameEstimates> {
+    let at = [f.position_um, f.piezo_um.unwrap_or(0.0)];
+    m?.measure(frame, rows, i, at)
+}
+
+/// Push frame `i` (decoded down to `rows`, perhaps measured already), decoding it again
+/// whole if the pipeline needs rows below; the buffer comes back for reuse.
 fn push_one(
     pipeline: &mut Pipeline,
     (i, f): (usize, &FrameIn),
-    frame: RgbImage,
-    rows: u32,
+    (frame, rows, pre): (RgbImage, u32, Option<FrameEstimates>),
     again: &mut FrameReader,
 ) -> Result<RgbImage, PushError> {
     let refused = |source| PushError::Pipeline {
@@ -121,7 +142,7 @@ fn push_one(
         file: f.file.clone(),
         source,
     };
-    let pushed = pipeline.push_rows_at(&frame, rows, f.position_um, f.piezo_um);
+    let pushed = pipeline.push_measured(&frame, rows, (f.position_um, f.piezo_um), pre);
     Ok(match pushed.map_err(refused)? {
         Some(rep) => {
             tracing::debug!(?rep, "frame");

@@ -15,6 +15,7 @@ pub mod estimate;
 pub mod focus;
 pub mod layout;
 pub mod mean;
+pub mod measure;
 pub mod options;
 pub mod plane;
 pub mod reconstruct;

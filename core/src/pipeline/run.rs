@@ -13,8 +13,9 @@
 
 use super::accumulate::{Accumulator, Method};
 use super::detect::{self, Candidate, DetectConfig};
-use super::estimate::{self, estimate_from, CentreEstimate, EvenInk, Seed, Start};
+use super::estimate::{self, estimate_from, CentreEstimate, EvenInk, Start};
 use super::mean::OffsetMean;
+use super::measure::{measure_in_frame, measure_window, FrameEstimates, FrameZero, Measurer};
 use super::options::WINDOW_MARGIN_PX;
 use super::plane::{Plane, Roi};
 use super::reconstruct::{self, Fine, View};
@@ -25,7 +26,7 @@ use crate::calibration::{Calibration, Radii, TargetTrack, UNCALIBRATED_SCALE_REL
 use image::RgbImage;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU32, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Instant;
 
 /// Vertical fine shifts whose row sums a whole-frame reconstruction keeps at once (each an
@@ -98,6 +99,9 @@ pub struct Pipeline {
     calibration_warnings: Vec<String>,
     /// Where [`Pipeline::rows_needed`] is kept for frame decoders, and its margin.
     rows_shared: Option<(Arc<AtomicU32>, u32)>,
+    /// Later frames' measurer, from frame 0 on; and where it is handed to decoders.
+    measurer: Option<Measurer>,
+    measurer_shared: Option<Arc<OnceLock<Measurer>>>,
 }
 
 /// Rows added to the first estimate of [`Pipeline::rows_needed`], made from frame 0's
@@ -131,6 +135,8 @@ impl Pipeline {
             calibration: None,
             calibration_warnings: Vec::new(),
             rows_shared: None,
+            measurer: None,
+            measurer_shared: None,
         }
     }
 
@@ -165,6 +171,15 @@ impl Pipeline {
     pub fn share_rows_needed(&mut self, cell: Arc<AtomicU32>, margin_rows: u32) {
         self.rows_shared = Some((cell, margin_rows));
         self.publish_rows(0);
+    }
+
+    /// Set `cell` to the [`Measurer`] of later frames once frame 0 is in: threads that
+    /// decode frames ahead can measure them ([`Pipeline::push_measured`]).
+    pub fn share_measurer(&mut self, cell: Arc<OnceLock<Measurer>>) {
+        if let Some(m) = &self.measurer {
+            let _ = cell.set(m.clone());
+        }
+        self.measurer_shared = Some(cell);
     }
 
     fn publish_rows(&self, slack_rows: u32) {
@@ -355,6 +370,20 @@ impl Pipeline {
         position_um: f64,
         piezo_um: Option<f64>,
     ) -> Result<Option<FrameReport>, PipelineError> {
+        self.push_measured(frame, valid_rows, (position_um, piezo_um), None)
+    }
+
+    /// [`Pipeline::push_rows_at`] of a frame whose targets may have been measured already
+    /// by [`Pipeline::measurer`]'s [`Measurer::measure`] (on a decoder's thread): those
+    /// estimates are used when they are this frame's at this prediction, else the frame is
+    /// measured here.
+    pub fn push_measured(
+        &mut self,
+        frame: &RgbImage,
+        valid_rows: u32,
+        (position_um, piezo_um): (f64, Option<f64>),
+        pre: Option<FrameEstimates>,
+    ) -> Result<Option<FrameReport>, PipelineError> {
         let t0 = Instant::now();
         let partial = valid_rows < frame.height();
         if partial && (self.size.is_none() || self.opts.whole_frame) {
@@ -371,116 +400,163 @@ impl Pipeline {
             )));
         }
         let at: At = [position_um, piezo_um.unwrap_or(0.0)];
-        let got = frame.dimensions();
-        let detected = match self.size {
-            None => {
-                let det = detect::detect(frame, &self.detect_cfg);
-                if det.targets.is_empty() {
-                    return Err(PipelineError::NoTarget { index });
-                }
-                Some(det)
+        match self.size {
+            None => self.detect_frame_zero(frame)?,
+            Some(want) if want != frame.dimensions() => {
+                let got = frame.dimensions();
+                return Err(PipelineError::FrameSize { index, got, want });
             }
-            Some(want) if want != got => return Err(PipelineError::FrameSize { index, got, want }),
-            Some(_) => None,
-        };
-        if let Some(det) = detected {
-            self.channel = detect::measurement_channel(frame, &det);
-            let mut skipped = det.skipped;
-            if let Some(board) = &self.board {
-                // A board target in view that detection neither found nor reported.
-                let found: Vec<[f64; 2]> = det.targets.iter().map(|t| t.outer_centre_px).collect();
-                let reported: Vec<[f64; 2]> = skipped.iter().map(|s| s.centre_px).collect();
-                let unseen = super::layout::unseen_targets(
-                    &found,
-                    &reported,
-                    board,
-                    self.opts.scale_um_per_px,
-                    got,
-                );
-                skipped.extend(unseen);
-            }
-            self.check_calibration(got)?;
-            self.targets = det.targets;
-            self.skipped = skipped;
-            self.size = Some(got);
-            self.publish_rows(DETECTION_SLACK_ROWS);
+            Some(_) => {}
         }
-        // Where the targets should be: the positions' displacement, or the last frame's
-        // moved by the step the positions say was made (a start within the stage's jitter
-        // saves the fits a pass).
-        let predicted = match (self.opts.registration, self.first_position_um) {
-            (Registration::Positions, Some(p0)) => self.dirs().shift_px(at, p0),
-            _ => {
-                let step = self
-                    .last_position_um
-                    .map_or([0.0; 2], |p| self.dirs().shift_px(at, p));
-                let last = self.last_image_shift_px;
-                [last[0] + step[0], last[1] + step[1]]
-            }
-        };
+        let predicted = self.predicted(index, at);
         if partial && self.rows_read(predicted, None) > valid_rows as f64 {
             return Ok(None);
         }
-        let est: Vec<Option<CentreEstimate>> = self
-            .targets
-            .par_iter()
-            .enumerate()
-            .map(|(t, c)| {
-                // Later frames start from frame 0's fit, moved: one or two passes, not five.
-                // Where they only register the frame and give its scatter (a reconstruction
-                // measures the target), with the even-ink model: see `Seed::even_ink`.
-                let seed = self.first.get(t).and_then(|e| e.as_ref()?.seed);
-                let seed = match self.opts.combine {
-                    Combine::Mean => seed,
-                    _ => seed.map(|s| s.even_ink()),
-                };
-                measure_in_frame(
-                    frame,
-                    (self.channel, self.opts.response),
-                    (c, seed),
-                    predicted,
-                    self.opts.estimator,
-                )
-            })
-            .collect();
-        let found = est.iter().filter(|e| e.is_some()).count();
-        let shift = if index == 0 {
-            if found == 0 {
-                return Err(PipelineError::NoTarget { index });
-            }
-            [0.0, 0.0]
-        } else {
-            let pairs: Vec<([f64; 2], [f64; 2])> = self
-                .first
-                .iter()
-                .zip(&est)
-                .filter_map(|(a, b)| Some((a.as_ref()?.outer_px, b.as_ref()?.outer_px)))
-                .collect();
-            register::image_shift_px(&pairs).ok_or(PipelineError::NoTarget { index })?
+        let est = match (&self.measurer, pre) {
+            // Measured ahead by a decoder: the same function of the same inputs.
+            (_, Some(p)) if p.index == index && p.at == at && p.predicted_px == predicted => p.est,
+            (Some(m), _) => m.targets_at(frame, predicted, true),
+            (None, _) => self.frame_zero_estimates(frame),
         };
+        let found = est.iter().filter(|e| e.is_some()).count();
+        let shift = self.image_shift_px(index, &est)?;
         let recon_px = self.recon_shift_px(at, shift);
         if partial && self.rows_read(predicted, Some(recon_px)) > valid_rows as f64 {
             return Ok(None);
         }
         self.accumulate(frame, &est, recon_px);
         self.observe(&est);
-        let p0 = *self.first_position_um.get_or_insert(at);
-        let piezo = piezo_um.is_some();
-        let residual = register::residual_at(index, (at, p0), shift, &self.dirs(), piezo);
-        self.steps.push(residual);
-        if index == 0 {
-            self.first = est;
-        }
-        self.frames += 1;
-        self.last_position_um = Some(at);
-        self.last_image_shift_px = shift;
-        self.publish_rows(0);
+        self.record(index, at, shift, piezo_um.is_some(), est);
         Ok(Some(FrameReport {
             index,
             targets_found: found,
             image_shift_px: shift,
             process_ms: t0.elapsed().as_secs_f64() * 1e3,
         }))
+    }
+
+    /// Frame 0: find the targets (and name those of the board in view that were not
+    /// found), fix the frame size and the measurement channel.
+    fn detect_frame_zero(&mut self, frame: &RgbImage) -> Result<(), PipelineError> {
+        let got = frame.dimensions();
+        let det = detect::detect(frame, &self.detect_cfg);
+        if det.targets.is_empty() {
+            return Err(PipelineError::NoTarget { index: 0 });
+        }
+        self.channel = detect::measurement_channel(frame, &det);
+        let mut skipped = det.skipped;
+        if let Some(board) = &self.board {
+            // A board target in view that detection neither found nor reported.
+            let found: Vec<[f64; 2]> = det.targets.iter().map(|t| t.outer_centre_px).collect();
+            let reported: Vec<[f64; 2]> = skipped.iter().map(|s| s.centre_px).collect();
+            let scale = self.opts.scale_um_per_px;
+            let unseen = super::layout::unseen_targets(&found, &reported, board, scale, got);
+            skipped.extend(unseen);
+        }
+        self.check_calibration(got)?;
+        self.targets = det.targets;
+        self.skipped = skipped;
+        self.size = Some(got);
+        self.publish_rows(DETECTION_SLACK_ROWS);
+        Ok(())
+    }
+
+    /// Frame 0's targets measured where detection found them, from its guesses.
+    fn frame_zero_estimates(&self, frame: &RgbImage) -> Vec<Option<CentreEstimate>> {
+        let how = (self.channel, self.opts.response);
+        let estimator = self.opts.estimator;
+        self.targets
+            .par_iter()
+            .map(|c| measure_in_frame(frame, how, (c, None), [0.0; 2], estimator))
+            .collect()
+    }
+
+    /// Where frame `index` at `at` should be ([`Measurer::predicted`]); frame 0 where it is.
+    fn predicted(&self, index: usize, at: At) -> [f64; 2] {
+        self.measurer.as_ref().map_or([0.0; 2], |m| {
+            m.predicted(index, at)
+                .expect("every frame before this one is recorded")
+        })
+    }
+
+    /// Frame `index`'s displacement from frame 0, measured on the targets found in both.
+    fn image_shift_px(
+        &self,
+        index: usize,
+        est: &[Option<CentreEstimate>],
+    ) -> Result<[f64; 2], PipelineError> {
+        let found = est.iter().any(|e| e.is_some());
+        if index == 0 {
+            return if found {
+                Ok([0.0; 2])
+            } else {
+                Err(PipelineError::NoTarget { index })
+            };
+        }
+        let pairs: Vec<([f64; 2], [f64; 2])> = self
+            .first
+            .iter()
+            .zip(est)
+            .filter_map(|(a, b)| Some((a.as_ref()?.outer_px, b.as_ref()?.outer_px)))
+            .collect();
+        register::image_shift_px(&pairs).ok_or(PipelineError::NoTarget { index })
+    }
+
+    /// Frame `index` is in: its step's residual, the registration's record of it (frame 0
+    /// makes the [`Measurer`] later frames are measured with).
+    fn record(
+        &mut self,
+        index: usize,
+        at: At,
+        shift: [f64; 2],
+        piezo: bool,
+        est: Vec<Option<CentreEstimate>>,
+    ) {
+        let p0 = *self.first_position_um.get_or_insert(at);
+        let residual = register::residual_at(index, (at, p0), shift, &self.dirs(), piezo);
+        self.steps.push(residual);
+        if index == 0 {
+            self.first = est;
+            self.start_measuring(at);
+        } else if let Some(m) = &self.measurer {
+            m.record(index, shift, at);
+        }
+        self.frames += 1;
+        self.last_position_um = Some(at);
+        self.last_image_shift_px = shift;
+        self.publish_rows(0);
+    }
+
+    /// After frame 0: the measurer of later frames, from frame 0's fits (with the even-ink
+    /// model where a reconstruction measures the target: see `Seed::even_ink`), shared
+    /// with whoever asked ([`Pipeline::share_measurer`]).
+    fn start_measuring(&mut self, at: At) {
+        let seeds = self
+            .first
+            .iter()
+            .map(|e| {
+                let seed = e.as_ref()?.seed?;
+                Some(match self.opts.combine {
+                    Combine::Mean => seed,
+                    _ => seed.even_ink(),
+                })
+            })
+            .collect();
+        let m = Measurer::new(FrameZero {
+            size: self.size.expect("frame 0 detected"),
+            channel: self.channel,
+            response: self.opts.response,
+            estimator: self.opts.estimator,
+            registration: self.opts.registration,
+            dirs: self.dirs(),
+            targets: &self.targets,
+            seeds,
+            at,
+        });
+        if let Some(cell) = &self.measurer_shared {
+            let _ = cell.set(m.clone());
+        }
+        self.measurer = Some(m);
     }
 
     /// Each target's offset into its scatter, its centre into its track.
@@ -533,10 +609,12 @@ impl Pipeline {
         let mut skipped = self.skipped.clone();
         let mut images = Vec::new();
         let combining = std::mem::take(&mut self.combining);
+        // Reconstructions nobody keeps hand their memory on (a few buffers, not one each).
+        let spare = Mutex::new(Vec::new());
         let measured: Vec<Result<Measured, String>> = combining
             .into_par_iter()
             .enumerate()
-            .map(|(t, c)| self.measure_target(t, c?, k))
+            .map(|(t, c)| self.measure_target(t, c?, k, &spare))
             .collect();
         let mut objects = Vec::new();
         let mut uncertain = Vec::new();
@@ -710,7 +788,13 @@ impl Pipeline {
     }
 
     /// One target's result with the chosen combine mode (and its reconstruction, if any).
-    fn measure_target(&self, t: usize, combining: Combining, k: usize) -> Result<Measured, String> {
+    fn measure_target(
+        &self,
+        t: usize,
+        combining: Combining,
+        k: usize,
+        spare: &Spare,
+    ) -> Result<Measured, String> {
         let s = self.opts.scale_um_per_px;
         let first = self.first[t].as_ref().ok_or("not measurable in frame 0")?;
         let (est, sigma_px, frames, fine) = match combining {
@@ -721,11 +805,11 @@ impl Pipeline {
                 (e, sigma, m.frames(), None)
             }
             Combining::Window(tw) => {
-                let (e, fine) = self.reconstruct_target(t, tw, k)?;
+                let (e, fine) = self.reconstruct_target(t, tw, k, spare)?;
                 let sigma = e
                     .offset_cov_px2
                     .map(|c| [c[0][0].max(0.0).sqrt(), c[1][1].max(0.0).sqrt()]);
-                (e, sigma, self.frames, Some(fine))
+                (e, sigma, self.frames, fine)
             }
         };
         let off = est.offset_px();
@@ -753,17 +837,20 @@ impl Pipeline {
     }
 
     /// The target's window, reconstructed on the k-times finer grid and measured there.
-    /// The estimate comes back in camera pixels of frame 0.
+    /// The estimate comes back in camera pixels of frame 0, with the reconstruction when
+    /// images are kept (else its memory goes back to `spare`).
     fn reconstruct_target(
         &self,
         t: usize,
         tw: TargetWindow,
         k: usize,
-    ) -> Result<(CentreEstimate, Fine), String> {
+        spare: &Spare,
+    ) -> Result<(CentreEstimate, Option<Fine>), String> {
         let first = self.first[t].as_ref().ok_or("not measurable in frame 0")?;
         let c = &self.targets[t];
         let (x0, y0) = (tw.x0, tw.y0);
-        let fine = tw.acc.finish();
+        let buf = spare.lock().ok().and_then(|mut s| s.pop());
+        let fine = tw.acc.finish_in(buf.unwrap_or_default());
         let (fine_w, fine_h) = (fine.width, fine.height);
         let plane = Plane {
             width: fine.width,
@@ -775,32 +862,46 @@ impl Pipeline {
         let guess = fine_guess(first, c, [x0, y0], k, tw.side as usize);
         let seed = first.seed.map(|s| s.mapped(to_fine, kf));
         let start = seed.as_ref().map_or(Start::Guess, Start::Near);
-        let e = estimate_from(&plane, &guess, self.opts.estimator, kf, start)
-            .map_err(|e| format!("on its reconstruction: {e}"))?;
-        let from_fine = |p: [f64; 2]| [(p[0] + 0.5) / kf - 0.5 + x0, (p[1] + 0.5) / kf - 0.5 + y0];
-        let back = CentreEstimate {
-            outer_px: from_fine(e.outer_px),
-            inner_px: from_fine(e.inner_px),
-            outer_radius_px: e.outer_radius_px / kf,
-            inner_radius_px: e.inner_radius_px / kf,
-            offset_cov_px2: e
-                .offset_cov_px2
-                .map(|c| c.map(|r| r.map(|v| v / (kf * kf)))),
-            seed: None,
-            even_ink: e.even_ink.map(|v| EvenInk {
-                offset_px: v.offset_px.map(|o| o / kf),
-                offset_cov_px2: v
-                    .offset_cov_px2
-                    .map(|c| c.map(|r| r.map(|x| x / (kf * kf)))),
-            }),
-        };
+        let e = estimate_from(&plane, &guess, self.opts.estimator, kf, start);
+        if !self.keep_images {
+            if let Ok(mut s) = spare.lock() {
+                s.push(plane.data);
+            }
+            let e = e.map_err(|e| format!("on its reconstruction: {e}"))?;
+            return Ok((in_frame(&e, [x0, y0], kf), None));
+        }
+        let e = e.map_err(|e| format!("on its reconstruction: {e}"))?;
         let fine = Fine {
             width: fine_w,
             height: fine_h,
             k,
             data: plane.data,
         };
-        Ok((back, fine))
+        Ok((in_frame(&e, [x0, y0], kf), Some(fine)))
+    }
+}
+
+/// Buffers of reconstructions already measured, for the next ones.
+type Spare = Mutex<Vec<Vec<f32>>>;
+
+/// An estimate on the fine grid of a window at `origin`, back in camera pixels of frame 0.
+fn in_frame(e: &CentreEstimate, [x0, y0]: [f64; 2], kf: f64) -> CentreEstimate {
+    let from_fine = |p: [f64; 2]| [(p[0] + 0.5) / kf - 0.5 + x0, (p[1] + 0.5) / kf - 0.5 + y0];
+    CentreEstimate {
+        outer_px: from_fine(e.outer_px),
+        inner_px: from_fine(e.inner_px),
+        outer_radius_px: e.outer_radius_px / kf,
+        inner_radius_px: e.inner_radius_px / kf,
+        offset_cov_px2: e
+            .offset_cov_px2
+            .map(|c| c.map(|r| r.map(|v| v / (kf * kf)))),
+        seed: None,
+        even_ink: e.even_ink.map(|v| EvenInk {
+            offset_px: v.offset_px.map(|o| o / kf),
+            offset_cov_px2: v
+                .offset_cov_px2
+                .map(|c| c.map(|r| r.map(|x| x / (kf * kf)))),
+        }),
     }
 }
 
@@ -890,64 +991,6 @@ struct TargetWindow {
     y0: f64,
     side: u32,
     acc: Accumulator,
-}
-
-/// The window a target is measured in (left, top, side) at its frame-0 place moved by
-/// `shift_px`; it may reach past the right and bottom edges (the crop clips it).
-fn measure_window(c: &Candidate, shift_px: [f64; 2]) -> (f64, f64, u32) {
-    let reach = c.outer_radii_px[1] + WINDOW_MARGIN_PX;
-    let cx = c.outer_centre_px[0] + shift_px[0];
-    let cy = c.outer_centre_px[1] + shift_px[1];
-    (
-        (cx - reach).floor().max(0.0),
-        (cy - reach).floor().max(0.0),
-        (2.0 * reach).ceil() as u32 + 1,
-    )
-}
-
-/// Measure one target in a frame at its frame-0 place moved by `shift_px`, on a window of
-/// channel `ch`, the fit started from frame 0's `seed` (frame coordinates) when there is
-/// one. `None` when it cannot be measured (out of frame, estimator failure).
-fn measure_in_frame(
-    frame: &RgbImage,
-    (ch, response): (usize, Response),
-    (c, seed): (&Candidate, Option<Seed>),
-    shift_px: [f64; 2],
-    estimator: Estimator,
-) -> Option<CentreEstimate> {
-    let (x0, y0, side) = measure_window(c, shift_px);
-    let crop = Plane::from_channel_roi_in(
-        frame,
-        ch,
-        Roi {
-            x: x0 as u32,
-            y: y0 as u32,
-            w: side,
-            h: side,
-        },
-        response,
-    );
-    let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
-    let guess = Candidate {
-        outer_centre_px: mv(c.outer_centre_px),
-        inner_centre_px: mv(c.inner_centre_px),
-        outer_radii_px: c.outer_radii_px,
-        inner_radii_px: c.inner_radii_px,
-        roi: Roi {
-            x: 0,
-            y: 0,
-            w: crop.width as u32,
-            h: crop.height as u32,
-        },
-    };
-    let seed = seed.map(|s| s.mapped(|p| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0], 1.0));
-    let start = seed.as_ref().map_or(Start::Guess, Start::Track);
-    let mut e = estimate_from(&crop, &guess, estimator, 1.0, start).ok()?;
-    let back = |p: [f64; 2]| [p[0] + x0, p[1] + y0];
-    e.outer_px = back(e.outer_px);
-    e.inner_px = back(e.inner_px);
-    e.seed = e.seed.map(|s| s.mapped(back, 1.0));
-    Some(e)
 }
 
 /// Mean of per-frame offsets: inverse-covariance weighted when every frame has a

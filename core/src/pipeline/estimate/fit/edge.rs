@@ -163,6 +163,14 @@ pub(super) fn edge<T: Real>(d: T, inv_s: T) -> (T, T) {
     (e, de)
 }
 
+/// [`edge`] where it is known flat (|d| > FLAT·s): the coverage selected by the side, no
+/// slope; the same values [`edge`] gives there, without the special functions.
+#[inline(always)]
+pub(super) fn flat_edge<T: Real>(d: T) -> (T, T) {
+    let c = T::c;
+    (if d >= c(0.0) { c(0.0) } else { c(1.0) }, c(0.0))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

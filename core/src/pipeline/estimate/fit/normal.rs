@@ -13,7 +13,7 @@
 //! its own sampling error). The cost, whose changes decide the steps, is summed in `f64`.
 //! Against the `f64` per-pixel form (the tests' reference) the minimum moves by < 1e-5 px.
 
-use super::edge::{edge, Real};
+use super::edge::{edge, flat_edge, Real, FLAT};
 use super::{
     Problem, B0, BX, BY, C, CI, CXI, CXO, CYI, CYO, GRADIENTS, HOLE, MAXP, NC, RI, RIH, RIM, S,
 };
@@ -86,7 +86,8 @@ impl Problem<'_> {
             n: 0,
         };
         let q = self.relative(p);
-        let mut batch = Batch::default();
+        let classes = Classes::new(self, p, &free[..nfree]);
+        let mut batches: [Batch; 4] = Default::default();
         let reach2 = self.win.reach * self.win.reach;
         for y in (self.win.y0..self.win.y1).step_by(self.step) {
             let fy = y as f64;
@@ -98,19 +99,23 @@ impl Problem<'_> {
                 if rx * rx + ry * ry > reach2 {
                     continue;
                 }
+                let class = classes.of(fx, fy);
+                let batch = &mut batches[class];
                 let l = batch.len;
                 batch.x[l] = (fx - self.mid[0]) as f32;
                 batch.y[l] = (fy - self.mid[1]) as f32;
                 batch.v[l] = row[x];
                 batch.len += 1;
                 if batch.len == LANES {
-                    self.add_batch(&q, &batch, &mut sums);
+                    self.add_class(class, &q, batch, &mut sums, &classes);
                     batch.len = 0;
                 }
             }
         }
-        if batch.len > 0 {
-            self.add_batch(&q, &batch, &mut sums);
+        for (class, batch) in batches.iter().enumerate() {
+            if batch.len > 0 {
+                self.add_class(class, &q, batch, &mut sums, &classes);
+            }
         }
         sums.fold()
     }
@@ -124,15 +129,34 @@ impl Problem<'_> {
         q
     }
 
-    /// The model, its Jacobian rows and residuals for one batch, added to the sums. Lanes
-    /// past `batch.len` are evaluated at whatever they hold and weighted 0.
+    /// A batch of one class through the model compiled for it.
     #[inline(always)]
-    fn add_batch(&self, q: &[f32; MAXP], batch: &Batch, sums: &mut Sums) {
+    fn add_class(&self, class: usize, q: &[f32; MAXP], b: &Batch, sums: &mut Sums, c: &Classes) {
+        let free = &c.free[class][..c.nfree[class]];
+        match class {
+            0 => self.add_batch::<false, false>(q, b, sums, free),
+            OUTER => self.add_batch::<true, false>(q, b, sums, free),
+            INNER => self.add_batch::<false, true>(q, b, sums, free),
+            _ => self.add_batch::<true, true>(q, b, sums, free),
+        }
+    }
+
+    /// The model, its Jacobian rows and residuals for one batch, added to the sums of the
+    /// parameters `free` (those the class's Jacobian rows can move). Lanes past
+    /// `batch.len` are evaluated at whatever they hold and weighted 0.
+    #[inline(always)]
+    fn add_batch<const O: bool, const I: bool>(
+        &self,
+        q: &[f32; MAXP],
+        batch: &Batch,
+        sums: &mut Sums,
+        free: &[usize],
+    ) {
         let mut j = [[0.0; LANES]; MAXP];
         let mut r = [0.0; LANES];
         for l in 0..LANES {
             let w = if l < batch.len { 1.0 } else { 0.0 };
-            let (row, res) = self.pixel(q, batch.x[l], batch.y[l], batch.v[l]);
+            let (row, res) = self.pixel::<f32, O, I>(q, batch.x[l], batch.y[l], batch.v[l]);
             for (ja, va) in j.iter_mut().zip(row) {
                 ja[l] = va * w;
             }
@@ -142,8 +166,7 @@ impl Problem<'_> {
         for (c, &rl) in sums.cost.iter_mut().zip(&r) {
             *c += rl as f64 * rl as f64;
         }
-        // Only the parameters the fit moves: the held gradients' rows are zero.
-        let free = &sums.free[..sums.nfree];
+        // Only the parameters the fit moves and this class's rows touch: the rest are zero.
         for (i, &a) in free.iter().enumerate() {
             for (g, (&ja, &rl)) in sums.g[a].iter_mut().zip(j[a].iter().zip(&r)) {
                 *g += ja * rl;
@@ -157,9 +180,17 @@ impl Problem<'_> {
     }
 
     /// One pixel's Jacobian row (`∂model/∂p`) and residual `v − model`, at position
-    /// (`fx`, `fy`) from the window's middle, the centres in `p` likewise.
+    /// (`fx`, `fy`) from the window's middle, the centres in `p` likewise. Where the outer
+    /// (`O` false) or inner (`I` false) edges are known flat, their coverage is selected
+    /// without the special functions and their slopes are 0, as [`edge`] gives them there.
     #[inline(always)]
-    pub(super) fn pixel<T: Real>(&self, p: &[T; MAXP], fx: T, fy: T, v: T) -> ([T; MAXP], T) {
+    fn pixel<T: Real, const O: bool, const I: bool>(
+        &self,
+        p: &[T; MAXP],
+        fx: T,
+        fy: T,
+        v: T,
+    ) -> ([T; MAXP], T) {
         let c = T::c;
         // Uniform switches as factors, so that every lane runs the same code.
         let ring_inner = c(if self.np == MAXP { 1.0 } else { 0.0 });
@@ -169,10 +200,17 @@ impl Problem<'_> {
         let ro = (dxo * dxo + dyo * dyo).sqrt().max(c(1e-9));
         let (dxi, dyi) = (fx - p[CXI], fy - p[CYI]);
         let ri = (dxi * dxi + dyi * dyi).sqrt().max(c(1e-9));
-        let (e_rim, d_rim) = edge(ro - p[RIM], inv_s);
-        let (e_hole, d_hole) = edge(ro - p[HOLE], inv_s);
-        let (e_in, d_in) = edge(ri - p[RI], inv_s);
-        let (e_ih, d_ih) = edge(ri - p[RIH], inv_s);
+        let at = |active: bool, d: T| {
+            if active {
+                edge(d, inv_s)
+            } else {
+                flat_edge(d)
+            }
+        };
+        let (e_rim, d_rim) = at(O, ro - p[RIM]);
+        let (e_hole, d_hole) = at(O, ro - p[HOLE]);
+        let (e_in, d_in) = at(I, ri - p[RI]);
+        let (e_ih, d_ih) = at(I, ri - p[RIH]);
         let (e_ih, d_ih) = (e_ih * ring_inner, d_ih * ring_inner);
         let (cov_o, cov_i) = (e_rim - e_hole, e_in - e_ih);
         let inv_half = c(self.inv_half);
@@ -209,6 +247,75 @@ impl Problem<'_> {
         let ds_i = -(d_in * (ri - p[RI]) - d_ih * (ri - p[RIH])) * inv_s;
         j[S] = lco * ds_o + lci * ds_i;
         (j, v - l * shade)
+    }
+}
+
+/// Which edges can be other than flat at a pixel: bit [`OUTER`] the ring's, bit [`INNER`]
+/// the inner shape's. Decided from the distance to each shape's centre with a margin, so
+/// that a pixel put in a class without an edge has that edge flat for certain (an edge
+/// that is flat anyway is also evaluated right by [`edge`]).
+const OUTER: usize = 1;
+const INNER: usize = 2;
+
+/// The classes' bounds at one parameter vector, and each class's free parameters.
+struct Classes {
+    centre: [[f64; 2]; 2],
+    /// Per shape, squared radii: flat inside `lo2`, flat outside `hi2` (`lo2` < 0: never
+    /// flat inside).
+    lo2: [f64; 2],
+    hi2: [f64; 2],
+    free: [[usize; MAXP]; 4],
+    nfree: [usize; 4],
+}
+
+impl Classes {
+    fn new(prob: &Problem, p: &[f64; MAXP], free: &[usize]) -> Classes {
+        // FLAT blur widths, less a margin far wider than the f32 model's roundings.
+        let flat = FLAT * p[S] + 1e-3 * p[S].max(1.0);
+        let bounds = |radii: &[f64]| {
+            let lo = radii.iter().copied().fold(f64::INFINITY, f64::min) - flat;
+            let hi = radii.iter().copied().fold(0.0, f64::max) + flat;
+            (if lo > 0.0 { lo * lo } else { -1.0 }, hi * hi)
+        };
+        let (lo_o, hi_o) = bounds(&[p[HOLE], p[RIM]]);
+        let inner: &[f64] = if prob.np == MAXP {
+            &[p[RI], p[RIH]]
+        } else {
+            &[p[RI]]
+        };
+        let (lo_i, hi_i) = bounds(inner);
+        let mut out = Classes {
+            centre: [[p[CXO], p[CYO]], [p[CXI], p[CYI]]],
+            lo2: [lo_o, lo_i],
+            hi2: [hi_o, hi_i],
+            free: [[0; MAXP]; 4],
+            nfree: [0; 4],
+        };
+        for class in 0..4 {
+            let moved = |a: &usize| {
+                let geometry_o = [CXO, CYO, HOLE, RIM].contains(a);
+                let geometry_i = [CXI, CYI, RI, RIH].contains(a);
+                (class & OUTER != 0 || !geometry_o)
+                    && (class & INNER != 0 || !geometry_i)
+                    && (class != 0 || *a != S)
+            };
+            for &a in free.iter().filter(|a| moved(a)) {
+                out.free[class][out.nfree[class]] = a;
+                out.nfree[class] += 1;
+            }
+        }
+        out
+    }
+
+    /// The class of the pixel at (`fx`, `fy`).
+    #[inline(always)]
+    fn of(&self, fx: f64, fy: f64) -> usize {
+        let active = |shape: usize| {
+            let [cx, cy] = self.centre[shape];
+            let d2 = (fx - cx) * (fx - cx) + (fy - cy) * (fy - cy);
+            d2 >= self.lo2[shape] && d2 <= self.hi2[shape]
+        };
+        (if active(0) { OUTER } else { 0 }) | (if active(1) { INNER } else { 0 })
     }
 }
 

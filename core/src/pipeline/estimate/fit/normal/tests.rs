@@ -186,44 +186,60 @@ fn batched_sums_equal_the_per_pixel_ones() {
         (true, false, 3),
     ] {
         let prob = problem(&plane, &win, ring_inner, planes, step);
-        let p = params(ring_inner);
-        let (got, want) = (prob.normal(&p), reference(&prob, &p));
-        let case = format!("ring_inner {ring_inner}, planes {planes}, step {step}");
-        assert_eq!(got.n, want.n, "{case}");
-        // Some pixels are left out (outside the reach), so no batch is always full.
-        assert!(got.n % 8 != 0 || step > 1, "{case}: {} pixels", got.n);
-        // The lanes sum in f32 (measured worst 1.5e-6 of the scale); the reference in f64.
-        let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 3e-6 * scale.max(1.0);
-        assert!(
-            close(got.cost, want.cost, want.cost),
-            "{case}: cost {} vs {}",
-            got.cost,
-            want.cost
-        );
-        for a in 0..prob.np {
-            let ga = want.h[a][a].sqrt() * want.cost.sqrt();
-            assert!(
-                close(got.g[a], want.g[a], ga),
-                "{case}: g[{a}] {} vs {}",
-                got.g[a],
-                want.g[a]
+        // The blur of the params (0.9 px); one so sharp that most pixels are flat (no
+        // edge's special functions); one so wide that every pixel sees both shapes' edges.
+        for s in [None, Some(0.5), Some(4.0)] {
+            let mut p = params(ring_inner);
+            if let Some(s) = s {
+                p[S] = s;
+            }
+            let case = format!(
+                "ring_inner {ring_inner}, planes {planes}, step {step}, s {}",
+                p[S]
             );
-            for b in 0..prob.np {
-                let hab = (want.h[a][a] * want.h[b][b]).sqrt();
-                assert!(
-                    close(got.h[a][b], want.h[a][b], hab),
-                    "{case}: h[{a}][{b}] {} vs {}",
-                    got.h[a][b],
-                    want.h[a][b]
-                );
-            }
+            assert_same_sums(&prob, &p, &case);
         }
-        // The held gradients stay out of the sums, as the per-pixel form left them.
-        if !planes {
-            for a in [C + 1, C + 2, CI + 1, CI + 2] {
-                assert_eq!(got.h[a][a], 0.0, "{case}");
-                assert_eq!(got.g[a], 0.0, "{case}");
-            }
+    }
+}
+
+/// The batched sums of `prob` at `p` against the per-pixel reference.
+fn assert_same_sums(prob: &Problem, p: &[f64; MAXP], case: &str) {
+    let (planes, step) = (prob.planes, prob.step);
+    let (got, want) = (prob.normal(p), reference(prob, p));
+    assert_eq!(got.n, want.n, "{case}");
+    // Some pixels are left out (outside the reach), so no batch is always full.
+    assert!(got.n % 8 != 0 || step > 1, "{case}: {} pixels", got.n);
+    // The lanes sum in f32 (measured worst 1.5e-6 of the scale); the reference in f64.
+    let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 3e-6 * scale.max(1.0);
+    assert!(
+        close(got.cost, want.cost, want.cost),
+        "{case}: cost {} vs {}",
+        got.cost,
+        want.cost
+    );
+    for a in 0..prob.np {
+        let ga = want.h[a][a].sqrt() * want.cost.sqrt();
+        assert!(
+            close(got.g[a], want.g[a], ga),
+            "{case}: g[{a}] {} vs {}",
+            got.g[a],
+            want.g[a]
+        );
+        for b in 0..prob.np {
+            let hab = (want.h[a][a] * want.h[b][b]).sqrt();
+            assert!(
+                close(got.h[a][b], want.h[a][b], hab),
+                "{case}: h[{a}][{b}] {} vs {}",
+                got.h[a][b],
+                want.h[a][b]
+            );
+        }
+    }
+    // The held gradients stay out of the sums, as the per-pixel form left them.
+    if !planes {
+        for a in [C + 1, C + 2, CI + 1, CI + 2] {
+            assert_eq!(got.h[a][a], 0.0, "{case}");
+            assert_eq!(got.g[a], 0.0, "{case}");
         }
     }
 }
