@@ -260,24 +260,37 @@ impl Accumulator {
             })
             .collect();
         let first = View::new(&self.first, w, h);
-        out.par_chunks_mut(fw).enumerate().for_each(|(yy, dst)| {
-            for (xx, d) in dst.iter_mut().enumerate() {
-                let open: f32 = reach
-                    .iter()
-                    .filter(|(_, ry)| ry[yy])
-                    .map(|(cx, _)| cx[xx])
-                    .sum();
-                let n = flushed_weight.as_ref().map_or(0.0, |wt| wt[yy * fw + xx]) + open;
-                *d = if n > 0.0 {
-                    *d / n
-                } else {
-                    first.at(xx / k, yy / k)
-                };
-            }
-        });
+        out.par_chunks_mut(fw)
+            .with_min_len(rows_per_task(fw))
+            .enumerate()
+            .for_each(|(yy, dst)| {
+                for (xx, d) in dst.iter_mut().enumerate() {
+                    let open: f32 = reach
+                        .iter()
+                        .filter(|(_, ry)| ry[yy])
+                        .map(|(cx, _)| cx[xx])
+                        .sum();
+                    let n = flushed_weight.as_ref().map_or(0.0, |wt| wt[yy * fw + xx]) + open;
+                    *d = if n > 0.0 {
+                        *d / n
+                    } else {
+                        first.at(xx / k, yy / k)
+                    };
+                }
+            });
         out
     }
 }
+
+/// Rows of `width` values one parallel task takes at least: a target's window (~35 000
+/// values) is one task, since splitting work that small across threads costs more than it
+/// gains; a whole frame's rows are shared out.
+fn rows_per_task(width: usize) -> usize {
+    (MIN_TASK_VALUES / width.max(1)).max(1)
+}
+
+/// Values below which a pass over rows is not split across threads.
+const MIN_TASK_VALUES: usize = 1 << 16;
 
 /// `n` zeros in `buf`'s memory if it has room, else freshly allocated (zero pages the
 /// system maps on first touch).
@@ -298,22 +311,26 @@ fn interp_rows(g: &mut Group, frame: View, sx: i64, k: usize, lattice: &Lattice)
     let table = tap_table(w, k, sx);
     let add = std::mem::replace(&mut g.written, true);
     let (px, step) = (lattice.phase[0], lattice.step);
-    g.rows.par_chunks_mut(fw).enumerate().for_each(|(y, acc)| {
-        let src = &frame.data[y * w..(y + 1) * w];
-        let tap = |t: &Taps| {
-            t.w[0] * src[t.idx[0] as usize]
-                + t.w[1] * src[t.idx[1] as usize]
-                + t.w[2] * src[t.idx[2] as usize]
-                + t.w[3] * src[t.idx[3] as usize]
-        };
-        let cols = acc.iter_mut().zip(&table);
-        match (step, add) {
-            (1, true) => cols.for_each(|(a, t)| *a += tap(t)),
-            (1, false) => cols.for_each(|(a, t)| *a = tap(t)),
-            (_, true) => cols.skip(px).step_by(step).for_each(|(a, t)| *a += tap(t)),
-            (_, false) => cols.skip(px).step_by(step).for_each(|(a, t)| *a = tap(t)),
-        }
-    });
+    g.rows
+        .par_chunks_mut(fw)
+        .with_min_len(rows_per_task(fw))
+        .enumerate()
+        .for_each(|(y, acc)| {
+            let src = &frame.data[y * w..(y + 1) * w];
+            let tap = |t: &Taps| {
+                t.w[0] * src[t.idx[0] as usize]
+                    + t.w[1] * src[t.idx[1] as usize]
+                    + t.w[2] * src[t.idx[2] as usize]
+                    + t.w[3] * src[t.idx[3] as usize]
+            };
+            let cols = acc.iter_mut().zip(&table);
+            match (step, add) {
+                (1, true) => cols.for_each(|(a, t)| *a += tap(t)),
+                (1, false) => cols.for_each(|(a, t)| *a = tap(t)),
+                (_, true) => cols.skip(px).step_by(step).for_each(|(a, t)| *a += tap(t)),
+                (_, false) => cols.skip(px).step_by(step).for_each(|(a, t)| *a = tap(t)),
+            }
+        });
 }
 
 /// Interp's column pass of a group's sum (`rows`, its vertical shift `sy`, the lattice)
@@ -338,6 +355,7 @@ fn interp_cols(
     let (step, px) = (lattice.step, lattice.phase[0]);
     let on_lattice = |&(yy, _): &(usize, &mut [f32])| yy % step == lattice.phase[1] % step;
     out.par_chunks_mut(fw)
+        .with_min_len(rows_per_task(fw) * step)
         .enumerate()
         .filter(on_lattice)
         .for_each(|(yy, dst)| {
@@ -378,6 +396,7 @@ fn splat_rows(g: &mut Group, frame: View, sx: i64, k: usize) {
     }
     g.rows
         .par_chunks_mut(fw as usize)
+        .with_min_len(rows_per_task(fw as usize))
         .enumerate()
         .for_each(|(y, acc)| {
             let src = &frame.data[y * w..(y + 1) * w];
@@ -393,28 +412,35 @@ fn splat_rows(g: &mut Group, frame: View, sx: i64, k: usize) {
 fn splat_cols(out: &mut [f32], rows: &[f32], sy: i64, h: usize, k: usize) {
     let fw = rows.len() / h;
     let fh = (h * k) as i64;
-    out.par_chunks_mut(fw).enumerate().for_each(|(yy, dst)| {
-        let f = yy as i64 + sy;
-        if !(0..fh).contains(&f) {
-            return;
-        }
-        let r = &rows[(f / k as i64) as usize * fw..][..fw];
-        for (d, v) in dst.iter_mut().zip(r) {
-            *d += v;
-        }
-    });
+    out.par_chunks_mut(fw)
+        .with_min_len(rows_per_task(fw))
+        .enumerate()
+        .for_each(|(yy, dst)| {
+            let f = yy as i64 + sy;
+            if !(0..fh).contains(&f) {
+                return;
+            }
+            let r = &rows[(f / k as i64) as usize * fw..][..fw];
+            for (d, v) in dst.iter_mut().zip(r) {
+                *d += v;
+            }
+        });
 }
 
 /// A flushed splat group's counts added to the weight plane (fine rows it reaches).
 fn splat_weight(weight: &mut [f32], count_x: &[f32], sy: i64, fh: usize) {
     let fw = count_x.len();
-    weight.par_chunks_mut(fw).enumerate().for_each(|(yy, dst)| {
-        if (0..fh as i64).contains(&(yy as i64 + sy)) {
-            for (d, c) in dst.iter_mut().zip(count_x) {
-                *d += c;
+    weight
+        .par_chunks_mut(fw)
+        .with_min_len(rows_per_task(fw))
+        .enumerate()
+        .for_each(|(yy, dst)| {
+            if (0..fh as i64).contains(&(yy as i64 + sy)) {
+                for (d, c) in dst.iter_mut().zip(count_x) {
+                    *d += c;
+                }
             }
-        }
-    });
+        });
 }
 
 #[cfg(test)]
