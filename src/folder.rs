@@ -281,6 +281,42 @@ pub fn load_frame(path: &Path) -> Result<RgbImage, FolderError> {
     FrameReader::default().read(path, None)
 }
 
+/// Where frame decoders wait, between rows, while another step needs the cores: open
+/// unless [`RowGate::close`]d. Closed only for a bounded step of the caller's own (frame
+/// 0's detection and fits, a few ms), so a decoder never waits on anything else: unlike a
+/// lower priority, it cannot starve when other processes load the machine.
+#[derive(Debug, Default)]
+pub struct RowGate {
+    closed: std::sync::atomic::AtomicBool,
+    lock: std::sync::Mutex<()>,
+    opened: std::sync::Condvar,
+}
+
+impl RowGate {
+    /// Decoders stop at their next row until [`RowGate::open`].
+    pub fn close(&self) {
+        self.closed.store(true, Ordering::Release);
+    }
+
+    /// Waiting decoders go on.
+    pub fn open(&self) {
+        let _held = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        self.closed.store(false, Ordering::Release);
+        self.opened.notify_all();
+    }
+
+    /// Wait here while the gate is closed (one atomic load when it is open).
+    fn pass(&self) {
+        if !self.closed.load(Ordering::Acquire) {
+            return;
+        }
+        let mut held = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+        while self.closed.load(Ordering::Acquire) {
+            held = self.opened.wait(held).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+}
+
 /// Reads frames one after another, reusing its buffers: the file's bytes here, the
 /// pixels in the image handed back in (a 1280x720 frame is 2.7 MB: allocating it afresh
 /// every frame costs page faults comparable to part of the decoding).
@@ -325,6 +361,18 @@ impl FrameReader {
         file: &FrameFile,
         reuse: Option<RgbImage>,
         max_rows: &AtomicU32,
+    ) -> Result<(RgbImage, u32), FolderError> {
+        self.read_file_rows_gated(file, reuse, max_rows, &RowGate::default())
+    }
+
+    /// [`FrameReader::read_file_rows_until`] that waits at a row while `gate` is closed:
+    /// the pipeline's one serial step (frame 0's detection) has the cores meanwhile.
+    pub fn read_file_rows_gated(
+        &mut self,
+        file: &FrameFile,
+        reuse: Option<RgbImage>,
+        max_rows: &AtomicU32,
+        gate: &RowGate,
     ) -> Result<(RgbImage, u32), FolderError> {
         let path = &file.path();
         self.bytes.clear();
@@ -380,6 +428,7 @@ impl FrameReader {
         } else {
             let mut done = 0;
             for row in px.chunks_exact_mut(w as usize * 3) {
+                gate.pass();
                 if done >= max_rows.load(Ordering::Relaxed) {
                     break;
                 }

@@ -3,7 +3,7 @@
 //! session) and `rigctl reprocess` (each run of each session) share.
 
 use super::ahead::Ahead;
-use crate::folder::{FolderError, FrameFile, FrameReader};
+use crate::folder::{FolderError, FrameFile, FrameReader, RowGate};
 use crate::pipeline::measure::{FrameEstimates, Measurer};
 use crate::pipeline::Pipeline;
 use crate::pipeline::PipelineError;
@@ -62,6 +62,9 @@ pub fn push_frames(
     pipeline.share_rows_needed(rows_wanted.clone(), ROWS_MARGIN);
     let measurer = Arc::new(OnceLock::new());
     pipeline.share_measurer(measurer.clone());
+    // Closed while frame 0 is detected and fitted: sharing the cores with the decoders
+    // made that serial step 3-4x longer (5-9 ms against ~2), every later frame behind it.
+    let gate = RowGate::default();
     let window = FRAMES_AHEAD_PER_DECODER * workers;
     let ahead = Ahead::new(frames.len(), window);
     // Frame i goes through slot i % window, filled by whichever decoder took it: no frame is
@@ -72,16 +75,16 @@ pub fn push_frames(
         .unzip();
     std::thread::scope(|scope| -> Result<(), PushError> {
         // However the pushing ends (done, a bad frame, a refusal), the decoders stop.
-        let _stop = StopOnDrop(&ahead);
+        let _stop = StopOnDrop(&ahead, &gate);
         for _ in 0..workers {
             let (pool, rows_wanted, ahead, slots) = (&pool, &*rows_wanted, &ahead, &slots_in);
-            let measurer = &*measurer;
+            let (measurer, gate) = (&*measurer, &gate);
             scope.spawn(move || {
                 let mut reader = FrameReader::default();
                 while let Some(i) = ahead.take() {
                     let reuse = pool.lock().ok().and_then(|mut p| p.pop());
                     let read = reader
-                        .read_file_rows_until(&frames[i].file, reuse, rows_wanted)
+                        .read_file_rows_gated(&frames[i].file, reuse, rows_wanted, gate)
                         .map(|(frame, rows)| {
                             let pre = measure_ahead(measurer.get(), &frame, rows, (i, &frames[i]));
                             (frame, rows, pre)
@@ -97,7 +100,12 @@ pub fn push_frames(
         for (i, f) in frames.iter().enumerate() {
             let slot = &slots_out[i % window];
             let (frame, rows, pre) = slot.recv().map_err(|_| PushError::Decoder)??;
-            let frame = push_one(pipeline, (i, f), (frame, rows, pre), &mut again)?;
+            if i == 0 {
+                gate.close();
+            }
+            let pushed = push_one(pipeline, (i, f), (frame, rows, pre), &mut again);
+            gate.open();
+            let frame = pushed?;
             ahead.consumed(i);
             if let Ok(mut p) = pool.lock() {
                 p.push(frame);
@@ -110,11 +118,12 @@ pub fn push_frames(
 /// Frames a decoder may have decoded or be decoding beyond the one being pushed.
 const FRAMES_AHEAD_PER_DECODER: usize = 2;
 
-struct StopOnDrop<'a>(&'a Ahead);
+struct StopOnDrop<'a>(&'a Ahead, &'a RowGate);
 
 impl Drop for StopOnDrop<'_> {
     fn drop(&mut self) {
         self.0.stop();
+        self.1.open();
     }
 }
 
