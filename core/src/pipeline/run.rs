@@ -223,14 +223,15 @@ impl Pipeline {
     }
 
     /// Add this frame's reconstruction window of every target still reconstructable to
-    /// the target's reconstruction; the crop is dropped at once.
+    /// the target's reconstruction; the crop is dropped at once. On this thread: ~20 µs a
+    /// target, less than waking rayon's threads costs while decoders hold the cores.
     fn add_windows(&mut self, frame: &RgbImage, shift_px: [f64; 2]) {
         let (w, h) = (frame.width() as usize, frame.height() as usize);
         let (ch, k, response) = (self.channel, self.opts.k as usize, self.opts.response);
         // The integer part of the displacement moves the window, the rest is resampled.
         let (cx, cy) = (shift_px[0].round(), shift_px[1].round());
         let fine = reconstruct::fine_shift([shift_px[0] - cx, shift_px[1] - cy], k);
-        self.combining.par_iter_mut().for_each(|c| {
+        self.combining.iter_mut().for_each(|c| {
             let Ok(Combining::Window(tw)) = c else { return };
             let (rx, ry) = (tw.x0 + cx, tw.y0 + cy);
             let side = tw.side as usize;
