@@ -8,7 +8,7 @@
 //! `Average`) and a frame 22 % faster to decode (2.66 against 3.42 ms for 1280x720 here:
 //! undoing `Average` is a chain along each row, undoing `Up` one vector add), and 25 %
 //! faster to write; a session is written once and read by every reprocessing
-//! (docs/performance.md, "Session 17").
+//! (docs/performance.md, "Frames measured where they are decoded").
 
 use crate::daemon::session::StepRow;
 use image::RgbImage;

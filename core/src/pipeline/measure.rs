@@ -16,6 +16,7 @@ use super::register::{At, Dirs};
 use super::{Estimator, Registration, Response};
 use image::RgbImage;
 use rayon::prelude::*;
+use std::collections::VecDeque;
 use std::sync::{Arc, RwLock};
 
 /// How many frames back a frame's displacement is predicted from: that frame's measured
@@ -40,9 +41,22 @@ struct Inner {
     targets: Vec<Candidate>,
     /// `[target]`: frame 0's fit, the start of every later one.
     seeds: Vec<Option<Seed>>,
-    /// `[frame]`: its measured displacement from frame 0 and its position.
-    registered: RwLock<Vec<([f64; 2], At)>>,
+    /// Frame 0's position, and the latest frames' displacements and positions.
+    at_zero: At,
+    registered: RwLock<Recent>,
 }
+
+/// The displacement and position of the last [`KEPT`] frames recorded: what predictions
+/// can still ask for (a run of any length holds the same).
+struct Recent {
+    /// The index of `frames[0]`.
+    first: usize,
+    frames: VecDeque<([f64; 2], At)>,
+}
+
+/// Frames kept in [`Recent`]: a prediction reaches [`PREDICT_LAG`] back from a frame at most
+/// [`PREDICT_LAG`] ahead of the last one recorded.
+const KEPT: usize = 4 * PREDICT_LAG;
 
 /// One frame's estimates, made by [`Measurer::measure`].
 #[derive(Debug, Clone)]
@@ -77,27 +91,38 @@ impl Measurer {
             dirs: f.dirs,
             targets: f.targets.to_vec(),
             seeds: f.seeds,
-            registered: RwLock::new(vec![([0.0; 2], f.at)]),
+            at_zero: f.at,
+            registered: RwLock::new(Recent {
+                first: 0,
+                frames: VecDeque::from([([0.0; 2], f.at)]),
+            }),
         }))
     }
 
     /// Frame `index` (pushed next, or later) was displaced by `shift_px` at `at`.
     pub fn record(&self, index: usize, shift_px: [f64; 2], at: At) {
         let mut r = self.0.registered.write().unwrap_or_else(|e| e.into_inner());
-        if r.len() == index {
-            r.push((shift_px, at));
+        if r.first + r.frames.len() == index {
+            r.frames.push_back((shift_px, at));
+            if r.frames.len() > KEPT {
+                r.frames.pop_front();
+                r.first += 1;
+            }
         }
     }
 
     /// Where frame `index` at `at` should be: frame 0's place moved by the positions'
     /// displacement (`registration = positions`), or by frame index − [`PREDICT_LAG`]'s
     /// measured one plus the positions' change since. `None` while that frame is not
-    /// recorded.
+    /// recorded (or no longer: a frame far behind the last one recorded).
     pub fn predicted(&self, index: usize, at: At) -> Option<[f64; 2]> {
-        let r = self.0.registered.read().unwrap_or_else(|e| e.into_inner());
         let (from_px, from_at) = match self.0.registration {
-            Registration::Positions => ([0.0; 2], r[0].1),
-            Registration::Image => *r.get(index.saturating_sub(PREDICT_LAG))?,
+            Registration::Positions => ([0.0; 2], self.0.at_zero),
+            Registration::Image => {
+                let r = self.0.registered.read().unwrap_or_else(|e| e.into_inner());
+                let j = index.saturating_sub(PREDICT_LAG).checked_sub(r.first)?;
+                *r.frames.get(j)?
+            }
         };
         let d = self.0.dirs.shift_px(at, from_at);
         Some([from_px[0] + d[0], from_px[1] + d[1]])

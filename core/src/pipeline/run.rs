@@ -1,15 +1,18 @@
 //! The push-based pipeline: `new`, `push` each frame with its position, `finish`.
 //!
 //! Frame 0 is searched for targets ([`detect`]); later frames are not: each target is
-//! measured where the previous frame's displacement predicts it, on a small window of the
-//! measurement channel, which keeps a frame to a few milliseconds while the axis moves.
+//! measured where the displacement of the frame
+//! [`PREDICT_LAG`](super::measure::PREDICT_LAG) back and the positions
+//! since predict it, on a small window of the measurement channel, which keeps a frame to a
+//! few milliseconds while the axis moves ([`Measurer`]: also on the threads that decode
+//! frames ahead).
 //! Everything a frame contributes is accumulated as it is pushed and the frame is then
 //! dropped, so memory does not grow with a run's length: each target's reconstruction
 //! window is cut (its displacement is known by then) and added to the target's
 //! reconstruction ([`Accumulator`]), or with `combine = mean` its offset to a running mean
 //! ([`OffsetMean`]); the whole-frame reconstruction accumulates likewise; the per-step
 //! residuals go to a bounded [`StepLog`]. What is kept per run: frame 0's estimates (the
-//! registration's reference) and the last frame's displacement (the next prediction).
+//! registration's reference) and the last few frames' displacements (the predictions).
 
 use super::accumulate::{Accumulator, Method};
 use super::detect::{self, Candidate, DetectConfig};
@@ -375,7 +378,7 @@ impl Pipeline {
     }
 
     /// [`Pipeline::push_rows_at`] of a frame whose targets may have been measured already
-    /// by [`Pipeline::measurer`]'s [`Measurer::measure`] (on a decoder's thread): those
+    /// by [`Measurer::measure`] (on a decoder's thread: [`Pipeline::share_measurer`]): those
     /// estimates are used when they are this frame's at this prediction, else the frame is
     /// measured here.
     pub fn push_measured(
