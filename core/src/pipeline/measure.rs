@@ -112,10 +112,13 @@ impl Measurer {
     }
 
     /// Where frame `index` at `at` should be: frame 0's place moved by the positions'
-    /// displacement (`registration = positions`), or by frame index − [`PREDICT_LAG`]'s
-    /// measured one plus the positions' change since. `None` while that frame is not
-    /// recorded (or no longer: a frame far behind the last one recorded).
+    /// displacement (`registration = positions`), or by frame j = index − [`PREDICT_LAG`]'s
+    /// measured one plus the positions' change since, turned and scaled as frame j's
+    /// measured displacement is to its commanded one (once that is 2 px or more: a
+    /// misconfigured scale or axis direction then costs a long step no more than a short
+    /// one). `None` while frame j is not recorded (or no longer: far behind the last one).
     pub fn predicted(&self, index: usize, at: At) -> Option<[f64; 2]> {
+        let dirs = &self.0.dirs;
         let (from_px, from_at) = match self.0.registration {
             Registration::Positions => ([0.0; 2], self.0.at_zero),
             Registration::Image => {
@@ -124,8 +127,12 @@ impl Measurer {
                 *r.frames.get(j)?
             }
         };
-        let d = self.0.dirs.shift_px(at, from_at);
-        Some([from_px[0] + d[0], from_px[1] + d[1]])
+        let d = dirs.shift_px(at, from_at);
+        let [zr, zi] = similarity(from_px, dirs.shift_px(from_at, self.0.at_zero));
+        Some([
+            from_px[0] + zr * d[0] - zi * d[1],
+            from_px[1] + zi * d[0] + zr * d[1],
+        ])
     }
 
     /// The last row (exclusive) the measurement windows reach at `predicted_px`.
@@ -188,6 +195,27 @@ impl Measurer {
     }
 }
 
+/// The turn and scale (a complex number) that takes the commanded displacement
+/// `commanded_px` to the measured `measured_px`; none (1 + 0i) while the commanded one is
+/// under 2 px (too short to tell) or the two disagree wildly (a factor beyond 2, a turn
+/// beyond 30°: something else moved the image).
+fn similarity(measured_px: [f64; 2], commanded_px: [f64; 2]) -> [f64; 2] {
+    let [mx, my] = measured_px;
+    let [cx, cy] = commanded_px;
+    let n = cx * cx + cy * cy;
+    if n < 4.0 {
+        return [1.0, 0.0];
+    }
+    let z = [(mx * cx + my * cy) / n, (my * cx - mx * cy) / n];
+    let gain = z[0].hypot(z[1]);
+    let plausible = (0.5..=2.0).contains(&gain) && z[0] >= gain * 30f64.to_radians().cos();
+    if plausible {
+        z
+    } else {
+        [1.0, 0.0]
+    }
+}
+
 /// A target's measurement window at its frame-0 place moved by `shift_px`: left, top, side.
 pub(super) fn measure_window(c: &Candidate, shift_px: [f64; 2]) -> (f64, f64, u32) {
     let reach = c.outer_radii_px[1] + WINDOW_MARGIN_PX;
@@ -239,4 +267,80 @@ pub(super) fn measure_in_frame(
     e.inner_px = back(e.inner_px);
     e.seed = e.seed.map(|s| s.mapped(back, 1.0));
     Some(e)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn measurer(registration: Registration, scale_um_per_px: f64) -> Measurer {
+        Measurer::new(FrameZero {
+            size: (100, 100),
+            channel: 0,
+            response: Response::Linear,
+            estimator: Estimator::Fit,
+            registration,
+            dirs: Dirs {
+                scale_um_per_px,
+                axis_dir: [1.0, 0.0],
+                piezo_dir: [0.0, 1.0],
+            },
+            targets: &[],
+            seeds: Vec::new(),
+            at: [0.0, 0.0],
+        })
+    }
+
+    #[test]
+    fn a_misconfigured_scale_and_direction_are_learnt_from_the_scan() {
+        // 1 mm steps; the configured scale is 25 % off and the axis turned by 3°: the
+        // image really moves 1000/1000 px a step at 3°, the configuration says 1000/750.
+        let m = measurer(Registration::Image, 750.0);
+        let truth = |i: usize| {
+            let (s, c) = 3f64.to_radians().sin_cos();
+            [i as f64 * c, i as f64 * s]
+        };
+        for i in 1..40 {
+            let at = [1000.0 * i as f64, 0.0];
+            let p = m.predicted(i, at).expect("frame i − PREDICT_LAG recorded");
+            let err = (p[0] - truth(i)[0]).hypot(p[1] - truth(i)[1]);
+            // Until frame j has moved 2 px the commanded step is taken as it is: 8 steps
+            // 33 % long; from there on the prediction is the scan's own.
+            let j = i.saturating_sub(PREDICT_LAG);
+            let within = if 1000.0 * j as f64 / 750.0 >= 2.0 {
+                1e-9
+            } else {
+                3.0
+            };
+            assert!(
+                err < within,
+                "frame {i}: predicted {p:?}, truth {:?}",
+                truth(i)
+            );
+            m.record(i, truth(i), at);
+        }
+        // Frames not recorded yet, or long dropped, cannot be predicted from.
+        assert!(m.predicted(40 + PREDICT_LAG + 1, [0.0; 2]).is_none());
+        assert!(
+            m.predicted(PREDICT_LAG + 1, [0.0; 2]).is_none(),
+            "frame 1 was dropped"
+        );
+    }
+
+    #[test]
+    fn positions_registration_predicts_from_frame_zero_and_a_wild_scan_is_not_learnt() {
+        let m = measurer(Registration::Positions, 500.0);
+        assert_eq!(m.predicted(99, [1000.0, 500.0]), Some([2.0, 1.0]));
+        // Measured 5x the commanded: not a scale error, the step is taken as commanded.
+        let m = measurer(Registration::Image, 500.0);
+        for i in 1..=PREDICT_LAG {
+            m.record(i, [10.0 * i as f64, 0.0], [1000.0 * i as f64, 0.0]);
+        }
+        let at = [1000.0 * (2 * PREDICT_LAG) as f64, 0.0];
+        let p = m.predicted(2 * PREDICT_LAG, at).unwrap();
+        assert_eq!(
+            p,
+            [10.0 * PREDICT_LAG as f64 + 2.0 * PREDICT_LAG as f64, 0.0]
+        );
+    }
 }
