@@ -186,7 +186,7 @@ pub(super) fn estimate(
         // The same target a moment later: its ink has not changed, nor has the model.
         (Some(s), super::Start::Track(_)) => {
             let model = if s.planes { &uneven } else { &prob };
-            Ok(solve(model, s.p, k, g, Steps::FirstIfNear)?.estimate(model))
+            Ok(solve(model, s.p, k, g, Steps::FirstIfNear, None)?.estimate(model))
         }
         _ => {
             // (The even-ink model holds the gradients where they start: at 0.)
@@ -194,7 +194,7 @@ pub(super) fn estimate(
             // The even-ink model first (as fast as the fit before the planes); the planes
             // only when a score test at its minimum shows uneven ink: one more pass on
             // evenly printed targets.
-            let even = solve(&prob, p, k, g, Steps::ToMinimum)?;
+            let even = solve(&prob, p, k, g, Steps::ToMinimum, Some(&uneven))?;
             if !uneven_ink_shows(&prob, &uneven, &even) {
                 return Ok(even.estimate(&prob));
             }
@@ -205,7 +205,7 @@ pub(super) fn estimate(
                     p[i] = s.p[i];
                 }
             }
-            let mut est = solve(&uneven, p, k, g, Steps::ToMinimum)?.estimate(&uneven);
+            let mut est = solve(&uneven, p, k, g, Steps::ToMinimum, None)?.estimate(&uneven);
             let e = even.estimate(&prob);
             est.even_ink = Some(super::EvenInk {
                 offset_px: e.offset_px(),
@@ -242,7 +242,14 @@ fn uneven_ink_shows(even: &Problem, uneven: &Problem, fit: &Fit) -> bool {
     let Some(s2) = fit.residual_variance(even) else {
         return false;
     };
-    let at = uneven.normal(&fit.p);
+    let fresh;
+    let at = match &fit.wide {
+        Some(wide) => wide,
+        None => {
+            fresh = uneven.normal(&fit.p);
+            &fresh
+        }
+    };
     let all: Vec<usize> = (0..uneven.np).collect();
     let held: Vec<usize> = all
         .iter()
@@ -262,10 +269,12 @@ fn gn_gain(n: &Normal, idx: &[usize]) -> Option<f64> {
     h.cholesky().map(|c| g.dot(&c.solve(&g)))
 }
 
-/// A converged fit: the parameters and the normal equations there.
+/// A converged fit: the parameters and the normal equations there; and, when the fit's
+/// last pass was made with the contrast gradients free too, those (for the score test).
 struct Fit {
     p: [f64; MAXP],
     normal: Normal,
+    wide: Option<Normal>,
 }
 
 impl Fit {
@@ -356,19 +365,29 @@ fn predicted_gain(h: &DMatrix<f64>, rhs: &DVector<f64>, delta: &DVector<f64>) ->
     2.0 * delta.dot(rhs) - delta.dot(&(h * delta))
 }
 
-/// Levenberg–Marquardt from `p` to the minimum.
+/// A step this short (in the parameters' own σ², as `SHORT_STEP_SIGMAS2`) is likely the
+/// last but one: the pass after it is made with the contrast gradients free too, so that
+/// the score test can read that pass instead of making one more.
+const WIDE_BELOW_SIGMAS2: f64 = 10.0;
+
+/// Levenberg–Marquardt from `p` to the minimum. With `wide` (the same model with the
+/// contrast gradients free), a pass that is likely the last is made with `wide` and kept
+/// in the fit; the gradients still stay where they are (the sums of the other parameters
+/// are the same bits either way).
 fn solve(
     prob: &Problem,
     mut p: [f64; MAXP],
     k: f64,
     g: &Candidate,
     steps: Steps,
+    wide: Option<&Problem>,
 ) -> Result<Fit, EstimateError> {
     let np = prob.np;
     let sane = |q: &[f64; MAXP]| insane(q, np, k, g);
     let diverged =
         |iterations: usize, reason: String| EstimateError::Diverged { iterations, reason };
     let mut cur = prob.normal(&p);
+    let mut cur_wide = None;
     let mut lambda = 1e-3;
     let mut iterations = 0;
     let mut converged = false;
@@ -414,11 +433,18 @@ fn solve(
             break;
         }
         if sane(&q).is_none() {
-            let next = prob.normal(&q);
+            let (next, next_wide) = match wide.filter(|_| step_sigmas2 < WIDE_BELOW_SIGMAS2) {
+                Some(w) => {
+                    let n = w.normal(&q);
+                    (n.held(), Some(n))
+                }
+                None => (prob.normal(&q), None),
+            };
             if next.cost <= cur.cost {
                 let gain = cur.cost - next.cost;
                 p = q;
                 cur = next;
+                cur_wide = next_wide;
                 lambda = (lambda * 0.3).max(1e-9);
                 // Converged: the centres move by less than 1e-4 px (0.08 µm at the
                 // paper's scale, far below the noise) and the cost no longer falls.
@@ -446,5 +472,9 @@ fn solve(
             format!("no convergence in {MAX_ITER} iterations"),
         ));
     }
-    Ok(Fit { p, normal: cur })
+    Ok(Fit {
+        p,
+        normal: cur,
+        wide: cur_wide,
+    })
 }

@@ -51,6 +51,28 @@ struct Sums {
     n: usize,
 }
 
+impl Normal {
+    /// These sums with the contrast gradients held: their rows and columns zero, as the
+    /// even-ink model's own pass gives them (the other sums are the same bits: each pair
+    /// of parameters is summed on its own, over the same pixels in the same order).
+    pub(super) fn held(&self) -> Normal {
+        let mut n = Normal {
+            h: self.h,
+            g: self.g,
+            cost: self.cost,
+            n: self.n,
+        };
+        for a in GRADIENTS {
+            n.g[a] = 0.0;
+            for b in 0..MAXP {
+                n.h[a][b] = 0.0;
+                n.h[b][a] = 0.0;
+            }
+        }
+        n
+    }
+}
+
 impl Problem<'_> {
     pub(super) fn normal(&self, p: &[f64; MAXP]) -> Normal {
         #[cfg(target_arch = "x86_64")]

@@ -265,3 +265,43 @@ fn the_dispatched_build_gives_the_portable_bits() {
         }
     }
 }
+
+/// A pass with the contrast gradients free, their rows held, is the even-ink model's own
+/// pass to the bit (the fit reads the score test off such a pass: `solve`'s `wide`).
+#[test]
+fn a_wide_pass_held_is_the_even_pass() {
+    let plane = plane();
+    let win = Window {
+        x0: 1,
+        y0: 2,
+        x1: 60,
+        y1: 59,
+        reach: 27.5,
+    };
+    for ring_inner in [false, true] {
+        let (even, wide) = (
+            problem(&plane, &win, ring_inner, false, 1),
+            problem(&plane, &win, ring_inner, true, 1),
+        );
+        let mut p = params(ring_inner);
+        // The gradients where the even-ink model holds them.
+        for a in [C + 1, C + 2, CI + 1, CI + 2] {
+            p[a] = 0.0;
+        }
+        let (a, b) = (even.normal(&p), wide.normal(&p).held());
+        assert_eq!(
+            a.cost.to_bits(),
+            b.cost.to_bits(),
+            "ring_inner {ring_inner}"
+        );
+        assert_eq!(a.n, b.n);
+        for i in 0..MAXP {
+            assert_eq!(a.g[i].to_bits(), b.g[i].to_bits(), "g[{i}]");
+            for k in 0..MAXP {
+                assert_eq!(a.h[i][k].to_bits(), b.h[i][k].to_bits(), "h[{i}][{k}]");
+            }
+        }
+        // And the wide pass has the gradients' sums the held one dropped.
+        assert!(wide.normal(&p).h[C + 1][C + 1] > 0.0);
+    }
+}
