@@ -256,7 +256,7 @@ fn uneven_ink_shows(even: &Problem, uneven: &Problem, fit: &Fit) -> bool {
         .copied()
         .filter(|i| !GRADIENTS.contains(i))
         .collect();
-    match (gn_gain(&at, &all), gn_gain(&at, &held)) {
+    match (gn_gain(at, &all), gn_gain(at, &held)) {
         (Some(full), Some(reduced)) => (full - reduced) / s2 > GRADIENTS_CHI2,
         _ => false,
     }
