@@ -169,16 +169,20 @@ fn problem<'a>(
     }
 }
 
-#[test]
-fn batched_sums_equal_the_per_pixel_ones() {
-    let plane = plane();
-    let win = Window {
+/// A window inside the plane whose reach leaves some pixels out.
+fn inner_window() -> Window {
+    Window {
         x0: 1,
         y0: 2,
         x1: 60,
         y1: 59,
         reach: 27.5,
-    };
+    }
+}
+
+#[test]
+fn batched_sums_equal_the_per_pixel_ones() {
+    let (plane, win) = (plane(), inner_window());
     for (ring_inner, planes, step) in [
         (false, false, 1),
         (false, true, 1),
@@ -270,14 +274,7 @@ fn the_dispatched_build_gives_the_portable_bits() {
 /// pass to the bit (the fit reads the score test off such a pass: `solve`'s `wide`).
 #[test]
 fn a_wide_pass_held_is_the_even_pass() {
-    let plane = plane();
-    let win = Window {
-        x0: 1,
-        y0: 2,
-        x1: 60,
-        y1: 59,
-        reach: 27.5,
-    };
+    let (plane, win) = (plane(), inner_window());
     for ring_inner in [false, true] {
         let (even, wide) = (
             problem(&plane, &win, ring_inner, false, 1),
