@@ -298,8 +298,11 @@ impl RowGate {
         self.closed.store(true, Ordering::Release);
     }
 
-    /// Waiting decoders go on.
+    /// Waiting decoders go on (nothing to do when it is open).
     pub fn open(&self) {
+        if !self.closed.load(Ordering::Acquire) {
+            return;
+        }
         let _held = self.lock.lock().unwrap_or_else(|e| e.into_inner());
         self.closed.store(false, Ordering::Release);
         self.opened.notify_all();

@@ -137,15 +137,7 @@ impl Measurer {
 
     /// The last row (exclusive) the measurement windows reach at `predicted_px`.
     pub fn rows_read(&self, predicted_px: [f64; 2]) -> f64 {
-        let h = self.0.size.1 as f64;
-        self.0
-            .targets
-            .iter()
-            .map(|c| {
-                let (_, y0, side) = measure_window(c, predicted_px);
-                (y0 + side as f64).min(h)
-            })
-            .fold(0.0, f64::max)
+        windows_bottom(&self.0.targets, predicted_px, self.0.size.1 as f64)
     }
 
     /// Measure frame `index` (its first `valid_rows` rows decoded) at `at`, on this thread
@@ -216,8 +208,20 @@ fn similarity(measured_px: [f64; 2], commanded_px: [f64; 2]) -> [f64; 2] {
     }
 }
 
+/// The last row (exclusive) the measurement windows of `targets` reach at `shift_px`, in a
+/// frame `height` rows high.
+pub(super) fn windows_bottom(targets: &[Candidate], shift_px: [f64; 2], height: f64) -> f64 {
+    targets
+        .iter()
+        .map(|c| {
+            let (_, y0, side) = measure_window(c, shift_px);
+            (y0 + side as f64).min(height)
+        })
+        .fold(0.0, f64::max)
+}
+
 /// A target's measurement window at its frame-0 place moved by `shift_px`: left, top, side.
-pub(super) fn measure_window(c: &Candidate, shift_px: [f64; 2]) -> (f64, f64, u32) {
+fn measure_window(c: &Candidate, shift_px: [f64; 2]) -> (f64, f64, u32) {
     let reach = c.outer_radii_px[1] + WINDOW_MARGIN_PX;
     let cx = c.outer_centre_px[0] + shift_px[0];
     let cy = c.outer_centre_px[1] + shift_px[1];

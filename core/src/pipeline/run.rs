@@ -18,7 +18,7 @@ use super::accumulate::{Accumulator, Method};
 use super::detect::{self, Candidate, DetectConfig};
 use super::estimate::{self, estimate_from, CentreEstimate, EvenInk, Start};
 use super::mean::OffsetMean;
-use super::measure::{measure_in_frame, measure_window, FrameEstimates, FrameZero, Measurer};
+use super::measure::{measure_in_frame, windows_bottom, FrameEstimates, FrameZero, Measurer};
 use super::options::WINDOW_MARGIN_PX;
 use super::plane::{Plane, Roi};
 use super::reconstruct::{self, Fine, View};
@@ -341,17 +341,14 @@ impl Pipeline {
     /// `measure_px`, the reconstruction windows (if given) at `recon_px`.
     fn rows_read(&self, measure_px: [f64; 2], recon_px: Option<[f64; 2]>) -> f64 {
         let h = self.size.map_or(f64::INFINITY, |(_, h)| h as f64);
-        let measured = self.targets.iter().map(|c| {
-            let (_, y0, side) = measure_window(c, measure_px);
-            (y0 + side as f64).min(h)
-        });
+        let measured = windows_bottom(&self.targets, measure_px, h);
         let kept = recon_px.into_iter().flat_map(|d| {
             self.combining.iter().filter_map(move |c| match c {
                 Ok(Combining::Window(w)) => Some(w.y0 + d[1].round() + w.side as f64),
                 _ => None,
             })
         });
-        measured.chain(kept).fold(0.0, f64::max)
+        kept.fold(measured, f64::max)
     }
 
     /// [`Pipeline::push`] for a frame of which only the first `valid_rows` rows are decoded.
