@@ -163,32 +163,93 @@ impl Component {
     }
 }
 
-/// Redness of a pixel in 1/256: `256 (R - max(G, B)) / R`, clamped to 0..=255; `None` when
-/// the pixel is too dark for the ratio to mean anything.
-#[inline]
-fn redness_256(p: &[u8], min_r: i32) -> Option<usize> {
-    let (r, g, b) = (p[0] as i32, p[1] as i32, p[2] as i32);
-    (r >= min_r).then(|| div_by_red(256 * (r - g.max(b)).max(0) as u32, r as u32).min(255) as usize)
-}
-
-/// `⌈2³²/r⌉` for r = 1..=255 (0 for r = 0, never asked): `n·m >> 32` is then `⌊n/r⌋`
-/// exactly for every n < 2¹⁶ (the error `m·r − 2³² < r` times n stays below 2³²/r; checked
-/// for every pair in the tests). The histogram runs over every pixel of frame 0, on the
-/// critical path: a multiply instead of a division.
-const RECIP_RED: [u64; 256] = {
-    let mut m = [0u64; 256];
+/// Redness in 1/256 of a pixel of red `r` and `m = max(G, B)`: `⌊256 (r − m) / r⌋`,
+/// clamped to 0..=255, at `RED_LUT[r << 8 | m]` (0 for r = 0). One lookup per pixel: frame
+/// 0's redness is read over every pixel on the critical path. 255 is exactly `m = 0` (the
+/// unclamped 256), so a threshold of 256 is `q ≥ 255`.
+static RED_LUT: [u8; 1 << 16] = {
+    let mut t = [0u8; 1 << 16];
     let mut r = 1;
     while r < 256 {
-        m[r] = (1u64 << 32).div_ceil(r as u64);
+        let mut m = 0;
+        while m < r {
+            let q = 256 * (r - m) / r;
+            t[r << 8 | m] = if q > 255 { 255 } else { q as u8 };
+            m += 1;
+        }
         r += 1;
     }
-    m
+    t
 };
 
-/// `⌊n/r⌋` for n < 2¹⁶, 1 ≤ r ≤ 255.
-#[inline(always)]
-fn div_by_red(n: u32, r: u32) -> u32 {
-    ((n as u64 * RECIP_RED[r as usize]) >> 32) as u32
+/// Each pixel's redness in 1/256 (`RED_LUT`), 0 where the pixel is too dark for the ratio to
+/// mean anything (`R < min_red_dn`): what the ink mask and the threshold are both read from.
+struct Redness {
+    w: usize,
+    h: usize,
+    q: Vec<u8>,
+}
+
+impl Redness {
+    /// The frame's redness and the histogram of its pixels bright enough to have one.
+    fn of(img: &RgbImage, cfg: &DetectConfig) -> (Redness, [u64; 256]) {
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        let min_r = cfg.min_red_dn;
+        let mut q = vec![0u8; w * h];
+        // Rows in parallel (frame 0's detection holds up every later frame), 16 at a time,
+        // each chunk's histogram summed after.
+        let rows = 16 * w.max(1);
+        let hist = q
+            .par_chunks_mut(rows)
+            .zip(img.as_raw().par_chunks(rows * 3))
+            .fold(
+                || [0u64; 257],
+                |mut hist, (q, px)| {
+                    redness_rows(q, px, min_r, &mut hist);
+                    hist
+                },
+            )
+            .reduce(
+                || [0u64; 257],
+                |mut a, b| {
+                    a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+                    a
+                },
+            );
+        let mut bright = [0u64; 256];
+        bright.copy_from_slice(&hist[..256]);
+        (Redness { w, h, q }, bright)
+    }
+
+    /// The region `[x0, x1] × [y0, y1]` (inclusive) alone.
+    fn crop(&self, [x0, y0, x1, y1]: [usize; 4]) -> Redness {
+        let q = (y0..=y1)
+            .flat_map(|y| &self.q[y * self.w + x0..=y * self.w + x1])
+            .copied()
+            .collect();
+        Redness {
+            w: x1 - x0 + 1,
+            h: y1 - y0 + 1,
+            q,
+        }
+    }
+}
+
+/// Redness of a run of pixels into `q`, counted in `hist` (bin 256: too dark). Four partial
+/// histograms: runs of paper hit one bin, whose increments would otherwise wait on each
+/// other.
+fn redness_rows(q: &mut [u8], px: &[u8], min_r: u8, hist: &mut [u64; 257]) {
+    let mut part = [[0u32; 257]; 4];
+    for (j, (o, p)) in q.iter_mut().zip(px.chunks_exact(3)).enumerate() {
+        let (r, m) = (p[0], p[1].max(p[2]));
+        let v = RED_LUT[(r as usize) << 8 | m as usize];
+        let dark = r < min_r;
+        *o = if dark { 0 } else { v };
+        part[j & 3][if dark { 256 } else { v as usize }] += 1;
+    }
+    for p in part {
+        hist.iter_mut().zip(p).for_each(|(h, c)| *h += c as u64);
+    }
 }
 
 /// The redness threshold (1/256) this frame's ink and paper call for: Otsu's split of the
@@ -198,43 +259,19 @@ fn div_by_red(n: u32, r: u32) -> u32 {
 /// `cfg.min_redness` (today's fixed threshold: a clean frame keeps it) and never within the
 /// paper's noise (median + 8 MAD, at least 0.08).
 pub fn redness_threshold(img: &RgbImage, cfg: &DetectConfig) -> f64 {
-    redness_levels(img, cfg).0
+    redness_levels(&Redness::of(img, cfg).1, cfg).0
 }
 
-/// [`redness_threshold`] and the ink's median redness (the threshold when there is no ink).
-fn redness_levels(img: &RgbImage, cfg: &DetectConfig) -> (f64, f64) {
-    let min_r = cfg.min_red_dn as i32;
-    // Rows in parallel (frame 0's detection holds up every later frame), each chunk's
-    // histogram summed after.
-    let row = img.width() as usize * 3;
-    let hist = img
-        .as_raw()
-        .par_chunks(row.max(3) * 16)
-        .fold(
-            || [0u64; 256],
-            |mut hist, rows| {
-                for p in rows.chunks_exact(3) {
-                    if let Some(q) = redness_256(p, min_r) {
-                        hist[q] += 1;
-                    }
-                }
-                hist
-            },
-        )
-        .reduce(
-            || [0u64; 256],
-            |mut a, b| {
-                a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
-                a
-            },
-        );
+/// [`redness_threshold`] and the ink's median redness (the threshold when there is no ink),
+/// from the histogram of the frame's redness.
+fn redness_levels(hist: &[u64; 256], cfg: &DetectConfig) -> (f64, f64) {
     let ceiling = cfg.min_redness;
     let n: u64 = hist.iter().sum();
     if n == 0 {
         return (ceiling, ceiling);
     }
-    let split = otsu(&hist);
-    let paper = median_in(&hist, 0, split);
+    let split = otsu(hist);
+    let paper = median_in(hist, 0, split);
     let Some(paper) = paper else {
         return (ceiling, ceiling);
     };
@@ -246,7 +283,7 @@ fn redness_levels(img: &RgbImage, cfg: &DetectConfig) -> (f64, f64) {
         median_in(&dev, 0, 256).unwrap_or(0.0)
     };
     let floor = (paper + 8.0 * mad.max(0.5)).max(0.08 * 256.0);
-    let ink = median_in(&hist, split, 256);
+    let ink = median_in(hist, split, 256);
     let thr = match ink {
         Some(ink) => (paper + ink) / 2.0,
         None => ceiling * 256.0,
@@ -298,28 +335,29 @@ fn median_in(hist: &[u64; 256], lo: usize, hi: usize) -> Option<f64> {
 }
 
 /// Ink mask, one byte per pixel (1 = ink), and whether each row has any ink: pixels at
-/// least `threshold` red (see [`redness_threshold`]). No morphological closing: the gap
-/// between a ring and a 5 mm-offset disk is ~2.6 px, which a 3x3 closing would bridge;
-/// a broken ring is put together from its pieces instead ([`merge_fragments`]).
-fn ink_mask(img: &RgbImage, cfg: &DetectConfig, threshold: f64) -> (Vec<u8>, Vec<bool>) {
-    let w = img.width() as usize;
-    let h = img.height() as usize;
-    let thr = (threshold * 256.0).round() as i32;
-    let min_r = cfg.min_red_dn as i32;
-    let mut mask = vec![0u8; w * h];
-    if w == 0 {
-        return (mask, vec![false; h]);
+/// least `threshold` red (see [`redness_threshold`]); dark pixels (redness 0) never are, as
+/// thresholds are at least 0.08. No morphological closing: the gap between a ring and a
+/// 5 mm-offset disk is ~2.6 px, which a 3x3 closing would bridge; a broken ring is put
+/// together from its pieces instead ([`merge_fragments`]).
+fn ink_mask(red: &Redness, threshold: f64) -> (Vec<u8>, Vec<bool>) {
+    // `256 (r − m) ≥ t·r` is `⌊256 (r − m) / r⌋ ≥ t` for a whole t; 256 is `q = 255`.
+    let thr = ((threshold * 256.0).round() as i32).clamp(1, 255) as u8;
+    let mut mask = vec![0u8; red.w * red.h];
+    if red.w == 0 {
+        return (mask, vec![false; red.h]);
     }
-    mask.par_chunks_mut(w)
-        .zip(img.as_raw().par_chunks(w * 3))
+    mask.par_chunks_mut(red.w)
+        .zip(red.q.par_chunks(red.w))
         .with_min_len(16)
-        .for_each(|(m, row)| {
-            for (o, p) in m.iter_mut().zip(row.chunks_exact(3)) {
-                let (r, g, b) = (p[0] as i32, p[1] as i32, p[2] as i32);
-                *o = ((r >= min_r) & (256 * (r - g.max(b)) >= thr * r)) as u8;
-            }
+        .for_each(|(m, q)| {
+            m.iter_mut()
+                .zip(q)
+                .for_each(|(m, &q)| *m = (q >= thr) as u8)
         });
-    let rows = mask.chunks(w).map(|r| r.iter().any(|&v| v != 0)).collect();
+    let rows = mask
+        .chunks(red.w)
+        .map(|r| r.iter().any(|&v| v != 0))
+        .collect();
     (mask, rows)
 }
 
@@ -527,15 +565,16 @@ fn merged_component(comps: &[Component], members: &[usize]) -> Component {
 /// thresholds, between the frame's and the ink's redness, which thin the ink apart; a
 /// target found so replaces its `skipped` entry.
 pub fn detect(img: &RgbImage, cfg: &DetectConfig) -> Detection {
-    let (threshold, ink) = redness_levels(img, cfg);
-    let (mut det, retry) = detect_at(img, cfg, threshold);
+    let (red, hist) = Redness::of(img, cfg);
+    let (threshold, ink) = redness_levels(&hist, cfg);
+    let (mut det, retry) = detect_at(&red, cfg, threshold);
     let mut resolved = Vec::new();
     for (k, b) in retry {
         let m = cfg.roi_margin_px.ceil() as u32 + 2;
         let (x0, y0) = (b[0].saturating_sub(m), b[1].saturating_sub(m));
         let x1 = (b[2] + m).min(img.width() - 1);
         let y1 = (b[3] + m).min(img.height() - 1);
-        let crop = image::imageops::crop_imm(img, x0, y0, x1 - x0 + 1, y1 - y0 + 1).to_image();
+        let crop = red.crop([x0, y0, x1, y1].map(|v| v as usize));
         for frac in [0.35, 0.6] {
             let (d, _) = detect_at(&crop, cfg, threshold + frac * (ink - threshold));
             if let [t] = d.targets.as_slice() {
@@ -572,17 +611,17 @@ fn sort_reading_order(targets: &mut [Candidate]) {
 /// [`detect`] at one redness threshold, with the `skipped` entries (index, box) worth a
 /// second look.
 fn detect_at(
-    img: &RgbImage,
+    red: &Redness,
     cfg: &DetectConfig,
     threshold: f64,
 ) -> (Detection, Vec<(usize, [u32; 4])>) {
-    let (w, h) = (img.width() as usize, img.height() as usize);
+    let (w, h) = (red.w, red.h);
     let mut det = Detection::default();
     let mut retry = Vec::new();
     if w == 0 || h == 0 {
         return (det, retry);
     }
-    let (mask, rows) = ink_mask(img, cfg, threshold);
+    let (mask, rows) = ink_mask(red, threshold);
     let mut labels = Vec::new();
     let mut comps = components(&mask, &rows, w, h, &mut labels);
     let tol = cfg.shape_tolerance;
@@ -789,20 +828,36 @@ mod tests {
     }
 
     #[test]
-    fn division_by_red_is_exact_for_every_pixel() {
-        for r in 1..=255u32 {
-            for n in 0..=256 * 255u32 {
-                assert_eq!(div_by_red(n, r), n / r, "{n} / {r}");
+    fn the_redness_table_and_mask_are_the_ratio_for_every_pixel() {
+        // Every (R, max(G, B)) pair once: R down the rows, G across, B = 0.
+        let img = RgbImage::from_fn(256, 256, |x, y| image::Rgb([y as u8, x as u8, 0]));
+        let cfg = DetectConfig::default();
+        let (red, hist) = Redness::of(&img, &cfg);
+        let min_r = cfg.min_red_dn as i32;
+        let mut want_hist = [0u64; 256];
+        for (r, m) in (0..=255i32).flat_map(|r| (0..=255i32).map(move |m| (r, m))) {
+            let q = (256 * (r - m) / r.max(1)).clamp(0, 255);
+            let got = red.q[(r * 256 + m) as usize] as i32;
+            assert_eq!(got, if r >= min_r { q } else { 0 }, "r {r}, max(g, b) {m}");
+            if r >= min_r {
+                want_hist[q as usize] += 1;
             }
         }
-        // The redness as it was defined, with a division, for every pixel value.
-        for (r, m) in (0..=255i32).flat_map(|r| (0..=255i32).map(move |m| (r, m))) {
-            let want = (r >= 20).then(|| (256 * (r - m) / r.max(1)).clamp(0, 255) as usize);
-            assert_eq!(
-                redness_256(&[r as u8, m as u8, 0], 20),
-                want,
-                "r {r}, max(g, b) {m}"
-            );
+        assert_eq!(hist, want_hist);
+        // The mask is the ratio's own test, `256 (R − m) ≥ t·R`, at every whole threshold
+        // detection can ask for (0.08 .. 1.0), 256 included.
+        for t in [20, 21, 64, 102, 200, 254, 255, 256] {
+            let (mask, rows) = ink_mask(&red, t as f64 / 256.0);
+            for (r, m) in (0..=255i32).flat_map(|r| (0..=255i32).map(move |m| (r, m))) {
+                let want = r >= min_r && 256 * (r - m) >= t * r;
+                assert_eq!(
+                    mask[(r * 256 + m) as usize] == 1,
+                    want,
+                    "t {t}, r {r}, m {m}"
+                );
+            }
+            assert_eq!(rows[255], true);
+            assert_eq!(rows[0], false);
         }
     }
 
