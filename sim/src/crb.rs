@@ -95,9 +95,86 @@ pub fn offset_crb_um_raw(
     target_index: usize,
     view: View,
 ) -> [f64; 2] {
+    let (observe, var) = raw_sensor(cam);
+    offset_crb(board, cam, target_index, view, &[0, 1, 2], &observe, &var)
+}
+
+/// The bound on the offset of target `target_index` over `frames` raw frames (the views'
+/// information averaged, times `frames`) for an estimator that does not know the print's
+/// ink density where the target is, only its statistics: the density `1 + ε` is a
+/// Gaussian field of the camera's RMS and correlation length (`ink_density_rms`,
+/// `ink_density_corr_um`), written in its Karhunen–Loève modes over the target, each mode
+/// a nuisance parameter with its prior (a hybrid Cramér–Rao bound: Fisher information of
+/// the samples plus the prior's, `J = N·F̄ + diag(0, I)`). Unlike the bound with the print
+/// known, it bounds the whole mean squared error over prints, the bias an unknown density
+/// leaves included. The modes' derivatives are taken at ε = 0 (the field is a few % of
+/// the ink's depth), mapped to the image by the lens's local affine map at the target.
+/// Equal to `offset_crb_um_raw / √frames` (one view) when the print's ink is even.
+pub fn offset_hcrb_um_raw(
+    board: &Board,
+    cam: &CameraModel,
+    target_index: usize,
+    views: &[View],
+    frames: usize,
+) -> [f64; 2] {
+    PrintUnknown::new(board, cam, target_index, views).offset_um(frames)
+}
+
+/// One frame's information about a target and the print's density modes there, averaged
+/// over views, from which [`offset_hcrb_um_raw`] follows for any number of frames.
+pub struct PrintUnknown {
+    fisher: DMatrix<f64>,
+    modes: usize,
+}
+
+impl PrintUnknown {
+    pub fn new(board: &Board, cam: &CameraModel, target_index: usize, views: &[View]) -> Self {
+        assert!(!views.is_empty(), "at least one view");
+        let (observe, var) = raw_sensor(cam);
+        let mut fisher: Option<DMatrix<f64>> = None;
+        let mut modes = 0;
+        for &view in views {
+            let m = DensityModes::over(board, cam, target_index, view);
+            modes = m.as_ref().map_or(0, |m| m.weights.len());
+            let f = information(
+                board,
+                cam,
+                (target_index, view),
+                &[0, 1, 2],
+                (&observe, &var),
+                m.as_ref(),
+            ) / views.len() as f64;
+            // The modes are the same on every view (a grid about the target's centre).
+            fisher = Some(match fisher {
+                Some(s) => s + f,
+                None => f,
+            });
+        }
+        PrintUnknown {
+            fisher: fisher.expect("a view"),
+            modes,
+        }
+    }
+
+    /// The bound over `frames` frames: `J = frames·F̄ + diag(0, I)`.
+    pub fn offset_um(&self, frames: usize) -> [f64; 2] {
+        assert!(frames > 0, "at least one frame");
+        let mut j = &self.fisher * frames as f64;
+        let n = j.nrows();
+        for i in n - self.modes..n {
+            j[(i, i)] += 1.0;
+        }
+        offset_bound(j)
+    }
+}
+
+/// The raw sensor's samples of a rendered ROI and their noise variance: one Bayer sample
+/// per pixel (with the camera's colour crosstalk) for an RGGB sensor, all three channels
+/// otherwise; shot and read noise, quantisation of the 10-bit raw.
+fn raw_sensor(cam: &CameraModel) -> (Box<Observe<'_>>, Box<dyn Fn(f64) -> f64 + '_>) {
     let bayer = crate::isp::bayer(cam);
     let c = cam.crosstalk as f32;
-    let observe = |rgb: &[f32], roi: [u32; 4]| -> Vec<f64> {
+    let observe = move |rgb: &[f32], roi: [u32; 4]| -> Vec<f64> {
         if !bayer {
             return rgb.iter().map(|&v| v as f64).collect();
         }
@@ -111,8 +188,8 @@ pub fn offset_crb_um_raw(
             .collect()
     };
     let q = (crate::isp::RAW_STEP_DN as f64).powi(2) / 12.0;
-    let var = |m: f64| cam.noise_var_dn2(m) - 1.0 / 12.0 + q;
-    offset_crb(board, cam, target_index, view, &[0, 1, 2], &observe, &var)
+    let var = move |m: f64| cam.noise_var_dn2(m) - 1.0 / 12.0 + q;
+    (Box::new(observe), Box::new(var))
 }
 
 /// What an estimator sees of a rendered ROI (RGB f32, its box): the samples it gets.
@@ -120,7 +197,6 @@ type Observe<'a> = dyn Fn(&[f32], [u32; 4]) -> Vec<f64> + 'a;
 
 /// The bound for samples `observe(rendered RGB of the ROI, roi)` with noise variance
 /// `var(expected sample)`; `channels` are the ink reflectances taken as unknown.
-#[allow(clippy::too_many_arguments)]
 fn offset_crb(
     board: &Board,
     cam: &CameraModel,
@@ -130,11 +206,44 @@ fn offset_crb(
     observe: &Observe,
     var: &dyn Fn(f64) -> f64,
 ) -> [f64; 2] {
-    let target = &board.targets[target_index];
-    // Render only this target, in a window that holds all of its blurred edges.
-    let mut base = board.clone();
-    base.targets = vec![target.clone()];
-    base.clutter.clear();
+    let f = information(
+        board,
+        cam,
+        (target_index, view),
+        channels,
+        (observe, var),
+        None,
+    );
+    offset_bound(f)
+}
+
+/// θ: both centres (outer first: indices 0..4 are outer x, y, inner x, y), the radii, the
+/// blur, the light, and the ink's reflectance in `channels`.
+fn parameters(board: &Board, target_index: usize, channels: &[usize]) -> Vec<Param> {
+    let mut params = vec![
+        Param::OuterX,
+        Param::OuterY,
+        Param::InnerX,
+        Param::InnerY,
+        Param::Radius(0),
+        Param::Radius(1),
+        Param::Radius(2),
+    ];
+    if matches!(board.targets[target_index].inner, Shape::Ring { .. }) {
+        params.push(Param::Radius(3));
+    }
+    params.extend([
+        Param::Blur,
+        Param::Light,
+        Param::Gradient,
+        Param::Vignetting,
+    ]);
+    params.extend(channels.iter().map(|&c| Param::Ink(c)));
+    params
+}
+
+/// The ROI that holds all of a target's blurred edges.
+fn target_roi(cam: &CameraModel, target: &crate::board::Target, view: View) -> [u32; 4] {
     let (c, grow) = if cam.needs_warp() {
         let lens = crate::optics::Lens::new(cam);
         (
@@ -152,33 +261,32 @@ fn offset_crb(
     let y0 = (c[1] - half).floor().max(0.0) as u32;
     let x1 = ((c[0] + half).ceil() as u32).min(cam.width.saturating_sub(1));
     let y1 = ((c[1] + half).ceil() as u32).min(cam.height.saturating_sub(1));
-    let roi = [x0, y0, x1 + 1 - x0, y1 + 1 - y0];
+    [x0, y0, x1 + 1 - x0, y1 + 1 - y0]
+}
 
-    let mut params = vec![
-        Param::OuterX,
-        Param::OuterY,
-        Param::InnerX,
-        Param::InnerY,
-        Param::Radius(0),
-        Param::Radius(1),
-        Param::Radius(2),
-    ];
-    if matches!(target.inner, Shape::Ring { .. }) {
-        params.push(Param::Radius(3));
-    }
-    params.extend([
-        Param::Blur,
-        Param::Light,
-        Param::Gradient,
-        Param::Vignetting,
-    ]);
-    params.extend(channels.iter().map(|&c| Param::Ink(c)));
+/// The Fisher information of one frame's samples of target `t` about θ ([`parameters`])
+/// and, after them, the print's density `modes` when given.
+fn information(
+    board: &Board,
+    cam: &CameraModel,
+    (target_index, view): (usize, View),
+    channels: &[usize],
+    (observe, var): (&Observe, &dyn Fn(f64) -> f64),
+    modes: Option<&DensityModes>,
+) -> DMatrix<f64> {
+    let target = &board.targets[target_index];
+    // Render only this target, in a window that holds all of its blurred edges.
+    let mut base = board.clone();
+    base.targets = vec![target.clone()];
+    base.clutter.clear();
+    let roi = target_roi(cam, target, view);
+    let params = parameters(board, target_index, channels);
 
     let render = |b: &Board, cm: &CameraModel, light: f64| expected_rgb(b, cm, &view, roi, light);
     let mu = observe(&render(&base, cam, 1.0), roi);
     let step_um = 0.02 * cam.scale_um_per_px;
     // Derivatives of every pixel's channels, per unit of each parameter (µm for lengths).
-    let derivs: Vec<Vec<f64>> = params
+    let mut derivs: Vec<Vec<f64>> = params
         .iter()
         .map(|&p| {
             let (h, plus, minus) = perturb(&base, cam, p, step_um);
@@ -194,8 +302,25 @@ fn offset_crb(
                 .collect()
         })
         .collect();
+    if let Some(m) = modes {
+        // The samples are linear in the density: a sample's change per unit of ε is minus
+        // the ink's depth there (paper minus the evenly inked render, both through the lens).
+        let even = CameraModel {
+            ink_density_rms: 0.0,
+            ..cam.clone()
+        };
+        let mut paper = base.clone();
+        paper.targets.clear();
+        let depth: Vec<f64> = observe(&render(&paper, &even, 1.0), roi)
+            .iter()
+            .zip(observe(&render(&base, &even, 1.0), roi))
+            .map(|(p, i)| p - i)
+            .collect();
+        let per_pixel = mu.len() / (roi[2] * roi[3]) as usize;
+        derivs.extend(m.derivatives(&depth, roi, per_pixel));
+    }
 
-    let n = params.len();
+    let n = derivs.len();
     let mut fisher = DMatrix::<f64>::zeros(n, n);
     let mut row = vec![0.0; n];
     for (i, &m) in mu.iter().enumerate() {
@@ -213,8 +338,13 @@ fn offset_crb(
         }
     }
     fisher.fill_lower_triangle_with_upper_triangle();
-    let inv = fisher
-        .clone()
+    fisher
+}
+
+/// `eᵀ J⁻¹ e` per axis, e = inner − outer centre (θ's first four entries).
+fn offset_bound(j: DMatrix<f64>) -> [f64; 2] {
+    let n = j.nrows();
+    let inv = j
         .cholesky()
         .map(|c| c.inverse())
         .expect("the Fisher information of a rendered target is positive definite");
@@ -225,6 +355,131 @@ fn offset_crb(
         (e.transpose() * &inv * &e)[(0, 0)]
     };
     [var(0, 2).sqrt(), var(1, 3).sqrt()]
+}
+
+/// The print's ink density over one target as a Gaussian field (`ink_density_rms`,
+/// correlation `ink_density_corr_um`: the sim's covariance `rms² exp(−d²/2ℓ²)`), in its
+/// Karhunen–Loève modes on a grid ℓ/2 apart over the target, each scaled to unit prior
+/// variance and extended between grid points by the covariance (kriging).
+struct DensityModes {
+    /// Grid points (µm on the board).
+    grid: Vec<[f64; 2]>,
+    /// Per mode, the weights of the covariance to each grid point: `v_j / √λ_j`.
+    weights: Vec<DVector<f64>>,
+    rms: f64,
+    corr_um: f64,
+    /// Board point of an image point near the target.
+    to_board: Affine,
+}
+
+impl DensityModes {
+    /// Modes whose variance is at least 10⁻⁶ of the largest's; `None` when the ink is even.
+    fn over(board: &Board, cam: &CameraModel, t: usize, view: View) -> Option<DensityModes> {
+        let (rms, corr_um) = (cam.ink_density_rms, cam.ink_density_corr_um);
+        if rms == 0.0 {
+            return None;
+        }
+        let target = &board.targets[t];
+        let c = target.centre_um;
+        let to_board = Affine::at(cam, view, c);
+        // The grid covers every ROI of the target (`target_roi`: the rim grown by the lens,
+        // 5 blur widths and 5 px), the same on every view, and half a correlation length.
+        let reach = 1.1 * target.outer.outer_radius_um()
+            + (5.0 * cam.psf_sigma_px + 6.0) * cam.scale_um_per_px
+            + corr_um / 2.0;
+        let spacing = corr_um / 2.0;
+        let k = (reach / spacing).ceil() as i64;
+        let grid: Vec<[f64; 2]> = (-k..=k)
+            .flat_map(|i| (-k..=k).map(move |j| [i as f64, j as f64]))
+            .map(|[i, j]| [c[0] + i * spacing, c[1] + j * spacing])
+            .collect();
+        let cov = DMatrix::from_fn(grid.len(), grid.len(), |a, b| {
+            covariance(rms, corr_um, grid[a], grid[b])
+        });
+        let eig = cov.symmetric_eigen();
+        let top = eig.eigenvalues.max();
+        let weights = (0..grid.len())
+            .filter(|&j| eig.eigenvalues[j] >= 1e-6 * top)
+            .map(|j| eig.eigenvectors.column(j) / eig.eigenvalues[j].sqrt())
+            .collect();
+        Some(DensityModes {
+            grid,
+            weights,
+            rms,
+            corr_um,
+            to_board,
+        })
+    }
+
+    /// Each mode's derivative column: sample i changes by `−depth_i · φ_j(p_i)`. `per_pixel`
+    /// samples per pixel, in the ROI's row-major pixel order.
+    fn derivatives(&self, depth: &[f64], roi: [u32; 4], per_pixel: usize) -> Vec<Vec<f64>> {
+        let [x0, y0, w, _] = roi;
+        let mut cols = vec![vec![0.0; depth.len()]; self.weights.len()];
+        for (px, d) in depth.chunks(per_pixel).enumerate() {
+            let (x, y) = (
+                (x0 as usize + px % w as usize) as f64,
+                (y0 + px as u32 / w) as f64,
+            );
+            let p = self.to_board.board([x, y]);
+            let c = DVector::from_iterator(
+                self.grid.len(),
+                self.grid
+                    .iter()
+                    .map(|&g| covariance(self.rms, self.corr_um, p, g)),
+            );
+            for (col, wts) in cols.iter_mut().zip(&self.weights) {
+                let phi = c.dot(wts);
+                for (k, &dk) in d.iter().enumerate() {
+                    col[px * per_pixel + k] = -dk * phi;
+                }
+            }
+        }
+        cols
+    }
+}
+
+/// The sim's covariance of the density between two board points.
+fn covariance(rms: f64, corr_um: f64, a: [f64; 2], b: [f64; 2]) -> f64 {
+    let d2 = (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2);
+    rms * rms * (-d2 / (2.0 * corr_um * corr_um)).exp()
+}
+
+/// The lens's local affine map from the image to the board about a board point `c`:
+/// `p = c + A·(q − q_c)`, with `q_c` the image of c.
+#[derive(Debug, Clone, Copy)]
+struct Affine {
+    a: nalgebra::Matrix2<f64>,
+    q_c: [f64; 2],
+    c: [f64; 2],
+}
+
+impl Affine {
+    fn at(cam: &CameraModel, view: View, c: [f64; 2]) -> Affine {
+        let img = |p: [f64; 2]| {
+            if cam.needs_warp() {
+                view.project(cam, 1, p)
+            } else {
+                view.board_to_image(cam, p)
+            }
+        };
+        let h = 1000.0;
+        let (q_c, qx, qy) = (img(c), img([c[0] + h, c[1]]), img([c[0], c[1] + h]));
+        // Image change per µm on the board, inverted.
+        let m = nalgebra::Matrix2::new(
+            (qx[0] - q_c[0]) / h,
+            (qy[0] - q_c[0]) / h,
+            (qx[1] - q_c[1]) / h,
+            (qy[1] - q_c[1]) / h,
+        );
+        let a = m.try_inverse().expect("the lens maps the board one to one");
+        Affine { a, q_c, c }
+    }
+
+    fn board(&self, q: [f64; 2]) -> [f64; 2] {
+        let d = self.a * nalgebra::Vector2::new(q[0] - self.q_c[0], q[1] - self.q_c[1]);
+        [self.c[0] + d[0], self.c[1] + d[1]]
+    }
 }
 
 /// The board and camera moved by +h and −h in parameter `p`, and h.
@@ -320,5 +575,51 @@ mod tests {
         let all = offset_crb_um_channels(&board, &cam, 6, view, &[0, 1, 2]);
         eprintln!("CRB target A: green {b:?} µm, R+G+B {all:?} µm, 4x less noise {q:?} µm");
         assert!(near(all[0], 2.48) && all[0] < b[0], "{all:?} vs {b:?}");
+    }
+
+    #[test]
+    fn not_knowing_the_print_raises_the_bound_more_the_more_frames() {
+        let board = Board::paper();
+        let view = View::at([0.3 * 774.0, 0.6 * 774.0]);
+        let webcam = CameraModel::profile("webcam").unwrap();
+        // Even ink: nothing to learn about the print, the bound with it known over √N.
+        let even = CameraModel {
+            ink_density_rms: 0.0,
+            ..webcam.clone()
+        };
+        let raw = offset_crb_um_raw(&board, &even, 6, view);
+        let h = offset_hcrb_um_raw(&board, &even, 6, &[view], 20);
+        for a in 0..2 {
+            assert!(
+                (h[a] * 20f64.sqrt() / raw[a] - 1.0).abs() < 1e-9,
+                "{h:?} {raw:?}"
+            );
+        }
+        let raw = offset_crb_um_raw(&board, &webcam, 6, view);
+        let per_n: Vec<[f64; 2]> = [1, 10, 20, 200]
+            .iter()
+            .map(|&n| offset_hcrb_um_raw(&board, &webcam, 6, &[view], n))
+            .collect();
+        let ratio: Vec<f64> = per_n
+            .iter()
+            .zip([1.0, 10.0, 20.0, 200.0f64])
+            .map(|(b, n)| b[0].hypot(b[1]) * n.sqrt() / raw[0].hypot(raw[1]))
+            .collect();
+        eprintln!("raw {raw:?} µm; hybrid {per_n:?} µm; × √N / raw {ratio:?}");
+        // Never below the bound with the print known; the unknown density weighs more as
+        // the frames beat the noise down.
+        assert!(ratio.windows(2).all(|r| r[1] >= r[0]), "{ratio:?}");
+        assert!(ratio[0] >= 1.0, "{ratio:?}");
+        // A density twice as uneven is harder still.
+        let rougher = CameraModel {
+            ink_density_rms: 0.08,
+            ..webcam.clone()
+        };
+        let r = offset_hcrb_um_raw(&board, &rougher, 6, &[view], 20);
+        assert!(
+            r[0] > per_n[2][0] && r[1] > per_n[2][1],
+            "{r:?} vs {:?}",
+            per_n[2]
+        );
     }
 }
