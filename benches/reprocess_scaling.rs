@@ -53,6 +53,7 @@ fn rig(board: &Board, cam: &CameraModel) -> RigInfo {
         piezo_dir: None,
         frame_size: (cam.width, cam.height),
         response: Default::default(),
+        ink_prior: None,
         interferometer: false,
         board: Some(board.clone()),
         config: serde_json::Value::Null,

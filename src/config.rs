@@ -220,6 +220,11 @@ pub struct CameraConfig {
     /// "linear" for a machine-vision camera with its gamma at 1).
     #[serde(default)]
     pub response: Option<crate::pipeline::Response>,
+    /// The print's ink density statistics, `{ density_rms = 0.04, corr_um = 3000 }`, as
+    /// measured once on a print (docs/calibration.md): the fit then takes the print's
+    /// uneven density as a prior. Absent: the sim camera's own print; none for v4l2.
+    #[serde(default)]
+    pub ink_prior: Option<crate::pipeline::InkPrior>,
     /// sim: the simulated camera's model (defaults when absent).
     #[serde(default)]
     pub sim: Option<SimCameraTable>,

@@ -137,6 +137,7 @@ mod tests {
             piezo_dir: None,
             frame_size,
             response: Default::default(),
+            ink_prior: None,
             interferometer: false,
             board: Some(crate::board::Board::paper()),
             config: serde_json::Value::Null,

@@ -82,6 +82,7 @@ pub fn run_options(spec: &JobSpec, k: u32, rig: &RigInfo) -> Result<ValidOptions
         piezo_dir: moves_piezo.then(|| rig.dir(StageKind::Piezo)),
         whole_frame: spec.whole_frame.unwrap_or(false),
         response: rig.response,
+        ink_prior: rig.ink_prior,
     }
     .validate()
     .map_err(|e| rejected(e.to_string()))
@@ -432,6 +433,7 @@ mod tests {
             piezo_dir: None,
             frame_size: (64, 48),
             response: Default::default(),
+            ink_prior: None,
             interferometer: false,
             board: None,
             config: serde_json::Value::Null,

@@ -319,6 +319,7 @@ mod tests {
             piezo_dir: Some([0.0, -1.0]),
             frame_size: (64, 48),
             response: Default::default(),
+            ink_prior: None,
             interferometer: false,
             board: None,
             config: serde_json::Value::Null,

@@ -50,6 +50,11 @@ pub struct ProcessingFlags {
     /// session: recorded].
     #[arg(long, value_enum)]
     pub response: Option<crate::pipeline::Response>,
+    /// The print's ink density statistics, RMS,CORR_UM (e.g. 0.04,3000): the fit takes the
+    /// print's uneven density as a prior (docs/method.md) [folder: none; session: its
+    /// rig's].
+    #[arg(long, value_parser = crate::pipeline::InkPrior::parse, value_name = "RMS,CORR_UM")]
+    pub ink_prior: Option<crate::pipeline::InkPrior>,
     /// A calibration record (`rigctl calibrate --out`): offsets converted by its field
     /// model instead of the global scale, with its type-B uncertainty; a calibration of
     /// another frame size is refused (docs/calibration.md).
@@ -83,6 +88,7 @@ impl ProcessingFlags {
             axis_dir: self.axis_dir,
             piezo_dir: self.piezo_dir,
             response: self.response,
+            ink_prior: self.ink_prior,
         }
     }
 
@@ -102,6 +108,7 @@ impl ProcessingFlags {
             piezo_dir: self.piezo_dir,
             whole_frame: self.whole_frame,
             response: self.response.unwrap_or_default(),
+            ink_prior: self.ink_prior,
         }
         .validate()
     }

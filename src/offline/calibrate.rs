@@ -43,6 +43,8 @@ pub fn fit_folder(dir: &Path, fit: &FolderFit) -> anyhow::Result<Calibration> {
         piezo_dir: None,
         whole_frame: false,
         response: fit.response,
+        // The print's density moves with the board: displacements do not see it.
+        ink_prior: None,
     }
     .validate()?;
     let folder = folder::open(dir, None)?;

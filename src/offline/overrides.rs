@@ -29,6 +29,9 @@ pub struct Overrides {
     /// The camera's output curve, for sessions recorded before it was kept (or wrong).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub response: Option<crate::pipeline::Response>,
+    /// The print's ink density statistics, for sessions recorded without them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ink_prior: Option<crate::pipeline::InkPrior>,
 }
 
 impl Overrides {
@@ -62,6 +65,9 @@ impl Overrides {
         }
         if let Some(c) = self.response {
             r.response = c;
+        }
+        if let Some(p) = self.ink_prior {
+            r.ink_prior = Some(p);
         }
         r
     }
@@ -99,6 +105,13 @@ impl Overrides {
         }
         if let Some(c) = &self.response {
             parts.push(wire(c));
+        }
+        if let Some(p) = &self.ink_prior {
+            parts.push(format!(
+                "ink{}_{}",
+                number(p.density_rms),
+                number(p.corr_um)
+            ));
         }
         match parts.is_empty() {
             true => "recorded".into(),

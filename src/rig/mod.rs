@@ -95,6 +95,10 @@ pub struct RigInfo {
     /// Sessions recorded before it was kept were measured as linear.
     #[serde(default)]
     pub response: crate::pipeline::Response,
+    /// The print's ink density statistics (`[camera] ink_prior`), when known: the fit then
+    /// takes the print's uneven density as a prior.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ink_prior: Option<crate::pipeline::InkPrior>,
     /// Whether the rig has an interferometer log (`registration: interferometer` needs one).
     #[serde(default)]
     pub interferometer: bool,

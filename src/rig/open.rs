@@ -92,6 +92,7 @@ pub fn from_config(cfg: &Config) -> Result<Rig, HwError> {
         // What the camera delivers (a V4L2 driver may adjust the configured size).
         frame_size: devices.camera.size(),
         response: camera_response(cam_cfg),
+        ink_prior: camera_ink_prior(cam_cfg),
         // An all-sim rig runs the sim's XL-80; otherwise `[xl80]` names the log.
         interferometer: devices.log.is_some(),
         board,
@@ -213,6 +214,18 @@ fn camera_response(cfg: &CameraConfig) -> crate::pipeline::Response {
         #[cfg(feature = "sim")]
         CameraDriver::Sim => super::sim::response(&cfg.sim.clone().unwrap_or_default()),
         _ => crate::pipeline::Response::Srgb,
+    }
+}
+
+/// `[camera] ink_prior`, else the sim camera's own print's statistics.
+fn camera_ink_prior(cfg: &CameraConfig) -> Option<crate::pipeline::InkPrior> {
+    if let Some(p) = cfg.ink_prior {
+        return Some(p);
+    }
+    match cfg.driver {
+        #[cfg(feature = "sim")]
+        CameraDriver::Sim => super::sim::ink_prior(&cfg.sim.clone().unwrap_or_default()),
+        _ => None,
     }
 }
 

@@ -856,8 +856,8 @@ mod tests {
                     "t {t}, r {r}, m {m}"
                 );
             }
-            assert_eq!(rows[255], true);
-            assert_eq!(rows[0], false);
+            assert!(rows[255]);
+            assert!(!rows[0]);
         }
     }
 

@@ -9,7 +9,7 @@
 //! estimates are the same bits whichever thread makes them and whenever.
 
 use super::detect::Candidate;
-use super::estimate::{estimate_from, CentreEstimate, Seed, Start};
+use super::estimate::{estimate_from, CentreEstimate, PlaneInk, Seed, Start};
 use super::options::WINDOW_MARGIN_PX;
 use super::plane::{Plane, Roi};
 use super::register::{At, Dirs};
@@ -36,6 +36,9 @@ struct Inner {
     channel: usize,
     response: Response,
     estimator: Estimator,
+    /// The print's density as a prior for every frame's fit: when the frames' own fits are
+    /// the results (`combine = mean`).
+    ink: Option<PlaneInk>,
     registration: Registration,
     dirs: Dirs,
     targets: Vec<Candidate>,
@@ -73,6 +76,7 @@ pub struct FrameZero<'a> {
     pub channel: usize,
     pub response: Response,
     pub estimator: Estimator,
+    pub ink: Option<PlaneInk>,
     pub registration: Registration,
     pub dirs: Dirs,
     pub targets: &'a [Candidate],
@@ -87,6 +91,7 @@ impl Measurer {
             channel: f.channel,
             response: f.response,
             estimator: f.estimator,
+            ink: f.ink,
             registration: f.registration,
             dirs: f.dirs,
             targets: f.targets.to_vec(),
@@ -175,7 +180,7 @@ impl Measurer {
         let m = &self.0;
         let one = |(c, seed): (&Candidate, &Option<Seed>)| {
             let how = (m.channel, m.response);
-            measure_in_frame(frame, how, (c, *seed), predicted_px, m.estimator)
+            measure_in_frame(frame, how, (c, *seed), predicted_px, (m.estimator, m.ink))
         };
         let each = m.targets.iter().zip(&m.seeds);
         if parallel {
@@ -240,7 +245,7 @@ pub(super) fn measure_in_frame(
     (ch, response): (usize, Response),
     (c, seed): (&Candidate, Option<Seed>),
     shift_px: [f64; 2],
-    estimator: Estimator,
+    (estimator, ink): (Estimator, Option<PlaneInk>),
 ) -> Option<CentreEstimate> {
     let (x0, y0, side) = measure_window(c, shift_px);
     let roi = Roi {
@@ -265,7 +270,7 @@ pub(super) fn measure_in_frame(
     };
     let seed = seed.map(|s| s.mapped(mv, 1.0));
     let start = seed.as_ref().map_or(Start::Guess, Start::Track);
-    let mut e = estimate_from(&crop, &guess, estimator, 1.0, start).ok()?;
+    let mut e = estimate_from(&crop, &guess, estimator, 1.0, start, ink).ok()?;
     let back = |p: [f64; 2]| [p[0] + x0, p[1] + y0];
     e.outer_px = back(e.outer_px);
     e.inner_px = back(e.inner_px);
@@ -283,6 +288,7 @@ mod tests {
             channel: 0,
             response: Response::Linear,
             estimator: Estimator::Fit,
+            ink: None,
             registration,
             dirs: Dirs {
                 scale_um_per_px,

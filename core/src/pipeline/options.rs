@@ -43,6 +43,44 @@ pub struct ProcessOptions {
     pub whole_frame: bool,
     /// The camera's output curve: frames are measured in linear light (`response`).
     pub response: super::Response,
+    /// The print's ink density statistics, when known: the fit then also follows the ink's
+    /// uneven density over each target, as a prior (docs/method.md, "The print as a
+    /// prior"). Absent: the even-ink fit with its contrast planes.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ink_prior: Option<InkPrior>,
+}
+
+/// The statistics of a print's ink density `1 + ε`: ε a smooth random field of RMS
+/// `density_rms` (relative) with a Gaussian correlation of length `corr_um` on the board
+/// (measured once on a print: docs/calibration.md).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InkPrior {
+    pub density_rms: f64,
+    pub corr_um: f64,
+}
+
+impl InkPrior {
+    /// Parse `RMS,CORR_UM` (the command line's form), e.g. `0.04,3000`.
+    pub fn parse(s: &str) -> Result<InkPrior, String> {
+        let bad = || format!("ink prior must be RMS,CORR_UM (e.g. 0.04,3000), got `{s}`");
+        let (a, b) = s.split_once(',').ok_or_else(bad)?;
+        let prior = InkPrior {
+            density_rms: a.trim().parse().map_err(|_| bad())?,
+            corr_um: b.trim().parse().map_err(|_| bad())?,
+        };
+        prior.check().map_err(|e| e.to_string())?;
+        Ok(prior)
+    }
+
+    fn check(&self) -> Result<(), OptionError> {
+        let (r, c) = (self.density_rms, self.corr_um);
+        if r.is_finite() && r > 0.0 && r <= 0.5 && c.is_finite() && c > 0.0 {
+            Ok(())
+        } else {
+            Err(OptionError::InkPrior { got: *self })
+        }
+    }
 }
 
 impl Default for ProcessOptions {
@@ -57,6 +95,7 @@ impl Default for ProcessOptions {
             piezo_dir: None,
             whole_frame: false,
             response: super::Response::Linear,
+            ink_prior: None,
         }
     }
 }
@@ -73,6 +112,10 @@ pub enum OptionError {
     AxisDir { got: [f64; 2] },
     #[error("`piezo_dir` must be a finite non-zero vector, got {got:?}")]
     PiezoDir { got: [f64; 2] },
+    #[error(
+        "`ink_prior` must have 0 < density_rms <= 0.5 and a finite positive corr_um, got {got:?}"
+    )]
+    InkPrior { got: InkPrior },
 }
 
 impl OptionError {
@@ -83,6 +126,7 @@ impl OptionError {
             OptionError::Scale { .. } => "scale_um_per_px",
             OptionError::AxisDir { .. } => "axis_dir",
             OptionError::PiezoDir { .. } => "piezo_dir",
+            OptionError::InkPrior { .. } => "ink_prior",
         }
     }
 }
@@ -108,6 +152,9 @@ impl ProcessOptions {
         }
         if let Some(d) = self.piezo_dir.filter(|&d| !usable_dir(d)) {
             return Err(OptionError::PiezoDir { got: d });
+        }
+        if let Some(p) = &self.ink_prior {
+            p.check()?;
         }
         Ok(())
     }

@@ -16,7 +16,7 @@
 
 use super::accumulate::{Accumulator, Method};
 use super::detect::{self, Candidate, DetectConfig};
-use super::estimate::{self, estimate_from, CentreEstimate, EvenInk, Start};
+use super::estimate::{self, estimate_from, CentreEstimate, EvenInk, PlaneInk, Start};
 use super::mean::OffsetMean;
 use super::measure::{measure_in_frame, windows_bottom, FrameEstimates, FrameZero, Measurer};
 use super::options::WINDOW_MARGIN_PX;
@@ -465,11 +465,19 @@ impl Pipeline {
     /// Frame 0's targets measured where detection found them, from its guesses.
     fn frame_zero_estimates(&self, frame: &RgbImage) -> Vec<Option<CentreEstimate>> {
         let how = (self.channel, self.opts.response);
-        let estimator = self.opts.estimator;
+        let fit = (self.opts.estimator, self.ink_in(1.0));
         self.targets
             .par_iter()
-            .map(|c| measure_in_frame(frame, how, (c, None), [0.0; 2], estimator))
+            .map(|c| measure_in_frame(frame, how, (c, None), [0.0; 2], fit))
             .collect()
+    }
+
+    /// The print's density prior in the pixels of a plane `k` times finer than the camera's.
+    fn ink_in(&self, k: f64) -> Option<PlaneInk> {
+        self.opts.ink_prior.map(|p| PlaneInk {
+            density_rms: p.density_rms,
+            corr_px: p.corr_um / self.opts.scale_um_per_px * k,
+        })
     }
 
     /// Where frame `index` at `at` should be ([`Measurer::predicted`]); frame 0 where it is.
@@ -548,6 +556,10 @@ impl Pipeline {
             channel: self.channel,
             response: self.opts.response,
             estimator: self.opts.estimator,
+            // Later frames' fits are results only when they are averaged.
+            ink: self
+                .ink_in(1.0)
+                .filter(|_| self.opts.combine == Combine::Mean),
             registration: self.opts.registration,
             dirs: self.dirs(),
             targets: &self.targets,
@@ -863,7 +875,14 @@ impl Pipeline {
         let guess = fine_guess(first, c, [x0, y0], k, tw.side as usize);
         let seed = first.seed.map(|s| s.mapped(to_fine, kf));
         let start = seed.as_ref().map_or(Start::Guess, Start::Near);
-        let e = estimate_from(&plane, &guess, self.opts.estimator, kf, start);
+        let e = estimate_from(
+            &plane,
+            &guess,
+            self.opts.estimator,
+            kf,
+            start,
+            self.ink_in(kf),
+        );
         if !self.keep_images {
             if let Ok(mut s) = spare.lock() {
                 s.push(plane.data);

@@ -10,6 +10,8 @@
 mod fit;
 mod paper;
 
+pub use fit::PlaneInk;
+
 use super::accumulate::Lattice;
 use super::detect::{Candidate, Detection};
 use super::plane::Plane;
@@ -120,17 +122,26 @@ pub fn estimate(
     estimator: Estimator,
     px_per_camera_px: f64,
 ) -> Result<CentreEstimate, EstimateError> {
-    estimate_from(plane, guess, estimator, px_per_camera_px, Start::Guess)
+    estimate_from(
+        plane,
+        guess,
+        estimator,
+        px_per_camera_px,
+        Start::Guess,
+        None,
+    )
 }
 
-/// [`estimate`] with the fit started at `start` (the paper estimator ignores it). The
-/// window and the checks still come from `guess`.
+/// [`estimate`] with the fit started at `start` and, with `ink`, the print's density as a
+/// prior (the paper estimator ignores both). The window and the checks still come from
+/// `guess`.
 pub fn estimate_from(
     plane: &Plane,
     guess: &Candidate,
     estimator: Estimator,
     px_per_camera_px: f64,
     start: Start,
+    ink: Option<PlaneInk>,
 ) -> Result<CentreEstimate, EstimateError> {
     let k = px_per_camera_px;
     if !(k.is_finite() && k > 0.0) {
@@ -142,7 +153,7 @@ pub fn estimate_from(
     let win = Window::around(plane, guess, k)?;
     match estimator {
         Estimator::Paper => paper::estimate(plane, &win, guess),
-        Estimator::Fit => fit::estimate(plane, &win, guess, k, start),
+        Estimator::Fit => fit::estimate(plane, &win, guess, k, start, ink),
     }
 }
 
@@ -358,14 +369,98 @@ mod tests {
                 *v = f32::NAN;
             }
         }
-        let whole = estimate_from(&plane, &guess, Estimator::Fit, k, Start::Guess).unwrap();
-        let some = estimate_from(&poisoned, &guess, Estimator::Fit, k, Start::Guess).unwrap();
+        let whole = estimate_from(&plane, &guess, Estimator::Fit, k, Start::Guess, None).unwrap();
+        let some = estimate_from(&poisoned, &guess, Estimator::Fit, k, Start::Guess, None).unwrap();
         assert_eq!(whole.offset_px(), some.offset_px());
         assert!(
             (whole.offset_px()[0] - 3.8).abs() < 0.05,
             "{:?}",
             whole.offset_px()
         );
+    }
+
+    /// ½·erfc(x/√2)-shaped edge (Abramowitz & Stegun 7.1.26, |error| < 1.5e-7).
+    fn blurred_edge(d: f64, s: f64) -> f64 {
+        let x = d / (s * std::f64::consts::SQRT_2);
+        let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
+        let poly = t
+            * (0.254_829_592
+                + t * (-0.284_496_736
+                    + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+        let erfc = poly * (-x * x).exp();
+        0.5 * if x >= 0.0 { erfc } else { 2.0 - erfc }
+    }
+
+    /// A camera-scale target printed with uneven ink (4 % RMS over ~4 px, a few smooth
+    /// waves as the sim draws it) and ±1 DN of pattern noise: the even-ink fit's offset is
+    /// pulled by the density; the fit with the print's statistics as a prior takes most of
+    /// that away.
+    #[test]
+    fn the_ink_prior_takes_the_uneven_density_out_of_the_offset() {
+        let n = 48;
+        let (co, ci) = ([23.7, 24.2], [25.1, 23.4]);
+        let guess = Candidate {
+            outer_centre_px: [24.0, 24.0],
+            inner_centre_px: [25.0, 23.5],
+            outer_radii_px: [11.0, 14.0],
+            inner_radii_px: [0.0, 7.0],
+            roi: super::super::plane::Roi {
+                x: 0,
+                y: 0,
+                w: n as u32,
+                h: n as u32,
+            },
+        };
+        let truth = [ci[0] - co[0], ci[1] - co[1]];
+        let ink = PlaneInk {
+            density_rms: 0.04,
+            corr_px: 3.9,
+        };
+        let (mut even_sq, mut prior_sq) = (0.0, 0.0);
+        for print in 0..8u64 {
+            // Six waves of random direction and phase, wavenumbers ~ N(0, 1/ℓ²) per axis.
+            let mut state = print * 7919 + 17;
+            let mut rnd = || {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (state >> 11) as f64 / (1u64 << 53) as f64
+            };
+            let waves: Vec<[f64; 3]> = (0..6)
+                .map(|_| {
+                    let g = |u: f64, v: f64| {
+                        (-2.0 * u.max(1e-12).ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+                    };
+                    let (kx, ky) = (g(rnd(), rnd()) / ink.corr_px, g(rnd(), rnd()) / ink.corr_px);
+                    [kx, ky, std::f64::consts::TAU * rnd()]
+                })
+                .collect();
+            let amp = ink.density_rms * (2.0f64 / 6.0).sqrt();
+            let mut plane = Plane::new(n, n);
+            for (i, v) in plane.data.iter_mut().enumerate() {
+                let (x, y) = ((i % n) as f64, (i / n) as f64);
+                let eps: f64 = waves
+                    .iter()
+                    .map(|w| amp * (w[0] * x + w[1] * y + w[2]).cos())
+                    .sum();
+                let ro = (x - co[0]).hypot(y - co[1]);
+                let ri = (x - ci[0]).hypot(y - ci[1]);
+                let e = |d: f64| blurred_edge(d, 0.8);
+                let cov = e(ro - 14.0) - e(ro - 11.0) + e(ri - 7.0);
+                let noise = ((i * 7919 % 101) as f64 / 101.0 - 0.5) * 2.0;
+                *v = (200.0 * (1.0 - 0.6 * (1.0 + eps) * cov) + noise) as f32;
+            }
+            let err = |e: CentreEstimate| {
+                let o = e.offset_px();
+                (o[0] - truth[0]).powi(2) + (o[1] - truth[1]).powi(2)
+            };
+            let fit = |ink| estimate_from(&plane, &guess, Estimator::Fit, 1.0, Start::Guess, ink);
+            even_sq += err(fit(None).unwrap());
+            prior_sq += err(fit(Some(ink)).unwrap());
+        }
+        let (even, prior) = ((even_sq / 16.0).sqrt(), (prior_sq / 16.0).sqrt());
+        eprintln!("RMS offset error per axis: even ink {even:.4} px, with the prior {prior:.4} px");
+        assert!(prior < 0.5 * even, "{prior:.4} vs {even:.4} px");
     }
 
     #[test]

@@ -25,6 +25,9 @@ use nalgebra::{DMatrix, DVector};
 
 mod edge;
 mod normal;
+mod prior;
+
+pub use prior::PlaneInk;
 
 use normal::Normal;
 
@@ -148,14 +151,15 @@ pub(super) fn estimate(
     g: &Candidate,
     k: f64,
     start: super::Start,
+    ink: Option<PlaneInk>,
 ) -> Result<CentreEstimate, EstimateError> {
     let step = sample_step(k);
-    let (paper, ink) = win.levels(plane, step);
-    if paper - ink < 4.0 || paper <= 0.0 {
+    let (paper, ink_level) = win.levels(plane, step);
+    if paper - ink_level < 4.0 || paper <= 0.0 {
         return Err(EstimateError::NoInk {
             x: g.outer_centre_px[0],
             y: g.outer_centre_px[1],
-            what: format!("no contrast between paper ({paper:.1} DN) and ink ({ink:.1} DN)"),
+            what: format!("no contrast between paper ({paper:.1} DN) and ink ({ink_level:.1} DN)"),
         });
     }
     let ring_inner = g.inner_radii_px[0] > 0.0;
@@ -182,6 +186,9 @@ pub(super) fn estimate(
         super::Start::Guess => None,
         super::Start::Near(s) | super::Start::Track(s) => Some(s.0).filter(|s| s.np == np),
     };
+    if let Some(ink) = ink {
+        return with_prior(&prob, (seed, start), (g, k, paper, ink_level), ink);
+    }
     match (seed, start) {
         // The same target a moment later: its ink has not changed, nor has the model.
         (Some(s), super::Start::Track(_)) => {
@@ -190,7 +197,7 @@ pub(super) fn estimate(
         }
         _ => {
             // (The even-ink model holds the gradients where they start: at 0.)
-            let p = seed.map_or_else(|| first_guess(g, k, paper, ink), |s| s.even_ink().p);
+            let p = seed.map_or_else(|| first_guess(g, k, paper, ink_level), |s| s.even_ink().p);
             // The even-ink model first (as fast as the fit before the planes); the planes
             // only when a score test at its minimum shows uneven ink: one more pass on
             // evenly printed targets.
@@ -214,6 +221,40 @@ pub(super) fn estimate(
             Ok(est)
         }
     }
+}
+
+/// The fit with the print's density as a prior ([`prior`]): the even-ink fit from the
+/// start (one Gauss–Newton step when tracking), then the MAP fit from there. The offset's
+/// covariance is the posterior's: the samples' noise and the print's unknown density.
+fn with_prior(
+    prob: &Problem,
+    (seed, start): (Option<State>, super::Start),
+    (g, k, paper, ink_level): (&Candidate, f64, f64, f64),
+    ink: PlaneInk,
+) -> Result<CentreEstimate, EstimateError> {
+    let (p, steps) = match (seed, start) {
+        (Some(s), super::Start::Track(_)) => (s.even_ink().p, Steps::FirstIfNear),
+        (Some(s), _) => (s.even_ink().p, Steps::ToMinimum),
+        (None, _) => (first_guess(g, k, paper, ink_level), Steps::ToMinimum),
+    };
+    let even = solve(prob, p, k, g, steps, None)?;
+    // One sample per `step`² of the plane's pixels: on a reconstruction (`step` < k) the
+    // samples are interpolated from fewer camera pixels, each counted (k/step)² times.
+    let per_camera_px = (k / prob.step as f64).max(1.0).powi(2);
+    let s2 = even.residual_variance(prob).unwrap_or(1.0) * per_camera_px;
+    let map = prior::refine(prob, &even.p, ink, s2).ok_or_else(|| EstimateError::Diverged {
+        iterations: 0,
+        reason: "singular normal equations with the ink prior".into(),
+    })?;
+    if let Some(reason) = insane(&map.p, prob.np, k, g) {
+        return Err(EstimateError::Diverged {
+            iterations: 0,
+            reason: format!("with the ink prior: {reason}"),
+        });
+    }
+    let mut est = Fit { p: map.p, ..even }.estimate(prob);
+    est.offset_cov_px2 = Some(map.offset_cov_px2);
+    Ok(est)
 }
 
 /// The starting point from the guess alone: its centres and radii, a blur of 0.8 camera

@@ -73,7 +73,30 @@ impl Normal {
     }
 }
 
+/// One pixel's model in `f64`: the Jacobian row, the paper level L and the shade
+/// `1 − c_o·cov_o − c_i·cov_i` (the model is `L·shade`).
+pub(super) struct Row {
+    pub j: [f64; MAXP],
+    pub l: f64,
+    pub shade: f64,
+}
+
 impl Problem<'_> {
+    /// [`Row`] at (`fx`, `fy`) from the window's middle, with value `v`.
+    pub(super) fn row_f64(&self, p: &[f64; MAXP], fx: f64, fy: f64, v: f64) -> Row {
+        let mut q = *p;
+        for (i, axis) in [(CXO, 0), (CYO, 1), (CXI, 0), (CYI, 1)] {
+            q[i] = p[i] - self.mid[axis];
+        }
+        let (j, _) = self.pixel::<f64, true, true>(&q, fx, fy, v);
+        let (bx, by) = (fx * self.inv_half, fy * self.inv_half);
+        Row {
+            j,
+            l: p[B0] + p[BX] * bx + p[BY] * by,
+            shade: j[B0],
+        }
+    }
+
     pub(super) fn normal(&self, p: &[f64; MAXP]) -> Normal {
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {

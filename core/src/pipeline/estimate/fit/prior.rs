@@ -1,0 +1,269 @@
+//! The print's uneven ink as a prior: after the even-ink fit, the model
+//! `I = L·(1 − (1 + ε)·(c_o·cov_o + c_i·cov_i))` with the ink's relative density ε a
+//! Gaussian field of known RMS and correlation length, written in its Karhunen–Loève modes
+//! over the target (unit prior variance each), fitted by maximum a posteriori: the
+//! residuals' sum of squares over the data's variance plus the modes' squared norm.
+
+use super::normal::Row;
+use super::{Problem, B0, BX, BY, CXI, CXO, CYI, CYO, GRADIENTS, MAXP};
+use nalgebra::{DMatrix, DVector};
+
+/// The ink density's statistics ([`crate::pipeline::InkPrior`]) in a plane's pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlaneInk {
+    pub density_rms: f64,
+    pub corr_px: f64,
+}
+
+/// Modes whose prior variance is at least this share of the largest's: the others move a
+/// shape's edges by less than 10 % of what the largest do (their amplitude's RMS is under
+/// a tenth), far below what the samples can tell.
+const MODE_FLOOR: f64 = 1e-2;
+const ITERATIONS: usize = 12;
+/// Converged: no centre moved more than this, in the plane's sample steps.
+const CONVERGED_STEPS: f64 = 1e-4;
+
+/// The MAP fit: its parameters (the contrast gradients at 0: the modes hold the density)
+/// and the offset's posterior covariance.
+pub(super) struct Map {
+    pub p: [f64; MAXP],
+    pub offset_cov_px2: [[f64; 2]; 2],
+}
+
+/// The MAP fit from the even fit's `p`, with `sigma2` the variance of one sample (as
+/// independent samples); `None` when the normal equations are singular.
+pub(super) fn refine(prob: &Problem, p: &[f64; MAXP], prior: PlaneInk, sigma2: f64) -> Option<Map> {
+    let samples = samples(prob);
+    let phi = modes(p, prior, &samples);
+    let m = phi.ncols();
+    let base: Vec<usize> = (0..prob.np).filter(|a| !GRADIENTS.contains(a)).collect();
+    let nb = base.len();
+    let n = nb + m;
+    let (mut p, mut a) = (*p, DVector::<f64>::zeros(m));
+    let mut lambda = 1e-3;
+    let mut cost = objective(prob, &p, &a, &phi, &samples, sigma2);
+    for _ in 0..ITERATIONS {
+        let (h, g) = normal(prob, &p, &a, &phi, &samples, sigma2, &base);
+        let mut damped = h.clone();
+        for i in 0..n {
+            damped[(i, i)] += lambda * h[(i, i)].max(1e-12);
+        }
+        let delta = damped.cholesky()?.solve(&g);
+        let mut q = p;
+        for (i, &b) in base.iter().enumerate() {
+            q[b] += delta[i];
+        }
+        let b = &a + delta.rows(nb, m);
+        let next = objective(prob, &q, &b, &phi, &samples, sigma2);
+        if next <= cost {
+            let centres = [CXO, CYO, CXI, CYI]
+                .iter()
+                .map(|&i| (q[i] - p[i]).abs())
+                .fold(0.0, f64::max);
+            (p, a, cost) = (q, b, next);
+            lambda = (lambda * 0.3).max(1e-9);
+            if centres < CONVERGED_STEPS * prob.step as f64 {
+                break;
+            }
+        } else {
+            lambda *= 10.0;
+        }
+    }
+    let (h, _) = normal(prob, &p, &a, &phi, &samples, sigma2, &base);
+    let cov = h.cholesky()?.inverse();
+    let at = |axis: usize| {
+        let (o, i) = ([CXO, CYO][axis], [CXI, CYI][axis]);
+        let (o, i) = (
+            base.iter().position(|&b| b == o)?,
+            base.iter().position(|&b| b == i)?,
+        );
+        Some((o, i))
+    };
+    let (ox, ix) = at(0)?;
+    let (oy, iy) = at(1)?;
+    let e = |a: (usize, usize), b: (usize, usize)| {
+        cov[(a.1, b.1)] - cov[(a.1, b.0)] - cov[(a.0, b.1)] + cov[(a.0, b.0)]
+    };
+    let (x, y) = ((ox, ix), (oy, iy));
+    Some(Map {
+        p,
+        offset_cov_px2: [[e(x, x), e(x, y)], [e(y, x), e(y, y)]],
+    })
+}
+
+/// The pixels the fit reads (position from the window's middle, value) and where.
+struct Sample {
+    fx: f64,
+    fy: f64,
+    v: f64,
+    at: [f64; 2],
+}
+
+fn samples(prob: &Problem) -> Vec<Sample> {
+    let reach2 = prob.win.reach * prob.win.reach;
+    let mut out = Vec::new();
+    for y in (prob.win.y0..prob.win.y1).step_by(prob.step) {
+        for x in (prob.win.x0..prob.win.x1).step_by(prob.step) {
+            let (fx, fy) = (x as f64, y as f64);
+            let (rx, ry) = (fx - prob.reach_centre[0], fy - prob.reach_centre[1]);
+            if rx * rx + ry * ry > reach2 {
+                continue;
+            }
+            out.push(Sample {
+                fx: fx - prob.mid[0],
+                fy: fy - prob.mid[1],
+                v: prob.plane.data[y * prob.plane.width + x] as f64,
+                at: [fx, fy],
+            });
+        }
+    }
+    out
+}
+
+/// Each sample's value of each mode (samples × modes): the field's Karhunen–Loève modes on
+/// a grid `corr/2` apart over the outer shape (its rim and blur, and half a correlation
+/// length beyond), extended between grid points by the covariance.
+fn modes(p: &[f64; MAXP], prior: PlaneInk, s: &[Sample]) -> DMatrix<f64> {
+    let spacing = prior.corr_px / 2.0;
+    let reach = p[super::RIM] + 3.0 * p[super::S] + 0.5 * prior.corr_px;
+    let k = (reach / spacing).ceil() as i64;
+    let basis = Basis::of(k);
+    // The covariance to each grid point, `rms²·exp(−d²/2ℓ²)`, separable in x and y.
+    let (c, rms2) = ([p[CXO], p[CYO]], prior.density_rms.powi(2));
+    let along = |d: f64| (-d * d / (2.0 * prior.corr_px * prior.corr_px)).exp();
+    // Grid points × samples: each sample's column contiguous as it is filled.
+    let mut to_grid = DMatrix::<f64>::zeros(basis.grid.len(), s.len());
+    let side = (2 * k + 1) as usize;
+    let (mut ex, mut ey) = (vec![0.0; side], vec![0.0; side]);
+    for (mut col, smp) in to_grid.column_iter_mut().zip(s) {
+        for (t, (x, y)) in ex.iter_mut().zip(ey.iter_mut()).enumerate() {
+            let g = (t as i64 - k) as f64 * spacing;
+            *x = along(smp.at[0] - c[0] - g);
+            *y = along(smp.at[1] - c[1] - g);
+        }
+        for (v, &[gi, gj]) in col.iter_mut().zip(&basis.grid) {
+            *v = rms2 * ex[(gi + k) as usize] * ey[(gj + k) as usize];
+        }
+    }
+    // The weights are for unit RMS: the modes' variances scale with rms².
+    (basis.weights.transpose() * to_grid).transpose() / prior.density_rms
+}
+
+/// The field's modes on the grid of points (i, j) with i² + j² ≤ k², `corr/2` apart, for a
+/// unit RMS: the grid's covariance's eigenvectors over the square root of their variances,
+/// those above [`MODE_FLOOR`]. It depends on k alone: made once per k.
+struct Basis {
+    grid: Vec<[i64; 2]>,
+    weights: DMatrix<f64>,
+}
+
+impl Basis {
+    fn of(k: i64) -> std::sync::Arc<Basis> {
+        use std::collections::HashMap;
+        use std::sync::{Arc, Mutex, OnceLock};
+        static MADE: OnceLock<Mutex<HashMap<i64, Arc<Basis>>>> = OnceLock::new();
+        let made = MADE.get_or_init(Default::default);
+        if let Some(b) = made.lock().ok().and_then(|m| m.get(&k).cloned()) {
+            return b;
+        }
+        let b = Arc::new(Basis::make(k));
+        if let Ok(mut m) = made.lock() {
+            m.insert(k, b.clone());
+        }
+        b
+    }
+
+    fn make(k: i64) -> Basis {
+        let grid: Vec<[i64; 2]> = (-k..=k)
+            .flat_map(|i| (-k..=k).map(move |j| [i, j]))
+            .filter(|&[i, j]| i * i + j * j <= k * k)
+            .collect();
+        // Points corr/2 apart: d²/2ℓ² = (Δi² + Δj²)/8.
+        let kmat = DMatrix::from_fn(grid.len(), grid.len(), |a, b| {
+            let d2 = (grid[a][0] - grid[b][0]).pow(2) + (grid[a][1] - grid[b][1]).pow(2);
+            (-(d2 as f64) / 8.0).exp()
+        });
+        let eig = kmat.symmetric_eigen();
+        let top = eig.eigenvalues.max();
+        let keep: Vec<usize> = (0..grid.len())
+            .filter(|&j| eig.eigenvalues[j] >= MODE_FLOOR * top)
+            .collect();
+        let weights = DMatrix::from_fn(grid.len(), keep.len(), |i, j| {
+            eig.eigenvectors[(i, keep[j])] / eig.eigenvalues[keep[j]].sqrt()
+        });
+        Basis { grid, weights }
+    }
+}
+
+/// The model's row at a sample with the density `eps`: base parameters' derivatives,
+/// `−L·K` (the density's), residual.
+fn row(prob: &Problem, p: &[f64; MAXP], s: &Sample, eps: f64) -> ([f64; MAXP], f64, f64) {
+    let Row { j, l, shade, .. } = prob.row_f64(p, s.fx, s.fy, s.v);
+    let ink = 1.0 - shade;
+    let shade_e = 1.0 - (1.0 + eps) * ink;
+    let mut out = j.map(|v| v * (1.0 + eps));
+    let inv_half = prob.inv_half;
+    out[B0] = shade_e;
+    out[BX] = s.fx * inv_half * shade_e;
+    out[BY] = s.fy * inv_half * shade_e;
+    (out, -l * ink, s.v - l * shade_e)
+}
+
+fn objective(
+    prob: &Problem,
+    p: &[f64; MAXP],
+    a: &DVector<f64>,
+    phi: &DMatrix<f64>,
+    s: &[Sample],
+    sigma2: f64,
+) -> f64 {
+    let eps = phi * a;
+    let data: f64 = s
+        .iter()
+        .zip(eps.iter())
+        .map(|(s, &e)| row(prob, p, s, e).2.powi(2))
+        .sum();
+    data / sigma2 + a.norm_squared()
+}
+
+/// `JᵀJ/σ² + diag(0, I)` and `Jᵀr/σ² − (0, a)` over the base parameters and the modes (the
+/// Jacobian built whole, its products by the matrix library's blocked kernels).
+fn normal(
+    prob: &Problem,
+    p: &[f64; MAXP],
+    a: &DVector<f64>,
+    phi: &DMatrix<f64>,
+    s: &[Sample],
+    sigma2: f64,
+    base: &[usize],
+) -> (DMatrix<f64>, DVector<f64>) {
+    let (nb, m) = (base.len(), phi.ncols());
+    let eps = phi * a;
+    let mut jac = DMatrix::<f64>::zeros(s.len(), nb);
+    let mut dk = DVector::<f64>::zeros(s.len());
+    let mut r = DVector::<f64>::zeros(s.len());
+    for (i, smp) in s.iter().enumerate() {
+        let (j, d, res) = row(prob, p, smp, eps[i]);
+        for (c, &b) in base.iter().enumerate() {
+            jac[(i, c)] = j[b];
+        }
+        (dk[i], r[i]) = (d, res);
+    }
+    // The modes' columns: each sample's ink change times the modes there.
+    let jac = DMatrix::from_fn(s.len(), nb + m, |i, c| {
+        if c < nb {
+            jac[(i, c)]
+        } else {
+            dk[i] * phi[(i, c - nb)]
+        }
+    });
+    // (`tr_mul` is a dot product per entry: the transpose's product is the blocked one.)
+    let jt = jac.transpose();
+    let mut h = &jt * &jac / sigma2;
+    let mut g = &jt * &r / sigma2;
+    for k in 0..m {
+        h[(nb + k, nb + k)] += 1.0;
+        g[nb + k] -= a[k];
+    }
+    (h, g)
+}
