@@ -476,6 +476,10 @@ impl Config {
             if c.frame_timeout_ms == 0 {
                 return Err(self.invalid("camera.frame_timeout_ms", "must be positive"));
             }
+            if let Some(p) = &c.ink_prior {
+                p.check()
+                    .map_err(|e| self.invalid("camera.ink_prior", e.to_string()))?;
+            }
         }
         if let Some(x) = &self.xl80 {
             if crate::xl80::length_unit_um(&x.rtx_unit).is_none() {

@@ -169,6 +169,21 @@ fn wrong_values_name_the_key() {
     assert!(e.contains("magic"), "{e}");
     let e = err(&format!("{AXIS}baud = \"fast\"\n"));
     assert!(e.contains("baud"), "{e}");
+    let cam = "[camera]\ndriver = \"sim\"\nink_prior = { density_rms = 0.9, corr_um = 3000 }\n";
+    let e = err(cam);
+    assert!(
+        e.contains("key `camera.ink_prior`") && e.contains("0.9"),
+        "{e}"
+    );
+}
+
+#[test]
+fn the_prints_ink_statistics_are_read() {
+    let cfg =
+        parse("[camera]\ndriver = \"sim\"\nink_prior = { density_rms = 0.04, corr_um = 3000 }\n")
+            .unwrap();
+    let p = cfg.camera("t").unwrap().ink_prior.unwrap();
+    assert_eq!((p.density_rms, p.corr_um), (0.04, 3000.0));
 }
 
 #[test]

@@ -73,7 +73,8 @@ impl InkPrior {
         Ok(prior)
     }
 
-    fn check(&self) -> Result<(), OptionError> {
+    /// Whether the statistics are usable: 0 < `density_rms` ≤ 0.5, `corr_um` > 0.
+    pub fn check(&self) -> Result<(), OptionError> {
         let (r, c) = (self.density_rms, self.corr_um);
         if r.is_finite() && r > 0.0 && r <= 0.5 && c.is_finite() && c > 0.0 {
             Ok(())
@@ -380,6 +381,26 @@ impl ValidOptions {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_ink_prior_is_read_from_the_command_line_and_checked() {
+        let p = InkPrior::parse("0.04, 3000").unwrap();
+        assert_eq!((p.density_rms, p.corr_um), (0.04, 3000.0));
+        for bad in [
+            "0.04", "x,3000", "0,3000", "0.6,3000", "0.04,-1", "0.04,inf",
+        ] {
+            let e = InkPrior::parse(bad).unwrap_err();
+            assert!(e.contains("ink"), "{bad}: {e}");
+        }
+        let opts = ProcessOptions {
+            ink_prior: Some(InkPrior {
+                density_rms: 0.04,
+                corr_um: 0.0,
+            }),
+            ..ProcessOptions::default()
+        };
+        assert_eq!(opts.validate().unwrap_err().option(), "ink_prior");
+    }
 
     #[test]
     fn each_limit_is_refused_with_the_options_name() {
