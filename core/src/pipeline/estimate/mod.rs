@@ -330,6 +330,27 @@ fn f32_from_key(k: u32) -> f32 {
 mod tests {
     use super::*;
 
+    /// A guess of a ring (`[hole, rim]`) around a disk, its ROI the whole n x n plane.
+    fn whole_plane_guess(
+        n: usize,
+        (outer, inner): ([f64; 2], [f64; 2]),
+        ring: [f64; 2],
+        disk: f64,
+    ) -> Candidate {
+        Candidate {
+            outer_centre_px: outer,
+            inner_centre_px: inner,
+            outer_radii_px: ring,
+            inner_radii_px: [0.0, disk],
+            roi: super::super::plane::Roi {
+                x: 0,
+                y: 0,
+                w: n as u32,
+                h: n as u32,
+            },
+        }
+    }
+
     /// The fit on a k = 10 grid whose pixels off [`lattice_read`]'s lattice are NaN gives
     /// the very estimate it gives on the whole grid: it reads nothing else, so a
     /// reconstruction may compute nothing else.
@@ -347,18 +368,7 @@ mod tests {
             let cov = edge(ro - 70.0) - edge(ro - 50.0) + edge(ri - 25.0);
             *v = (200.0 - 150.0 * cov + 3.0 * ((i * 7919 % 101) as f64 / 101.0 - 0.5)) as f32;
         }
-        let guess = Candidate {
-            outer_centre_px: [100.0, 100.0],
-            inner_centre_px: [103.0, 99.0],
-            outer_radii_px: [50.0, 70.0],
-            inner_radii_px: [0.0, 25.0],
-            roi: super::super::plane::Roi {
-                x: 0,
-                y: 0,
-                w: n as u32,
-                h: n as u32,
-            },
-        };
+        let guess = whole_plane_guess(n, ([100.0, 100.0], [103.0, 99.0]), [50.0, 70.0], 25.0);
         let l = lattice_read(Estimator::Fit, &guess, k).expect("the fit strides on k = 10");
         assert_eq!(l.step, 5);
         assert_eq!(lattice_read(Estimator::Paper, &guess, k), None);
@@ -399,18 +409,7 @@ mod tests {
     fn the_ink_prior_takes_the_uneven_density_out_of_the_offset() {
         let n = 48;
         let (co, ci) = ([23.7, 24.2], [25.1, 23.4]);
-        let guess = Candidate {
-            outer_centre_px: [24.0, 24.0],
-            inner_centre_px: [25.0, 23.5],
-            outer_radii_px: [11.0, 14.0],
-            inner_radii_px: [0.0, 7.0],
-            roi: super::super::plane::Roi {
-                x: 0,
-                y: 0,
-                w: n as u32,
-                h: n as u32,
-            },
-        };
+        let guess = whole_plane_guess(n, ([24.0, 24.0], [25.0, 23.5]), [11.0, 14.0], 7.0);
         let truth = [ci[0] - co[0], ci[1] - co[1]];
         let ink = PlaneInk {
             density_rms: 0.04,

@@ -34,61 +34,115 @@ pub(super) struct Map {
 /// independent samples); `None` when the normal equations are singular.
 pub(super) fn refine(prob: &Problem, p: &[f64; MAXP], prior: PlaneInk, sigma2: f64) -> Option<Map> {
     let samples = samples(prob);
-    let phi = modes(p, prior, &samples);
-    let m = phi.ncols();
-    let base: Vec<usize> = (0..prob.np).filter(|a| !GRADIENTS.contains(a)).collect();
-    let nb = base.len();
-    let n = nb + m;
+    let post = Posterior {
+        prob,
+        phi: modes(p, prior, &samples),
+        samples,
+        sigma2,
+        base: (0..prob.np).filter(|a| !GRADIENTS.contains(a)).collect(),
+    };
+    let (nb, m) = (post.base.len(), post.phi.ncols());
     let (mut p, mut a) = (*p, DVector::<f64>::zeros(m));
     let mut lambda = 1e-3;
-    let mut cost = objective(prob, &p, &a, &phi, &samples, sigma2);
+    let mut cost = post.objective(&p, &a);
     for _ in 0..ITERATIONS {
-        let (h, g) = normal(prob, &p, &a, &phi, &samples, sigma2, &base);
+        let (h, g) = post.normal(&p, &a);
         let mut damped = h.clone();
-        for i in 0..n {
+        for i in 0..nb + m {
             damped[(i, i)] += lambda * h[(i, i)].max(1e-12);
         }
         let delta = damped.cholesky()?.solve(&g);
         let mut q = p;
-        for (i, &b) in base.iter().enumerate() {
+        for (i, &b) in post.base.iter().enumerate() {
             q[b] += delta[i];
         }
         let b = &a + delta.rows(nb, m);
-        let next = objective(prob, &q, &b, &phi, &samples, sigma2);
-        if next <= cost {
-            let centres = [CXO, CYO, CXI, CYI]
-                .iter()
-                .map(|&i| (q[i] - p[i]).abs())
-                .fold(0.0, f64::max);
-            (p, a, cost) = (q, b, next);
-            lambda = (lambda * 0.3).max(1e-9);
-            if centres < CONVERGED_STEPS * prob.step as f64 {
-                break;
-            }
-        } else {
+        let next = post.objective(&q, &b);
+        if next > cost {
             lambda *= 10.0;
+            continue;
+        }
+        let centres = [CXO, CYO, CXI, CYI]
+            .iter()
+            .map(|&i| (q[i] - p[i]).abs())
+            .fold(0.0, f64::max);
+        (p, a, cost) = (q, b, next);
+        lambda = (lambda * 0.3).max(1e-9);
+        if centres < CONVERGED_STEPS * prob.step as f64 {
+            break;
         }
     }
-    let (h, _) = normal(prob, &p, &a, &phi, &samples, sigma2, &base);
-    let cov = h.cholesky()?.inverse();
-    let at = |axis: usize| {
-        let (o, i) = ([CXO, CYO][axis], [CXI, CYI][axis]);
-        let (o, i) = (
-            base.iter().position(|&b| b == o)?,
-            base.iter().position(|&b| b == i)?,
-        );
-        Some((o, i))
-    };
-    let (ox, ix) = at(0)?;
-    let (oy, iy) = at(1)?;
-    let e = |a: (usize, usize), b: (usize, usize)| {
-        cov[(a.1, b.1)] - cov[(a.1, b.0)] - cov[(a.0, b.1)] + cov[(a.0, b.0)]
-    };
-    let (x, y) = ((ox, ix), (oy, iy));
+    let cov = post.normal(&p, &a).0.cholesky()?.inverse();
     Some(Map {
         p,
-        offset_cov_px2: [[e(x, x), e(x, y)], [e(y, x), e(y, y)]],
+        offset_cov_px2: post.offset_cov(&cov)?,
     })
+}
+
+/// The posterior over the base parameters (the contrast gradients held) and the modes'
+/// amplitudes: the samples, each one's modes, the samples' variance.
+struct Posterior<'a> {
+    prob: &'a Problem<'a>,
+    samples: Vec<Sample>,
+    phi: DMatrix<f64>,
+    sigma2: f64,
+    base: Vec<usize>,
+}
+
+impl Posterior<'_> {
+    /// `Σ r²/σ² + |a|²`.
+    fn objective(&self, p: &[f64; MAXP], a: &DVector<f64>) -> f64 {
+        let eps = &self.phi * a;
+        let data: f64 = self
+            .samples
+            .iter()
+            .zip(eps.iter())
+            .map(|(s, &e)| row(self.prob, p, s, e).2.powi(2))
+            .sum();
+        data / self.sigma2 + a.norm_squared()
+    }
+
+    /// `JᵀJ/σ² + diag(0, I)` and `Jᵀr/σ² − (0, a)` (the Jacobian built whole, its products
+    /// by the matrix library's blocked kernels).
+    fn normal(&self, p: &[f64; MAXP], a: &DVector<f64>) -> (DMatrix<f64>, DVector<f64>) {
+        let (s, phi, base) = (&self.samples, &self.phi, &self.base);
+        let (nb, m) = (base.len(), phi.ncols());
+        let eps = phi * a;
+        let mut jac = DMatrix::<f64>::zeros(s.len(), nb + m);
+        let (mut r, mut dk) = (DVector::zeros(s.len()), DVector::zeros(s.len()));
+        for (i, smp) in s.iter().enumerate() {
+            let (j, d, res) = row(self.prob, p, smp, eps[i]);
+            for (c, &b) in base.iter().enumerate() {
+                jac[(i, c)] = j[b];
+            }
+            (dk[i], r[i]) = (d, res);
+        }
+        // The modes' columns: each sample's ink change times the modes there.
+        for k in 0..m {
+            jac.column_mut(nb + k)
+                .zip_zip_apply(&phi.column(k), &dk, |o, f, d| *o = d * f);
+        }
+        // (`tr_mul` is a dot product per entry: the transpose's product is the blocked one.)
+        let jt = jac.transpose();
+        let mut h = &jt * &jac / self.sigma2;
+        let mut g = &jt * &r / self.sigma2;
+        for k in 0..m {
+            h[(nb + k, nb + k)] += 1.0;
+            g[nb + k] -= a[k];
+        }
+        (h, g)
+    }
+
+    /// The offset's (inner − outer centre) covariance from the parameters' `cov`.
+    fn offset_cov(&self, cov: &DMatrix<f64>) -> Option<[[f64; 2]; 2]> {
+        let at = |i: usize| self.base.iter().position(|&b| b == i);
+        let x = (at(CXO)?, at(CXI)?);
+        let y = (at(CYO)?, at(CYI)?);
+        let e = |a: (usize, usize), b: (usize, usize)| {
+            cov[(a.1, b.1)] - cov[(a.1, b.0)] - cov[(a.0, b.1)] + cov[(a.0, b.0)]
+        };
+        Some([[e(x, x), e(x, y)], [e(y, x), e(y, y)]])
+    }
 }
 
 /// The pixels the fit reads (position from the window's middle, value) and where.
@@ -207,63 +261,4 @@ fn row(prob: &Problem, p: &[f64; MAXP], s: &Sample, eps: f64) -> ([f64; MAXP], f
     out[BX] = s.fx * inv_half * shade_e;
     out[BY] = s.fy * inv_half * shade_e;
     (out, -l * ink, s.v - l * shade_e)
-}
-
-fn objective(
-    prob: &Problem,
-    p: &[f64; MAXP],
-    a: &DVector<f64>,
-    phi: &DMatrix<f64>,
-    s: &[Sample],
-    sigma2: f64,
-) -> f64 {
-    let eps = phi * a;
-    let data: f64 = s
-        .iter()
-        .zip(eps.iter())
-        .map(|(s, &e)| row(prob, p, s, e).2.powi(2))
-        .sum();
-    data / sigma2 + a.norm_squared()
-}
-
-/// `JᵀJ/σ² + diag(0, I)` and `Jᵀr/σ² − (0, a)` over the base parameters and the modes (the
-/// Jacobian built whole, its products by the matrix library's blocked kernels).
-fn normal(
-    prob: &Problem,
-    p: &[f64; MAXP],
-    a: &DVector<f64>,
-    phi: &DMatrix<f64>,
-    s: &[Sample],
-    sigma2: f64,
-    base: &[usize],
-) -> (DMatrix<f64>, DVector<f64>) {
-    let (nb, m) = (base.len(), phi.ncols());
-    let eps = phi * a;
-    let mut jac = DMatrix::<f64>::zeros(s.len(), nb);
-    let mut dk = DVector::<f64>::zeros(s.len());
-    let mut r = DVector::<f64>::zeros(s.len());
-    for (i, smp) in s.iter().enumerate() {
-        let (j, d, res) = row(prob, p, smp, eps[i]);
-        for (c, &b) in base.iter().enumerate() {
-            jac[(i, c)] = j[b];
-        }
-        (dk[i], r[i]) = (d, res);
-    }
-    // The modes' columns: each sample's ink change times the modes there.
-    let jac = DMatrix::from_fn(s.len(), nb + m, |i, c| {
-        if c < nb {
-            jac[(i, c)]
-        } else {
-            dk[i] * phi[(i, c - nb)]
-        }
-    });
-    // (`tr_mul` is a dot product per entry: the transpose's product is the blocked one.)
-    let jt = jac.transpose();
-    let mut h = &jt * &jac / sigma2;
-    let mut g = &jt * &r / sigma2;
-    for k in 0..m {
-        h[(nb + k, nb + k)] += 1.0;
-        g[nb + k] -= a[k];
-    }
-    (h, g)
 }
