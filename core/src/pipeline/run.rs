@@ -465,11 +465,18 @@ impl Pipeline {
     /// Frame 0's targets measured where detection found them, from its guesses.
     fn frame_zero_estimates(&self, frame: &RgbImage) -> Vec<Option<CentreEstimate>> {
         let how = (self.channel, self.opts.response);
-        let fit = (self.opts.estimator, self.ink_in(1.0));
+        let fit = (self.opts.estimator, self.frames_ink());
         self.targets
             .par_iter()
             .map(|c| measure_in_frame(frame, how, (c, None), [0.0; 2], fit))
             .collect()
+    }
+
+    /// The prior for the frames' own fits: only when they are the results (`combine =
+    /// mean`). Otherwise they register the frames against frame 0, all with one model.
+    fn frames_ink(&self) -> Option<PlaneInk> {
+        self.ink_in(1.0)
+            .filter(|_| self.opts.combine == Combine::Mean)
     }
 
     /// The print's density prior in the pixels of a plane `k` times finer than the camera's.
@@ -556,10 +563,7 @@ impl Pipeline {
             channel: self.channel,
             response: self.opts.response,
             estimator: self.opts.estimator,
-            // Later frames' fits are results only when they are averaged.
-            ink: self
-                .ink_in(1.0)
-                .filter(|_| self.opts.combine == Combine::Mean),
+            ink: self.frames_ink(),
             registration: self.opts.registration,
             dirs: self.dirs(),
             targets: &self.targets,
