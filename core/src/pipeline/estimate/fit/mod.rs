@@ -330,16 +330,7 @@ impl Fit {
             .matrix(&self.normal)
             .try_inverse()
             .zip(self.residual_variance(prob))
-            .map(|(inv, s2)| {
-                // offset = inner − outer: var = Cii + Coo − 2·Cio per axis, and the cross terms.
-                let c = |a: usize, b: usize| inv[(a, b)] * s2;
-                let e = |a: usize, b: usize| {
-                    let (ia, oa) = ([CXI, CYI][a], [CXO, CYO][a]);
-                    let (ib, ob) = ([CXI, CYI][b], [CXO, CYO][b]);
-                    c(ia, ib) - c(ia, ob) - c(oa, ib) + c(oa, ob)
-                };
-                [[e(0, 0), e(0, 1)], [e(1, 0), e(1, 1)]]
-            });
+            .map(|(inv, s2)| offset_block(&(inv * s2), [CXO, CYO], [CXI, CYI]));
         CentreEstimate {
             outer_px: [p[CXO], p[CYO]],
             inner_px: [p[CXI], p[CYI]],
@@ -354,6 +345,16 @@ impl Fit {
             even_ink: None,
         }
     }
+}
+
+/// The offset's (inner − outer centre) covariance from the parameters' covariance `c`,
+/// the centres at rows `outer` and `inner` (x, y): `Cii + Coo − Cio − Coi` per pair of axes.
+fn offset_block(c: &DMatrix<f64>, outer: [usize; 2], inner: [usize; 2]) -> [[f64; 2]; 2] {
+    let e = |a: usize, b: usize| {
+        let (ia, oa, ib, ob) = (inner[a], outer[a], inner[b], outer[b]);
+        c[(ia, ib)] - c[(ia, ob)] - c[(oa, ib)] + c[(oa, ob)]
+    };
+    [[e(0, 0), e(0, 1)], [e(1, 0), e(1, 1)]]
 }
 
 /// Why parameters `q` are not a target (radii out of order, the blur or the centre out of

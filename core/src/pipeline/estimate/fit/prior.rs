@@ -5,7 +5,7 @@
 //! residuals' sum of squares over the data's variance plus the modes' squared norm.
 
 use super::normal::Row;
-use super::{Problem, B0, BX, BY, CXI, CXO, CYI, CYO, GRADIENTS, MAXP};
+use super::{offset_block, Problem, B0, BX, BY, CXI, CXO, CYI, CYO, GRADIENTS, MAXP};
 use nalgebra::{DMatrix, DVector};
 
 /// The ink density's statistics ([`crate::pipeline::InkPrior`]) in a plane's pixels.
@@ -133,15 +133,14 @@ impl Posterior<'_> {
         (h, g)
     }
 
-    /// The offset's (inner − outer centre) covariance from the parameters' `cov`.
+    /// The offset's covariance from the parameters' `cov` (indexed as `base`).
     fn offset_cov(&self, cov: &DMatrix<f64>) -> Option<[[f64; 2]; 2]> {
         let at = |i: usize| self.base.iter().position(|&b| b == i);
-        let x = (at(CXO)?, at(CXI)?);
-        let y = (at(CYO)?, at(CYI)?);
-        let e = |a: (usize, usize), b: (usize, usize)| {
-            cov[(a.1, b.1)] - cov[(a.1, b.0)] - cov[(a.0, b.1)] + cov[(a.0, b.0)]
-        };
-        Some([[e(x, x), e(x, y)], [e(y, x), e(y, y)]])
+        Some(offset_block(
+            cov,
+            [at(CXO)?, at(CYO)?],
+            [at(CXI)?, at(CYI)?],
+        ))
     }
 }
 
@@ -252,7 +251,7 @@ impl Basis {
 /// The model's row at a sample with the density `eps`: base parameters' derivatives,
 /// `−L·K` (the density's), residual.
 fn row(prob: &Problem, p: &[f64; MAXP], s: &Sample, eps: f64) -> ([f64; MAXP], f64, f64) {
-    let Row { j, l, shade, .. } = prob.row_f64(p, s.fx, s.fy, s.v);
+    let Row { j, l, shade } = prob.row_f64(p, s.fx, s.fy, s.v);
     let ink = 1.0 - shade;
     let shade_e = 1.0 - (1.0 + eps) * ink;
     let mut out = j.map(|v| v * (1.0 + eps));
