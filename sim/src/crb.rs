@@ -132,19 +132,17 @@ impl PrintUnknown {
         assert!(!views.is_empty(), "at least one view");
         let (observe, var) = raw_sensor(cam);
         let mut fisher: Option<DMatrix<f64>> = None;
-        let mut modes = 0;
+        // The same modes on every view (a grid about the target's centre on the board).
+        let modes = DensityModes::over(board, cam, target_index);
         for &view in views {
-            let m = DensityModes::over(board, cam, target_index, view);
-            modes = m.as_ref().map_or(0, |m| m.weights.len());
             let f = information(
                 board,
                 cam,
                 (target_index, view),
                 &[0, 1, 2],
                 (&observe, &var),
-                m.as_ref(),
+                modes.as_ref(),
             ) / views.len() as f64;
-            // The modes are the same on every view (a grid about the target's centre).
             fisher = Some(match fisher {
                 Some(s) => s + f,
                 None => f,
@@ -152,7 +150,7 @@ impl PrintUnknown {
         }
         PrintUnknown {
             fisher: fisher.expect("a view"),
-            modes,
+            modes: modes.map_or(0, |m| m.weights.len()),
         }
     }
 
@@ -317,7 +315,8 @@ fn information(
             .map(|(p, i)| p - i)
             .collect();
         let per_pixel = mu.len() / (roi[2] * roi[3]) as usize;
-        derivs.extend(m.derivatives(&depth, roi, per_pixel));
+        let to_board = Affine::at(cam, view, target.centre_um);
+        derivs.extend(m.derivatives(&depth, (roi, to_board), per_pixel));
     }
 
     let n = derivs.len();
@@ -360,7 +359,9 @@ fn offset_bound(j: DMatrix<f64>) -> [f64; 2] {
 /// The print's ink density over one target as a Gaussian field (`ink_density_rms`,
 /// correlation `ink_density_corr_um`: the sim's covariance `rms² exp(−d²/2ℓ²)`), in its
 /// Karhunen–Loève modes on a grid ℓ/2 apart over the target, each scaled to unit prior
-/// variance and extended between grid points by the covariance (kriging).
+/// variance and extended between grid points by the covariance (kriging). The pipeline's
+/// prior (`fit::prior`) builds its own, coarser basis: the bound shares no code with the
+/// estimator it judges.
 struct DensityModes {
     /// Grid points (µm on the board).
     grid: Vec<[f64; 2]>,
@@ -368,20 +369,17 @@ struct DensityModes {
     weights: Vec<DVector<f64>>,
     rms: f64,
     corr_um: f64,
-    /// Board point of an image point near the target.
-    to_board: Affine,
 }
 
 impl DensityModes {
     /// Modes whose variance is at least 10⁻⁶ of the largest's; `None` when the ink is even.
-    fn over(board: &Board, cam: &CameraModel, t: usize, view: View) -> Option<DensityModes> {
+    fn over(board: &Board, cam: &CameraModel, t: usize) -> Option<DensityModes> {
         let (rms, corr_um) = (cam.ink_density_rms, cam.ink_density_corr_um);
         if rms == 0.0 {
             return None;
         }
         let target = &board.targets[t];
         let c = target.centre_um;
-        let to_board = Affine::at(cam, view, c);
         // The grid covers every ROI of the target (`target_roi`: the rim grown by the lens,
         // 5 blur widths and 5 px), the same on every view, and half a correlation length.
         let reach = 1.1 * target.outer.outer_radius_um()
@@ -407,13 +405,18 @@ impl DensityModes {
             weights,
             rms,
             corr_um,
-            to_board,
         })
     }
 
-    /// Each mode's derivative column: sample i changes by `−depth_i · φ_j(p_i)`. `per_pixel`
-    /// samples per pixel, in the ROI's row-major pixel order.
-    fn derivatives(&self, depth: &[f64], roi: [u32; 4], per_pixel: usize) -> Vec<Vec<f64>> {
+    /// Each mode's derivative column: sample i changes by `−depth_i · φ_j(p_i)`, p_i the
+    /// board point `to_board` puts the sample's pixel at. `per_pixel` samples per pixel, in
+    /// the ROI's row-major pixel order.
+    fn derivatives(
+        &self,
+        depth: &[f64],
+        (roi, to_board): ([u32; 4], Affine),
+        per_pixel: usize,
+    ) -> Vec<Vec<f64>> {
         let [x0, y0, w, _] = roi;
         let mut cols = vec![vec![0.0; depth.len()]; self.weights.len()];
         for (px, d) in depth.chunks(per_pixel).enumerate() {
@@ -421,7 +424,7 @@ impl DensityModes {
                 (x0 as usize + px % w as usize) as f64,
                 (y0 + px as u32 / w) as f64,
             );
-            let p = self.to_board.board([x, y]);
+            let p = to_board.board([x, y]);
             let c = DVector::from_iterator(
                 self.grid.len(),
                 self.grid
