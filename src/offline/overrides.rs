@@ -147,5 +147,13 @@ mod tests {
             ..Overrides::default()
         };
         assert_eq!(o.settings_name(), "interferometer-scale770.5-axism1_0");
+        let o = Overrides {
+            ink_prior: Some(crate::pipeline::InkPrior {
+                density_rms: 0.04,
+                corr_um: 3000.0,
+            }),
+            ..Overrides::default()
+        };
+        assert_eq!(o.settings_name(), "ink0.04_3000");
     }
 }

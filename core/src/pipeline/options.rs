@@ -257,7 +257,15 @@ impl ValidOptions {
             false => 0,
         };
         let detect = DETECT_BYTES_PER_PX * w * h + if self.whole_frame { 4 * w * h } else { 0 };
-        let model = (held + targets_peak.max(whole_peak)).max(detect);
+        // The print's prior: a fit's working set on each thread measuring a target at once.
+        let prior = match self.ink_prior {
+            Some(_) => {
+                let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+                threads.min(sides.len().max(1)) as u64 * super::estimate::PRIOR_PEAK_BYTES
+            }
+            None => 0,
+        };
+        let model = (held + prior + targets_peak.max(whole_peak)).max(detect);
         // 2% for what the model leaves out: the thread pool's jobs, small vectors.
         model + model / 50
     }

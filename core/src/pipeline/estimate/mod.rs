@@ -10,7 +10,7 @@
 mod fit;
 mod paper;
 
-pub use fit::PlaneInk;
+pub use fit::{PlaneInk, PRIOR_PEAK_BYTES};
 
 use super::accumulate::Lattice;
 use super::detect::{Candidate, Detection};
@@ -460,6 +460,35 @@ mod tests {
         let (even, prior) = ((even_sq / 16.0).sqrt(), (prior_sq / 16.0).sqrt());
         eprintln!("RMS offset error per axis: even ink {even:.4} px, with the prior {prior:.4} px");
         assert!(prior < 0.5 * even, "{prior:.4} vs {even:.4} px");
+    }
+
+    /// A target many correlation lengths wide (rim 80 px, the print's ℓ 4 px): the prior's
+    /// grid and samples are capped (bounded memory and time), and the fit still lands on
+    /// the offset of an evenly printed target.
+    #[test]
+    fn the_ink_prior_on_a_large_target_is_bounded_and_right() {
+        let n = 200;
+        let (co, ci) = ([100.4, 99.7], [103.2, 98.1]);
+        let mut plane = Plane::new(n, n);
+        for (i, v) in plane.data.iter_mut().enumerate() {
+            let (x, y) = ((i % n) as f64, (i / n) as f64);
+            let e = |d: f64| blurred_edge(d, 0.8);
+            let ro = (x - co[0]).hypot(y - co[1]);
+            let cov = e(ro - 80.0) - e(ro - 70.0) + e((x - ci[0]).hypot(y - ci[1]) - 40.0);
+            let noise = ((i * 7919 % 101) as f64 / 101.0 - 0.5) * 2.0;
+            *v = (200.0 * (1.0 - 0.6 * cov) + noise) as f32;
+        }
+        let guess = whole_plane_guess(n, ([100.0, 100.0], [103.0, 98.0]), [70.0, 80.0], 40.0);
+        let ink = Some(PlaneInk {
+            density_rms: 0.04,
+            corr_px: 4.0,
+        });
+        let e = estimate_from(&plane, &guess, Estimator::Fit, 1.0, Start::Guess, ink).unwrap();
+        let o = e.offset_px();
+        assert!(
+            (o[0] - 2.8).abs() < 0.01 && (o[1] + 1.6).abs() < 0.01,
+            "{o:?}"
+        );
     }
 
     #[test]

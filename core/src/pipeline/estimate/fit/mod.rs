@@ -27,7 +27,7 @@ mod edge;
 mod normal;
 mod prior;
 
-pub use prior::PlaneInk;
+pub use prior::{PlaneInk, PEAK_BYTES as PRIOR_PEAK_BYTES};
 
 use normal::Normal;
 

@@ -20,6 +20,16 @@ pub struct PlaneInk {
 /// a tenth), far below what the samples can tell.
 const MODE_FLOOR: f64 = 1e-2;
 const ITERATIONS: usize = 12;
+/// At most this many samples per fit (see [`samples`]).
+const MAX_SAMPLES: usize = 16_384;
+/// The grid reaches at most this many steps from the target's centre (see [`modes`]).
+const MAX_GRID_STEPS: i64 = 10;
+/// What a fit with the prior holds at most: the samples' modes, the Jacobian and its
+/// transpose (f64), the grid at most `π·(MAX_GRID_STEPS + 1)²` points, hence modes.
+pub const PEAK_BYTES: u64 = {
+    let modes = 3 * (MAX_GRID_STEPS as u64 + 1) * (MAX_GRID_STEPS as u64 + 1) + 1;
+    8 * MAX_SAMPLES as u64 * (3 * modes + 2 * MAXP as u64)
+};
 /// Converged: no centre moved more than this, in the plane's sample steps.
 const CONVERGED_STEPS: f64 = 1e-4;
 
@@ -152,11 +162,18 @@ struct Sample {
     at: [f64; 2],
 }
 
+/// The fit's samples, every `thin`-th of its lattice in x and y, `thin` the least that
+/// keeps them within [`MAX_SAMPLES`] (a large target's window: memory and time stay
+/// bounded; its samples then count as fewer, so the data weigh less against the prior).
 fn samples(prob: &Problem) -> Vec<Sample> {
+    // The lattice's points in the reach's circle.
+    let n = std::f64::consts::FRAC_PI_4 * (2.0 * prob.win.reach / prob.step as f64 + 1.0).powi(2);
+    let thin = (n / MAX_SAMPLES as f64).sqrt().ceil().max(1.0);
+    let step = prob.step * thin as usize;
     let reach2 = prob.win.reach * prob.win.reach;
     let mut out = Vec::new();
-    for y in (prob.win.y0..prob.win.y1).step_by(prob.step) {
-        for x in (prob.win.x0..prob.win.x1).step_by(prob.step) {
+    for y in (prob.win.y0..prob.win.y1).step_by(step) {
+        for x in (prob.win.x0..prob.win.x1).step_by(step) {
             let (fx, fy) = (x as f64, y as f64);
             let (rx, ry) = (fx - prob.reach_centre[0], fy - prob.reach_centre[1]);
             if rx * rx + ry * ry > reach2 {
@@ -177,64 +194,77 @@ fn samples(prob: &Problem) -> Vec<Sample> {
 /// a grid `corr/2` apart over the outer shape (its rim and blur, and half a correlation
 /// length beyond), extended between grid points by the covariance.
 fn modes(p: &[f64; MAXP], prior: PlaneInk, s: &[Sample]) -> DMatrix<f64> {
-    let spacing = prior.corr_px / 2.0;
     let reach = p[super::RIM] + 3.0 * p[super::S] + 0.5 * prior.corr_px;
-    let k = (reach / spacing).ceil() as i64;
-    let basis = Basis::of(k);
+    // corr/2 apart, at most `MAX_GRID_STEPS` from the centre (a target many correlation
+    // lengths wide gets a coarser grid: fewer modes than its print has, bounded work).
+    let spacing = (prior.corr_px / 2.0).max(reach / MAX_GRID_STEPS as f64);
+    let k = ((reach / spacing).ceil() as i64).min(MAX_GRID_STEPS);
+    let basis = Basis::of(k, spacing / prior.corr_px);
     // The covariance to each grid point, `rms²·exp(−d²/2ℓ²)`, separable in x and y.
     let (c, rms2) = ([p[CXO], p[CYO]], prior.density_rms.powi(2));
     let along = |d: f64| (-d * d / (2.0 * prior.corr_px * prior.corr_px)).exp();
-    // Grid points × samples: each sample's column contiguous as it is filled.
-    let mut to_grid = DMatrix::<f64>::zeros(basis.grid.len(), s.len());
     let side = (2 * k + 1) as usize;
     let (mut ex, mut ey) = (vec![0.0; side], vec![0.0; side]);
-    for (mut col, smp) in to_grid.column_iter_mut().zip(s) {
-        for (t, (x, y)) in ex.iter_mut().zip(ey.iter_mut()).enumerate() {
-            let g = (t as i64 - k) as f64 * spacing;
-            *x = along(smp.at[0] - c[0] - g);
-            *y = along(smp.at[1] - c[1] - g);
+    let wt = basis.weights.transpose();
+    let mut phi = DMatrix::<f64>::zeros(s.len(), basis.weights.ncols());
+    // A block of samples at a time: grid points × samples, each sample's column contiguous.
+    for (b, block) in s.chunks(BLOCK).enumerate() {
+        let mut to_grid = DMatrix::<f64>::zeros(basis.grid.len(), block.len());
+        for (mut col, smp) in to_grid.column_iter_mut().zip(block) {
+            for (t, (x, y)) in ex.iter_mut().zip(ey.iter_mut()).enumerate() {
+                let g = (t as i64 - k) as f64 * spacing;
+                *x = along(smp.at[0] - c[0] - g);
+                *y = along(smp.at[1] - c[1] - g);
+            }
+            for (v, &[gi, gj]) in col.iter_mut().zip(&basis.grid) {
+                *v = rms2 * ex[(gi + k) as usize] * ey[(gj + k) as usize];
+            }
         }
-        for (v, &[gi, gj]) in col.iter_mut().zip(&basis.grid) {
-            *v = rms2 * ex[(gi + k) as usize] * ey[(gj + k) as usize];
-        }
+        // The weights are for unit RMS: the modes' variances scale with rms².
+        let rows = (&wt * to_grid).transpose() / prior.density_rms;
+        phi.rows_mut(b * BLOCK, block.len()).copy_from(&rows);
     }
-    // The weights are for unit RMS: the modes' variances scale with rms².
-    (basis.weights.transpose() * to_grid).transpose() / prior.density_rms
+    phi
 }
 
-/// The field's modes on the grid of points (i, j) with i² + j² ≤ k², `corr/2` apart, for a
+/// Samples whose covariances to the grid are held at once.
+const BLOCK: usize = 1024;
+
+/// The field's modes on the grid of points (i, j) with i² + j² ≤ k², `r·corr` apart, for a
 /// unit RMS: the grid's covariance's eigenvectors over the square root of their variances,
-/// those above [`MODE_FLOOR`]. It depends on k alone: made once per k.
+/// those above [`MODE_FLOOR`]. It depends on k and r alone: made once per pair.
 struct Basis {
     grid: Vec<[i64; 2]>,
     weights: DMatrix<f64>,
 }
 
 impl Basis {
-    fn of(k: i64) -> std::sync::Arc<Basis> {
+    fn of(k: i64, r: f64) -> std::sync::Arc<Basis> {
         use std::collections::HashMap;
         use std::sync::{Arc, Mutex, OnceLock};
-        static MADE: OnceLock<Mutex<HashMap<i64, Arc<Basis>>>> = OnceLock::new();
+        type Made = Mutex<HashMap<(i64, u64), Arc<Basis>>>;
+        static MADE: OnceLock<Made> = OnceLock::new();
         let made = MADE.get_or_init(Default::default);
-        if let Some(b) = made.lock().ok().and_then(|m| m.get(&k).cloned()) {
+        let key = (k, r.to_bits());
+        if let Some(b) = made.lock().ok().and_then(|m| m.get(&key).cloned()) {
             return b;
         }
-        let b = Arc::new(Basis::make(k));
+        let b = Arc::new(Basis::make(k, r));
         if let Ok(mut m) = made.lock() {
-            m.insert(k, b.clone());
+            m.insert(key, b.clone());
         }
         b
     }
 
-    fn make(k: i64) -> Basis {
+    fn make(k: i64, r: f64) -> Basis {
         let grid: Vec<[i64; 2]> = (-k..=k)
             .flat_map(|i| (-k..=k).map(move |j| [i, j]))
             .filter(|&[i, j]| i * i + j * j <= k * k)
             .collect();
-        // Points corr/2 apart: d²/2ℓ² = (Δi² + Δj²)/8.
+        // Points r·ℓ apart: d²/2ℓ² = (Δi² + Δj²)·r²/2.
         let kmat = DMatrix::from_fn(grid.len(), grid.len(), |a, b| {
             let d2 = (grid[a][0] - grid[b][0]).pow(2) + (grid[a][1] - grid[b][1]).pow(2);
-            (-(d2 as f64) / 8.0).exp()
+            (-(d2 as f64) * r * r / 2.0).exp()
         });
         let eig = kmat.symmetric_eigen();
         let top = eig.eigenvalues.max();
