@@ -406,7 +406,7 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             c.iter().all(|t| t.n == 3) && even.iter().all(|t| t.n == 3),
             "{case:?}: a target was lost: {c:?}"
         );
-        // Measured: 1.68 / 2.71 / 2.95x the bound with the print known (without the prior
+        // Measured: 1.68 / 2.71 / 2.96x the bound with the print known (without the prior
         // 1.73 / 2.12 / 2.17x); the paper's estimator scatters 6.3 / 3.0 / 3.1x more.
         let (std, crb) = (rms(c, |t| t.std_um), rms(c, |t| t.crb_um));
         let paper = rms(&s.paper[i], |t| t.std_um);
@@ -423,7 +423,7 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             (25.0..80.0).contains(&global),
             "{case:?}: RMS bias {global:.1} µm"
         );
-        // Measured: 17.4 / 12.4 / 12.4 µm left once calibrated, 0.41-0.56 of the global
+        // Measured: 17.3 / 12.3 / 12.3 µm left once calibrated, 0.41-0.56 of the global
         // scale's bias (without the prior 22.7 / 18.5 / 18.4 µm: the uneven ink,
         // `which_effect_biases_the_fit`).
         assert!(
