@@ -106,14 +106,6 @@ fn options(
     }
 }
 
-/// How the fit takes the print: with its ink density's statistics as a prior (as the sim
-/// rig says them), or as evenly inked (its contrast planes).
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum Print {
-    Prior,
-    Even,
-}
-
 /// One repeat's frames of one case from `start_um`, with their axis positions.
 fn render(
     frames: &FrameRenderer,
@@ -139,12 +131,11 @@ fn measure(
     frames: &FrameRenderer,
     imgs: &[(RgbImage, f64)],
     case: Case,
-    (estimator, print): (Estimator, Print),
+    (estimator, prior): (Estimator, Option<InkPrior>),
     cal: Option<&Arc<Calibration>>,
 ) -> Vec<Measured> {
     // Measured in linear light when the camera encodes sRGB, as its rig says.
     let response = rigd::rig::sim::response(frames.camera());
-    let prior = rigd::rig::sim::ink_prior(frames.camera()).filter(|_| print == Print::Prior);
     let opts = options(case, estimator, response, prior)
         .validate()
         .unwrap();
@@ -198,6 +189,7 @@ fn calibrate(frames: &FrameRenderer, sequence: &mut u64) -> Arc<Calibration> {
         positions_um,
         piezo_um: None,
         targets: done.tracks,
+        ink_maps: done.ink_maps,
     };
     let fit = FitOptions {
         board: Some(board),
@@ -328,10 +320,9 @@ fn study(seed: u64, repeats: usize) -> Study {
             })
             .collect();
         let (mut fit, mut calibrated, mut even, mut paper) = (vec![], vec![], vec![], vec![]);
-        let (prior, plain) = (
-            (Estimator::Fit, Print::Prior),
-            (Estimator::Fit, Print::Even),
-        );
+        // The print's statistics as the calibration scan learnt them.
+        let learnt = cal.ink.as_ref().and_then(|i| i.prior());
+        let (prior, plain) = ((Estimator::Fit, learnt), (Estimator::Fit, None));
         for &start in &starts {
             let imgs = render(&frames, start, case, &mut seq);
             fit.push(measure(&frames, &imgs, case, prior, None));
@@ -341,7 +332,7 @@ fn study(seed: u64, repeats: usize) -> Study {
                 &frames,
                 &imgs,
                 case,
-                (Estimator::Paper, Print::Even),
+                (Estimator::Paper, None),
                 None,
             ));
         }
@@ -480,7 +471,7 @@ fn bias_of_three_starts(cam: CameraModel) -> (f64, f64) {
         .iter()
         .map(|&s| {
             let imgs = render(&frames, s, case, &mut seq);
-            measure(&frames, &imgs, case, (Estimator::Fit, Print::Even), None)
+            measure(&frames, &imgs, case, (Estimator::Fit, None), None)
         })
         .collect();
     let figs = figures(&errors, &vec![([0.0; 2], [0.0; 2]); 12]);
@@ -613,5 +604,16 @@ fn noiseless_bias_of_each_shape() {
             "layout {seed}: RMS error outer {:.1} µm, inner {:.1} µm, offset {:.1} µm",
             rms[0], rms[1], rms[2]
         );
+    }
+}
+
+#[test]
+#[ignore = "a diagnosis: cargo test --release --test webcam_accuracy -- --ignored --nocapture learnt"]
+fn learnt_ink_statistics() {
+    for seed in [11u64, 12, 13] {
+        let cam = CameraModel::profile("webcam").unwrap();
+        let frames = FrameRenderer::new(random_board(seed, &cam), cam, seed).unwrap();
+        let cal = calibrate(&frames, &mut 0);
+        println!("layout {seed}: {:?}", cal.ink);
     }
 }

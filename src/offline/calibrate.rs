@@ -77,6 +77,7 @@ pub fn fit_folder(dir: &Path, fit: &FolderFit) -> anyhow::Result<Calibration> {
         positions_um: positions,
         piezo_um: folder.piezo_um.clone(),
         targets: done.tracks,
+        ink_maps: done.ink_maps,
     };
     let rig = fit.rig.clone().unwrap_or_else(|| {
         format!(

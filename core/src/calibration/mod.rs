@@ -30,6 +30,7 @@
 //! | `record` | the [`Calibration`] record, its fit, its check and [`Calibration::convert`] |
 
 mod fit;
+pub mod ink;
 mod lm;
 pub mod model;
 mod outliers;
@@ -38,6 +39,7 @@ pub mod scan;
 #[cfg(test)]
 mod tests;
 
+pub use ink::{InkMap, InkStatistics};
 pub use model::FieldModel;
 pub use outliers::Rejected;
 pub use record::{

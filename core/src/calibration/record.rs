@@ -2,6 +2,7 @@
 //! from a [`Scan`] and converting a measured offset with it.
 
 use super::fit::{line_fit, FieldProblem, Layout, LineFit};
+use super::ink::InkStatistics;
 use super::lm::LmResult;
 use super::model::{FieldModel, PARAM_NAMES};
 use super::outliers::{self, Rejected};
@@ -131,6 +132,11 @@ pub struct Calibration {
     /// Centres and targets left out of the fit as outliers (`outliers`), with why.
     #[serde(default)]
     pub rejected: Vec<Rejected>,
+    /// The print's ink density statistics, learnt from the scan's frames (absent when the
+    /// scan did not resolve them): jobs take them as the fit's prior when the density is
+    /// measurably uneven ([`InkStatistics::prior`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ink: Option<InkStatistics>,
 }
 
 /// The circles' radii on the board, for the apparent-centre correction: the outer shape's
@@ -221,6 +227,7 @@ impl Calibration {
             targets,
             field,
             rejected,
+            ink: InkStatistics::estimate(&scan.ink_maps, scan.scale_um_per_px),
         };
         cal.id = cal.content_id();
         Ok(cal)

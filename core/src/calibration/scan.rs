@@ -53,6 +53,12 @@ pub struct Scan {
     /// The piezo's, in a 2-D scan.
     pub piezo_um: Option<Vec<f64>>,
     pub targets: Vec<TargetTrack>,
+    /// Each target's ink density over the scan ([`Pipeline::record_tracks`] reads it):
+    /// what the print's statistics are learnt from. Empty: not learnt.
+    ///
+    /// [`Pipeline::record_tracks`]: crate::pipeline::Pipeline::record_tracks
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub ink_maps: Vec<super::InkMap>,
 }
 
 /// Why a scan cannot be calibrated, or a calibration not applied.

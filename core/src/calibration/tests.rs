@@ -77,6 +77,7 @@ fn scan(m: &FieldModel, noise_px: f64, seed: u64) -> Scan {
         positions_um,
         piezo_um: None,
         targets,
+        ink_maps: Vec::new(),
     }
 }
 

@@ -9,7 +9,9 @@
 //! estimates are the same bits whichever thread makes them and whenever.
 
 use super::detect::Candidate;
-use super::estimate::{estimate_from, CentreEstimate, PlaneInk, Seed, Start};
+use super::estimate::{
+    estimate_from, ink_density, CentreEstimate, DensitySample, PlaneInk, Seed, Start,
+};
 use super::options::WINDOW_MARGIN_PX;
 use super::plane::{Plane, Roi};
 use super::register::{At, Dirs};
@@ -237,6 +239,50 @@ fn measure_window(c: &Candidate, shift_px: [f64; 2]) -> (f64, f64, u32) {
     )
 }
 
+/// The print's density inside target `c`'s shapes in `frame`, read off its fit `e` there
+/// ([`ink_density`]), and that fit's blur width (px). `None` without a fit's state.
+pub(super) fn density_in_frame(
+    frame: &RgbImage,
+    (ch, response): (usize, Response),
+    c: &Candidate,
+    e: &CentreEstimate,
+) -> Option<(Vec<DensitySample>, f64)> {
+    let seed = e.seed?;
+    let shift_px = [
+        e.outer_px[0] - c.outer_centre_px[0],
+        e.outer_px[1] - c.outer_centre_px[1],
+    ];
+    let (x0, y0, side) = measure_window(c, shift_px);
+    let roi = Roi {
+        x: x0 as u32,
+        y: y0 as u32,
+        w: side,
+        h: side,
+    };
+    let crop = Plane::from_channel_roi_in(frame, ch, roi, response);
+    let guess = guess_in_crop(c, shift_px, [x0, y0], &crop);
+    let seed = seed.mapped(|p| [p[0] - x0, p[1] - y0], 1.0);
+    let samples = ink_density(&crop, &guess, 1.0, &seed).ok()?;
+    Some((samples, seed.blur_px()))
+}
+
+/// Target `c` moved by `shift_px` into a crop whose origin is `origin` in the frame.
+fn guess_in_crop(c: &Candidate, shift_px: [f64; 2], [x0, y0]: [f64; 2], crop: &Plane) -> Candidate {
+    let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
+    Candidate {
+        outer_centre_px: mv(c.outer_centre_px),
+        inner_centre_px: mv(c.inner_centre_px),
+        outer_radii_px: c.outer_radii_px,
+        inner_radii_px: c.inner_radii_px,
+        roi: Roi {
+            x: 0,
+            y: 0,
+            w: crop.width as u32,
+            h: crop.height as u32,
+        },
+    }
+}
+
 /// Measure one target in a frame at its frame-0 place moved by `shift_px`, on a window of
 /// channel `ch`, the fit started from frame 0's `seed` (frame coordinates) when there is
 /// one. `None` when it cannot be measured (out of frame, estimator failure).
@@ -256,18 +302,7 @@ pub(super) fn measure_in_frame(
     };
     let crop = Plane::from_channel_roi_in(frame, ch, roi, response);
     let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
-    let guess = Candidate {
-        outer_centre_px: mv(c.outer_centre_px),
-        inner_centre_px: mv(c.inner_centre_px),
-        outer_radii_px: c.outer_radii_px,
-        inner_radii_px: c.inner_radii_px,
-        roi: Roi {
-            x: 0,
-            y: 0,
-            w: crop.width as u32,
-            h: crop.height as u32,
-        },
-    };
+    let guess = guess_in_crop(c, shift_px, [x0, y0], &crop);
     let seed = seed.map(|s| s.mapped(mv, 1.0));
     let start = seed.as_ref().map_or(Start::Guess, Start::Track);
     let mut e = estimate_from(&crop, &guess, estimator, 1.0, start, ink).ok()?;

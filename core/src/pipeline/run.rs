@@ -18,14 +18,16 @@ use super::accumulate::{Accumulator, Method};
 use super::detect::{self, Candidate, DetectConfig};
 use super::estimate::{self, estimate_from, CentreEstimate, EvenInk, PlaneInk, Start};
 use super::mean::OffsetMean;
-use super::measure::{measure_in_frame, windows_bottom, FrameEstimates, FrameZero, Measurer};
+use super::measure::{
+    density_in_frame, measure_in_frame, windows_bottom, FrameEstimates, FrameZero, Measurer,
+};
 use super::options::WINDOW_MARGIN_PX;
 use super::plane::{Plane, Roi};
 use super::reconstruct::{self, Fine, View};
 use super::register::{self, At, Dirs, StepLog};
 use super::*;
 use crate::board::{Board, Shape};
-use crate::calibration::{Calibration, Radii, TargetTrack, UNCALIBRATED_SCALE_REL_U};
+use crate::calibration::{Calibration, InkMap, Radii, TargetTrack, UNCALIBRATED_SCALE_REL_U};
 use image::RgbImage;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -60,6 +62,8 @@ pub struct Finished {
     /// Every target's outer centre in every frame, when asked for
     /// ([`Pipeline::record_tracks`]: a calibration scan); empty otherwise.
     pub tracks: Vec<TargetTrack>,
+    /// Every target's ink density over the frames, read off its fits, with the tracks.
+    pub ink_maps: Vec<InkMap>,
 }
 
 /// How one target's frames are being combined.
@@ -97,6 +101,8 @@ pub struct Pipeline {
     scatter: Vec<OffsetMean>,
     /// `[target][frame]`: outer centres, when asked for.
     tracks: Option<Vec<Vec<Option<[f64; 2]>>>>,
+    /// `[target]`: the ink density its fits read, with the tracks.
+    ink_maps: Option<Vec<InkMap>>,
     /// The calibration the offsets are converted with, and where it came from.
     calibration: Option<(Arc<Calibration>, Option<String>)>,
     calibration_warnings: Vec<String>,
@@ -135,6 +141,7 @@ impl Pipeline {
             keep_images: true,
             scatter: Vec::new(),
             tracks: None,
+            ink_maps: None,
             calibration: None,
             calibration_warnings: Vec::new(),
             rows_shared: None,
@@ -147,6 +154,7 @@ impl Pipeline {
     /// (`Finished::tracks`): what a calibration is fitted from. Set it before frame 0.
     pub fn record_tracks(&mut self, record: bool) {
         self.tracks = record.then(Vec::new);
+        self.ink_maps = record.then(Vec::new);
     }
 
     /// Convert the offsets with `calibration` (its field model, not the global scale) and
@@ -427,6 +435,7 @@ impl Pipeline {
         }
         self.accumulate(frame, &est, recon_px);
         self.observe(&est);
+        self.read_ink(frame, &est);
         self.record(index, at, shift, piezo_um.is_some(), est);
         Ok(Some(FrameReport {
             index,
@@ -594,6 +603,27 @@ impl Pipeline {
         }
     }
 
+    /// A calibration scan's frame: each target's ink density, read off its fit, into its
+    /// map (what the print's statistics are learnt from: `calibration::ink`).
+    fn read_ink(&mut self, frame: &RgbImage, est: &[Option<CentreEstimate>]) {
+        let Some(maps) = self.ink_maps.as_mut() else {
+            return;
+        };
+        maps.resize_with(est.len(), InkMap::default);
+        let how = (self.channel, self.opts.response);
+        let read: Vec<_> = self
+            .targets
+            .par_iter()
+            .zip(est)
+            .map(|(c, e)| density_in_frame(frame, how, c, e.as_ref()?))
+            .collect();
+        for (map, r) in maps.iter_mut().zip(read) {
+            if let Some((samples, blur_px)) = r {
+                map.add(&samples, blur_px);
+            }
+        }
+    }
+
     /// Add the frame to what its targets (and the whole frame) accumulate.
     fn accumulate(&mut self, frame: &RgbImage, est: &[Option<CentreEstimate>], recon_px: [f64; 2]) {
         if self.frames == 0 {
@@ -666,6 +696,7 @@ impl Pipeline {
         }
         self.convert_objects(&mut objects, &uncertain);
         let tracks = self.take_tracks();
+        let ink_maps = self.ink_maps.take().unwrap_or_default();
         let mut named: Vec<NamedImage> = images
             .into_iter()
             .map(|(i, f)| NamedImage {
@@ -696,6 +727,7 @@ impl Pipeline {
             },
             images: named,
             tracks,
+            ink_maps,
         })
     }
 

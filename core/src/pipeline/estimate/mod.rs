@@ -10,7 +10,7 @@
 mod fit;
 mod paper;
 
-pub use fit::{PlaneInk, PRIOR_PEAK_BYTES};
+pub use fit::{DensitySample, PlaneInk, Shape, PRIOR_PEAK_BYTES};
 
 use super::accumulate::Lattice;
 use super::detect::{Candidate, Detection};
@@ -61,6 +61,11 @@ impl Seed {
     /// the print's own bias, and the four contrast gradients would add ~40 % of scatter).
     pub fn even_ink(&self) -> Seed {
         Seed(self.0.even_ink())
+    }
+
+    /// The fit's blur width, in its plane's pixels.
+    pub fn blur_px(&self) -> f64 {
+        self.0.blur_px()
     }
 }
 
@@ -155,6 +160,20 @@ pub fn estimate_from(
         Estimator::Paper => paper::estimate(plane, &win, guess),
         Estimator::Fit => fit::estimate(plane, &win, guess, k, start, ink),
     }
+}
+
+/// The print's ink density inside the shapes of the fit `seed` of `guess` on `plane`
+/// (`px_per_camera_px` = k), as its residuals say it ([`DensitySample`]): what a
+/// calibration scan learns the print's statistics from.
+pub fn ink_density(
+    plane: &Plane,
+    guess: &Candidate,
+    px_per_camera_px: f64,
+    seed: &Seed,
+) -> Result<Vec<DensitySample>, EstimateError> {
+    check_guess(guess)?;
+    let win = Window::around(plane, guess, px_per_camera_px)?;
+    Ok(fit::density(plane, &win, guess, px_per_camera_px, &seed.0))
 }
 
 /// The only pixels of a reconstruction that `estimator` reads when it measures `guess` on

@@ -23,10 +23,12 @@ use crate::pipeline::detect::Candidate;
 use crate::pipeline::plane::Plane;
 use nalgebra::{DMatrix, DVector};
 
+mod density;
 mod edge;
 mod normal;
 mod prior;
 
+pub use density::{DensitySample, Shape};
 pub use prior::{PlaneInk, PEAK_BYTES as PRIOR_PEAK_BYTES};
 
 use normal::Normal;
@@ -76,7 +78,26 @@ struct Problem<'a> {
     planes: bool,
 }
 
-impl Problem<'_> {
+impl<'a> Problem<'a> {
+    /// The even-ink model of `np` parameters of the target guessed at `g`, read every
+    /// `step`-th pixel of `win`.
+    fn new(plane: &'a Plane, win: &'a Window, g: &Candidate, step: usize, np: usize) -> Self {
+        let half = 0.5 * (win.x1 - win.x0).max(win.y1 - win.y0) as f64;
+        Problem {
+            plane,
+            win,
+            np,
+            step,
+            mid: [
+                0.5 * (win.x0 + win.x1 - 1) as f64,
+                0.5 * (win.y0 + win.y1 - 1) as f64,
+            ],
+            inv_half: 1.0 / half.max(1.0),
+            reach_centre: g.outer_centre_px,
+            planes: false,
+        }
+    }
+
     /// `JᵀJ`, with a unit diagonal for the held gradients (their steps are then 0).
     fn matrix(&self, n: &Normal) -> DMatrix<f64> {
         DMatrix::from_fn(self.np, self.np, |a, b| {
@@ -119,6 +140,10 @@ impl State {
             p[i] *= k;
         }
         State { p, ..*self }
+    }
+
+    pub fn blur_px(&self) -> f64 {
+        self.p[S]
     }
 
     /// The even-ink model's state: the contrast gradients held at 0.
@@ -164,20 +189,7 @@ pub(super) fn estimate(
     }
     let ring_inner = g.inner_radii_px[0] > 0.0;
     let np = if ring_inner { MAXP } else { MAXP - 1 };
-    let half = 0.5 * (win.x1 - win.x0).max(win.y1 - win.y0) as f64;
-    let prob = Problem {
-        plane,
-        win,
-        np,
-        step,
-        mid: [
-            0.5 * (win.x0 + win.x1 - 1) as f64,
-            0.5 * (win.y0 + win.y1 - 1) as f64,
-        ],
-        inv_half: 1.0 / half.max(1.0),
-        reach_centre: g.outer_centre_px,
-        planes: false,
-    };
+    let prob = Problem::new(plane, win, g, step, np);
     let uneven = Problem {
         planes: true,
         ..prob
@@ -308,6 +320,22 @@ fn gn_gain(n: &Normal, idx: &[usize]) -> Option<f64> {
     let h = DMatrix::from_fn(idx.len(), idx.len(), |a, b| n.h[idx[a]][idx[b]]);
     let g = DVector::from_fn(idx.len(), |a, _| n.g[idx[a]]);
     h.cholesky().map(|c| g.dot(&c.solve(&g)))
+}
+
+/// The print's density inside the shapes of `state`, a converged fit of the target guessed
+/// at `g` on `plane` (`k` its pixels per camera pixel), read where that fit read.
+pub(super) fn density(
+    plane: &Plane,
+    win: &Window,
+    g: &Candidate,
+    k: f64,
+    state: &State,
+) -> Vec<DensitySample> {
+    let prob = Problem {
+        planes: state.planes,
+        ..Problem::new(plane, win, g, sample_step(k), state.np)
+    };
+    density::read(&prob, &state.p)
 }
 
 /// A converged fit: the parameters and the normal equations there; and, when the fit's

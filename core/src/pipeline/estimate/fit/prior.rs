@@ -155,17 +155,17 @@ impl Posterior<'_> {
 }
 
 /// The pixels the fit reads (position from the window's middle, value) and where.
-struct Sample {
-    fx: f64,
-    fy: f64,
-    v: f64,
-    at: [f64; 2],
+pub(super) struct Sample {
+    pub fx: f64,
+    pub fy: f64,
+    pub v: f64,
+    pub at: [f64; 2],
 }
 
 /// The fit's samples, every `thin`-th of its lattice in x and y, `thin` the least that
 /// keeps them within [`MAX_SAMPLES`] (a large target's window: memory and time stay
 /// bounded; its samples then count as fewer, so the data weigh less against the prior).
-fn samples(prob: &Problem) -> Vec<Sample> {
+pub(super) fn samples(prob: &Problem) -> Vec<Sample> {
     // The lattice's points in the reach's circle.
     let n = std::f64::consts::FRAC_PI_4 * (2.0 * prob.win.reach / prob.step as f64 + 1.0).powi(2);
     let thin = (n / MAX_SAMPLES as f64).sqrt().ceil().max(1.0);
