@@ -607,13 +607,35 @@ fn noiseless_bias_of_each_shape() {
     }
 }
 
+/// The calibration scan learns the print's ink statistics; rigd is not told the sim's (4 %
+/// RMS over 3 mm). Measured on layouts 11 / 12 / 13: RMS 4.10 / 3.88 / 4.09 % (u 0.18 %),
+/// correlation 2718 / 2747 / 2819 µm (u 90 µm), the lens blur undone. On the ideal camera's
+/// even print it finds no unevenness worth a prior.
 #[test]
-#[ignore = "a diagnosis: cargo test --release --test webcam_accuracy -- --ignored --nocapture learnt"]
-fn learnt_ink_statistics() {
-    for seed in [11u64, 12, 13] {
-        let cam = CameraModel::profile("webcam").unwrap();
-        let frames = FrameRenderer::new(random_board(seed, &cam), cam, seed).unwrap();
-        let cal = calibrate(&frames, &mut 0);
-        println!("layout {seed}: {:?}", cal.ink);
-    }
+fn the_calibration_scan_learns_the_prints_ink() {
+    let cam = CameraModel::profile("webcam").unwrap();
+    let frames = FrameRenderer::new(random_board(11, &cam), cam.clone(), 11).unwrap();
+    let ink = calibrate(&frames, &mut 0)
+        .ink
+        .clone()
+        .expect("the scan resolves the ink");
+    println!("webcam: {ink:?}");
+    let prior = ink.prior().expect("uneven enough for the prior");
+    assert!(
+        (prior.density_rms / cam.ink_density_rms - 1.0).abs() < 0.06,
+        "{ink:?}"
+    );
+    assert!(
+        (prior.corr_um / cam.ink_density_corr_um - 1.0).abs() < 0.12,
+        "{ink:?}"
+    );
+    assert!(
+        ink.u_density_rms < 0.003 && ink.u_corr_um < 150.0,
+        "{ink:?}"
+    );
+    let ideal = CameraModel::profile("ideal").unwrap();
+    let frames = FrameRenderer::new(random_board(11, &ideal), ideal, 11).unwrap();
+    let ink = calibrate(&frames, &mut 0).ink.clone();
+    println!("ideal: {ink:?}");
+    assert_eq!(ink.and_then(|i| i.prior()), None);
 }

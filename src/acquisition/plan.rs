@@ -83,6 +83,7 @@ pub fn run_options(spec: &JobSpec, k: u32, rig: &RigInfo) -> Result<ValidOptions
         whole_frame: spec.whole_frame.unwrap_or(false),
         response: rig.response,
         ink_prior: rig.ink_prior,
+        calibration_ink: true,
     }
     .validate()
     .map_err(|e| rejected(e.to_string()))

@@ -177,5 +177,27 @@ pub fn summary(cal: &Calibration) -> String {
             t.residual_rms_um
         );
     }
+    s += &ink_line(cal);
     s
+}
+
+/// What the scan learnt of the print's ink, and whether jobs take it as the fit's prior.
+fn ink_line(cal: &Calibration) -> String {
+    let Some(i) = &cal.ink else {
+        return "  print's ink: not resolved by the scan (jobs take the print as evenly inked)\n"
+            .into();
+    };
+    let taken = match i.prior() {
+        Some(_) => "jobs take it as the fit's prior",
+        None => "even enough: jobs take the print as evenly inked",
+    };
+    format!(
+        "  print's ink: density RMS {:.2} % ± {:.2} %, correlation {:.0} ± {:.0} µm ({} shapes, blur {:.2} px): {taken}\n",
+        100.0 * i.density_rms,
+        100.0 * i.u_density_rms,
+        i.corr_um,
+        i.u_corr_um,
+        i.shapes,
+        i.blur_px
+    )
 }

@@ -55,6 +55,11 @@ pub struct ProcessingFlags {
     /// rig's].
     #[arg(long, value_parser = crate::pipeline::InkPrior::parse, value_name = "RMS,CORR_UM")]
     pub ink_prior: Option<crate::pipeline::InkPrior>,
+    /// Do not take the print's ink statistics the calibration learnt from its scan as the
+    /// fit's prior (without `--ink-prior`, the fit then takes the print as evenly inked)
+    /// [folder; a session's runs always take them].
+    #[arg(long)]
+    pub no_calibration_ink: bool,
     /// A calibration record (`rigctl calibrate --out`): offsets converted by its field
     /// model instead of the global scale, with its type-B uncertainty; a calibration of
     /// another frame size is refused (docs/calibration.md).
@@ -109,6 +114,7 @@ impl ProcessingFlags {
             whole_frame: self.whole_frame,
             response: self.response.unwrap_or_default(),
             ink_prior: self.ink_prior,
+            calibration_ink: !self.no_calibration_ink,
         }
         .validate()
     }

@@ -45,6 +45,7 @@ pub fn fit_folder(dir: &Path, fit: &FolderFit) -> anyhow::Result<Calibration> {
         response: fit.response,
         // The print's density moves with the board: displacements do not see it.
         ink_prior: None,
+        calibration_ink: true,
     }
     .validate()?;
     let folder = folder::open(dir, None)?;

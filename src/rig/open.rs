@@ -217,16 +217,10 @@ fn camera_response(cfg: &CameraConfig) -> crate::pipeline::Response {
     }
 }
 
-/// `[camera] ink_prior`, else the sim camera's own print's statistics.
+/// `[camera] ink_prior`. (Not the sim's own print's: rigd learns those in its
+/// calibration scan, as on a real rig.)
 fn camera_ink_prior(cfg: &CameraConfig) -> Option<crate::pipeline::InkPrior> {
-    if let Some(p) = cfg.ink_prior {
-        return Some(p);
-    }
-    match cfg.driver {
-        #[cfg(feature = "sim")]
-        CameraDriver::Sim => super::sim::ink_prior(&cfg.sim.clone().unwrap_or_default()),
-        _ => None,
-    }
+    cfg.ink_prior
 }
 
 #[cfg(feature = "v4l2")]

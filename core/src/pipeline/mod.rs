@@ -139,6 +139,9 @@ pub struct CalibrationUsed {
     /// Mismatches that did not stop it (another scale or board than it was fitted with).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub warnings: Vec<String>,
+    /// The print's ink statistics it learnt, when the run took them as the fit's prior.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ink_prior: Option<InkPrior>,
 }
 
 /// A target candidate that was found but not measured, and why.

@@ -48,6 +48,14 @@ pub struct ProcessOptions {
     /// prior"). Absent: the even-ink fit with its contrast planes.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ink_prior: Option<InkPrior>,
+    /// Without `ink_prior`: take the statistics the applied calibration learnt from its
+    /// scan, when it found the print measurably uneven (`calibration::ink`).
+    #[serde(skip_serializing_if = "is_true")]
+    pub calibration_ink: bool,
+}
+
+fn is_true(v: &bool) -> bool {
+    *v
 }
 
 /// The statistics of a print's ink density `1 + ε`: ε a smooth random field of RMS
@@ -97,6 +105,7 @@ impl Default for ProcessOptions {
             whole_frame: false,
             response: super::Response::Linear,
             ink_prior: None,
+            calibration_ink: true,
         }
     }
 }

@@ -488,9 +488,22 @@ impl Pipeline {
             .filter(|_| self.opts.combine == Combine::Mean)
     }
 
+    /// The print's density statistics the fit takes: the options', else (unless they say
+    /// not to) those the calibration learnt, when it found the print uneven.
+    fn ink_prior(&self) -> Option<InkPrior> {
+        self.opts.ink_prior.or_else(|| self.calibration_ink())
+    }
+
+    /// The calibration's learnt statistics, when they are the ones taken.
+    fn calibration_ink(&self) -> Option<InkPrior> {
+        let (cal, _) = self.calibration.as_ref()?;
+        let taken = self.opts.calibration_ink && self.opts.ink_prior.is_none();
+        cal.ink.as_ref().filter(|_| taken)?.prior()
+    }
+
     /// The print's density prior in the pixels of a plane `k` times finer than the camera's.
     fn ink_in(&self, k: f64) -> Option<PlaneInk> {
-        self.opts.ink_prior.map(|p| PlaneInk {
+        self.ink_prior().map(|p| PlaneInk {
             density_rms: p.density_rms,
             corr_px: p.corr_um / self.opts.scale_um_per_px * k,
         })
@@ -750,6 +763,7 @@ impl Pipeline {
                 method: c.method,
                 source: source.clone(),
                 warnings: self.calibration_warnings.clone(),
+                ink_prior: self.calibration_ink(),
             })
     }
 
