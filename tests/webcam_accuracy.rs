@@ -101,7 +101,10 @@ fn options(
         },
         axis_dir: [-1.0, 0.0],
         response,
+        // The study says which prior each fit takes (the calibration's learnt statistics,
+        // or none): the calibration's is not taken by itself.
         ink_prior,
+        calibration_ink: false,
         ..ProcessOptions::default()
     }
 }

@@ -357,7 +357,7 @@ mod tests {
     /// taken out per frame (as a fit's contrast takes it).
     fn maps(rms: f64, corr_px: f64, blur_px: f64, noise: f64, seed: u64) -> Vec<InkMap> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let mut normal = move |r: &mut ChaCha8Rng| -> f64 { StandardNormal.sample(r) };
+        let normal = move |r: &mut ChaCha8Rng| -> f64 { StandardNormal.sample(r) };
         let waves: Vec<([f64; 2], f64)> = (0..400)
             .map(|_| {
                 let k = [normal(&mut rng) / corr_px, normal(&mut rng) / corr_px];
