@@ -387,7 +387,7 @@ fn rms_error(figs: &[TargetFigures]) -> f64 {
 /// The suite's check, 3 repeats of one layout, held near what it measures today
 /// (docs/method.md, "On the webcam profile"): every target measured in every repeat; the
 /// calibration removes the global scale's error (its RMS bias falls); the print's ink
-/// density as a prior (as the sim rig says it) trades some scatter for a third of the
+/// density as a prior (its statistics as the calibration scan learnt them) trades some scatter for a third of the
 /// bias, and the whole error falls; both stay above what the bound with the print unknown
 /// allows; the stated uncertainty covers the errors.
 #[test]
@@ -400,7 +400,7 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             c.iter().all(|t| t.n == 3) && even.iter().all(|t| t.n == 3),
             "{case:?}: a target was lost: {c:?}"
         );
-        // Measured: 1.68 / 2.71 / 2.96x the bound with the print known (without the prior
+        // Measured: 1.69 / 2.71 / 2.95x the bound with the print known (without the prior
         // 1.73 / 2.12 / 2.17x); the paper's estimator scatters 6.3 / 3.0 / 3.1x more.
         let (std, crb) = (rms(c, |t| t.std_um), rms(c, |t| t.crb_um));
         let paper = rms(&s.paper[i], |t| t.std_um);
@@ -417,15 +417,15 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             (25.0..80.0).contains(&global),
             "{case:?}: RMS bias {global:.1} µm"
         );
-        // Measured: 17.3 / 12.3 / 12.3 µm left once calibrated, 0.41-0.56 of the global
+        // Measured: 17.0 / 12.2 / 12.1 µm left once calibrated, 0.41-0.56 of the global
         // scale's bias (without the prior 22.7 / 18.5 / 18.4 µm: the uneven ink,
         // `which_effect_biases_the_fit`).
         assert!(
             calibrated < 0.65 * global && calibrated < [19.5, 14.0, 14.0][i],
             "{case:?}: calibrated RMS bias {calibrated:.1} µm (global {global:.1} µm)"
         );
-        // The whole RMS error, bias and scatter: 21.2 / 13.8 / 13.2 µm with the prior,
-        // 25.9 / 19.1 / 18.8 µm without (0.82 / 0.72 / 0.70 of it).
+        // The whole RMS error, bias and scatter: 20.9 / 13.6 / 13.0 µm with the prior,
+        // 25.9 / 19.1 / 18.8 µm without (0.81 / 0.71 / 0.69 of it).
         let (total, plain) = (rms_error(c), rms_error(even));
         assert!(
             total < [0.88, 0.8, 0.8][i] * plain,
@@ -433,7 +433,7 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
         );
         // The bound on the whole error with the print unknown (its statistics known):
         // 11.9 / 5.64 / 4.63 µm, 1.65 / 2.47 / 2.88x the bound with the print known. No
-        // estimator does better; the fit's whole error is 1.78 / 2.45 / 2.86x it.
+        // estimator does better; the fit's whole error is 1.76 / 2.42 / 2.81x it.
         let hcrb = rms(c, |t| t.hcrb_um);
         let want = [11.9, 5.64, 4.63][i];
         assert!(

@@ -252,6 +252,20 @@ pub(super) fn density_in_frame(
         e.outer_px[0] - c.outer_centre_px[0],
         e.outer_px[1] - c.outer_centre_px[1],
     ];
+    let (crop, guess, [x0, y0]) = crop_window(frame, (ch, response), c, shift_px);
+    let seed = seed.mapped(|p| [p[0] - x0, p[1] - y0], 1.0);
+    let samples = ink_density(&crop, &guess, 1.0, &seed).ok()?;
+    Some((samples, seed.blur_px()))
+}
+
+/// Target `c`'s measurement window at its frame-0 place moved by `shift_px`: the crop of
+/// channel `ch`, the target's guess in it, and the crop's origin in the frame.
+fn crop_window(
+    frame: &RgbImage,
+    (ch, response): (usize, Response),
+    c: &Candidate,
+    shift_px: [f64; 2],
+) -> (Plane, Candidate, [f64; 2]) {
     let (x0, y0, side) = measure_window(c, shift_px);
     let roi = Roi {
         x: x0 as u32,
@@ -260,16 +274,8 @@ pub(super) fn density_in_frame(
         h: side,
     };
     let crop = Plane::from_channel_roi_in(frame, ch, roi, response);
-    let guess = guess_in_crop(c, shift_px, [x0, y0], &crop);
-    let seed = seed.mapped(|p| [p[0] - x0, p[1] - y0], 1.0);
-    let samples = ink_density(&crop, &guess, 1.0, &seed).ok()?;
-    Some((samples, seed.blur_px()))
-}
-
-/// Target `c` moved by `shift_px` into a crop whose origin is `origin` in the frame.
-fn guess_in_crop(c: &Candidate, shift_px: [f64; 2], [x0, y0]: [f64; 2], crop: &Plane) -> Candidate {
     let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
-    Candidate {
+    let guess = Candidate {
         outer_centre_px: mv(c.outer_centre_px),
         inner_centre_px: mv(c.inner_centre_px),
         outer_radii_px: c.outer_radii_px,
@@ -280,7 +286,8 @@ fn guess_in_crop(c: &Candidate, shift_px: [f64; 2], [x0, y0]: [f64; 2], crop: &P
             w: crop.width as u32,
             h: crop.height as u32,
         },
-    }
+    };
+    (crop, guess, [x0, y0])
 }
 
 /// Measure one target in a frame at its frame-0 place moved by `shift_px`, on a window of
@@ -293,16 +300,8 @@ pub(super) fn measure_in_frame(
     shift_px: [f64; 2],
     (estimator, ink): (Estimator, Option<PlaneInk>),
 ) -> Option<CentreEstimate> {
-    let (x0, y0, side) = measure_window(c, shift_px);
-    let roi = Roi {
-        x: x0 as u32,
-        y: y0 as u32,
-        w: side,
-        h: side,
-    };
-    let crop = Plane::from_channel_roi_in(frame, ch, roi, response);
+    let (crop, guess, [x0, y0]) = crop_window(frame, (ch, response), c, shift_px);
     let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
-    let guess = guess_in_crop(c, shift_px, [x0, y0], &crop);
     let seed = seed.map(|s| s.mapped(mv, 1.0));
     let start = seed.as_ref().map_or(Start::Guess, Start::Track);
     let mut e = estimate_from(&crop, &guess, estimator, 1.0, start, ink).ok()?;

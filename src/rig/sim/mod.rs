@@ -145,15 +145,6 @@ pub fn response(cam: &CameraModel) -> crate::pipeline::Response {
     }
 }
 
-/// The statistics of the simulated print's ink density, when it is uneven: what a lab
-/// measures once on its own print (the realisation stays the renderer's).
-pub fn ink_prior(cam: &CameraModel) -> Option<crate::pipeline::InkPrior> {
-    (cam.ink_density_rms > 0.0).then_some(crate::pipeline::InkPrior {
-        density_rms: cam.ink_density_rms,
-        corr_um: cam.ink_density_corr_um,
-    })
-}
-
 pub fn simulated(s: &SimSettings) -> Result<Rig, HwError> {
     simulated_with_truth(s).map(|(rig, _)| rig)
 }
@@ -280,7 +271,8 @@ fn sim_info(s: &SimSettings, rc: &SimRigConfig, board: crate::board::Board) -> R
         piezo_dir: Some([-rc.piezo_dir[0], -rc.piezo_dir[1]]),
         frame_size: (s.camera.width, s.camera.height),
         response: response(&s.camera),
-        ink_prior: ink_prior(&s.camera),
+        // Not the renderer's print statistics: the calibration scan learns them.
+        ink_prior: None,
         interferometer: true,
         config: serde_json::json!({
             "sim": true,
