@@ -47,8 +47,10 @@ pub fn reconstruction_bytes(plan: &Plan, rig: &RigInfo) -> u64 {
 /// The most memory a job's processing holds at once. Runs are processed one after the
 /// other; each run's reconstructions are kept until the job ends, when each is copied and
 /// encoded in turn: the copy, and the PNG buffer growing by doubling (up to twice the image
-/// while it reallocates), three times the largest image on top of them all.
-pub fn memory_bytes(plan: &Plan, rig: &RigInfo) -> u64 {
+/// while it reallocates), three times the largest image on top of them all. With
+/// `calibration_prior` (the calibration the job will apply learnt an ink prior), the
+/// prior's working set in every run that takes it.
+pub fn memory_bytes(plan: &Plan, rig: &RigInfo, calibration_prior: bool) -> u64 {
     let (w, h) = rig.frame_size;
     let in_flight = FRAMES_IN_FLIGHT * 3 * w as u64 * h as u64;
     let images = kept_images(plan, rig);
@@ -57,7 +59,10 @@ pub fn memory_bytes(plan: &Plan, rig: &RigInfo) -> u64 {
     for (r, img) in plan.runs.iter().zip(&images) {
         if let Some(o) = &r.processing {
             let frames = r.positions_um.len() as u32;
-            let run = o.peak_memory_bytes(rig.frame_size, frames, rig.board.as_ref());
+            let mut run = o.peak_memory_bytes(rig.frame_size, frames, rig.board.as_ref());
+            if calibration_prior && o.calibration_ink && o.ink_prior.is_none() {
+                run += o.ink_prior_bytes(rig.frame_size, rig.board.as_ref());
+            }
             peak = peak.max(kept.saturating_add(run));
         }
         kept = kept.saturating_add(*img);
@@ -74,8 +79,13 @@ fn mb(bytes: u64) -> u64 {
 /// Refuse a plan whose processing needs more than `budget_mb` MB, naming the estimate, what
 /// drives it and the budget. A capture-only job is not refused: it holds only the frames in
 /// flight.
-pub fn check_memory(plan: &Plan, rig: &RigInfo, budget_mb: u64) -> Result<u64, PlanError> {
-    let need = memory_bytes(plan, rig);
+pub fn check_memory(
+    plan: &Plan,
+    rig: &RigInfo,
+    budget_mb: u64,
+    calibration_prior: bool,
+) -> Result<u64, PlanError> {
+    let need = memory_bytes(plan, rig, calibration_prior);
     let processes = plan.runs.iter().any(|r| r.processing.is_some());
     if !processes || need <= budget_mb.saturating_mul(1 << 20) {
         return Ok(need);
@@ -181,9 +191,9 @@ mod tests {
         // In memory: the 4 k² w h f32 reconstruction and its 16-bit copy while the run
         // ends, then the copy kept, copied again and encoded when the job ends: four 16-bit
         // images, 7.55 GB. Issue 14 measured this job's peak: 7.5 GB.
-        let mem = memory_bytes(&plan_whole, &r);
+        let mem = memory_bytes(&plan_whole, &r, false);
         assert!((7_200_000_000..8_000_000_000).contains(&mem), "{mem}");
-        let e = check_memory(&plan_whole, &r, 2048).unwrap_err().0;
+        let e = check_memory(&plan_whole, &r, 2048, false).unwrap_err().0;
         assert!(
             e.starts_with("processing this job needs about ")
                 && e.contains("at k = 32 with the whole frame reconstructed")
@@ -197,7 +207,7 @@ mod tests {
         let r = rig((1280, 720));
         for (k, frames, whole) in [(10, 20, false), (1, 100, false), (8, 10, true)] {
             let p = plan(&job(k, frames, whole), &r, Path::new("/tmp"), 0).unwrap();
-            let mem = check_memory(&p, &r, 2048).unwrap();
+            let mem = check_memory(&p, &r, 2048, false).unwrap();
             // Never less than the frames in flight (25 MB at 1280x720).
             assert!(mem >= FRAMES_IN_FLIGHT * 3 * 1280 * 720, "k={k}: {mem}");
         }
@@ -215,6 +225,43 @@ mod tests {
         };
         let p = plan(&raw, &r, Path::new("/tmp"), 0).unwrap();
         assert_eq!(reconstruction_bytes(&p, &r), 0);
-        assert_eq!(memory_bytes(&p, &r), FRAMES_IN_FLIGHT * 3 * 1280 * 720);
+        assert_eq!(
+            memory_bytes(&p, &r, false),
+            FRAMES_IN_FLIGHT * 3 * 1280 * 720
+        );
+    }
+
+    /// The ink prior a calibration learnt is taken when the job runs: its working set is in
+    /// the estimate when the current calibration has one, once, and not when the rig's
+    /// own `ink_prior` (already counted) wins.
+    #[test]
+    fn a_calibrations_learnt_prior_is_counted_once() {
+        let r = rig((1280, 720));
+        let p = plan(&job(10, 20, false), &r, Path::new("/tmp"), 0).unwrap();
+        let o = p.runs[0].processing.as_ref().unwrap();
+        let prior = o.ink_prior_bytes(r.frame_size, r.board.as_ref());
+        assert!(
+            prior >= crate::pipeline::estimate::PRIOR_PEAK_BYTES,
+            "{prior}"
+        );
+        // (Less than the whole prior where the job's end, its images kept, held more than
+        // its run did: 280 of 296 MB on 2 threads, by 16 MB on any.)
+        let (without, with) = (memory_bytes(&p, &r, false), memory_bytes(&p, &r, true));
+        assert!(
+            with - without > prior * 9 / 10 && with - without <= prior,
+            "{with} {without}"
+        );
+        let given = RigInfo {
+            ink_prior: Some(crate::pipeline::InkPrior {
+                density_rms: 0.04,
+                corr_um: 3000.0,
+            }),
+            ..r
+        };
+        let p = plan(&job(10, 20, false), &given, Path::new("/tmp"), 0).unwrap();
+        let own = memory_bytes(&p, &given, false);
+        assert_eq!(memory_bytes(&p, &given, true), own);
+        // The same working set, inside the run's model (with its 2 % slack).
+        assert!(own >= with && own < with + with / 40, "{own} {with}");
     }
 }

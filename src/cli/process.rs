@@ -56,8 +56,7 @@ pub struct ProcessingFlags {
     #[arg(long, value_parser = crate::pipeline::InkPrior::parse, value_name = "RMS,CORR_UM")]
     pub ink_prior: Option<crate::pipeline::InkPrior>,
     /// Do not take the print's ink statistics the calibration learnt from its scan as the
-    /// fit's prior (without `--ink-prior`, the fit then takes the print as evenly inked)
-    /// [folder; a session's runs always take them].
+    /// fit's prior (without `--ink-prior`, the fit then takes the print as evenly inked).
     #[arg(long)]
     pub no_calibration_ink: bool,
     /// A calibration record (`rigctl calibrate --out`): offsets converted by its field
@@ -94,6 +93,7 @@ impl ProcessingFlags {
             piezo_dir: self.piezo_dir,
             response: self.response,
             ink_prior: self.ink_prior,
+            calibration_ink: self.no_calibration_ink.then_some(false),
         }
     }
 

@@ -156,7 +156,13 @@ fn queue(
     rig: &crate::rig::RigInfo,
     source: JobSource,
 ) -> Result<(u64, usize), ProtoError> {
-    budget::check_memory(&plan, rig, shared.settings.max_job_memory_mb).map_err(rejected)?;
+    // A calibration's learnt ink prior is taken when the job runs: counted if today's has one.
+    let learnt = crate::calibration_store::current(&shared.settings.data_root)
+        .ok()
+        .flatten()
+        .is_some_and(|a| a.calibration.ink.as_ref().and_then(|i| i.prior()).is_some());
+    let budget_mb = shared.settings.max_job_memory_mb;
+    budget::check_memory(&plan, rig, budget_mb, learnt).map_err(rejected)?;
     let disk = budget::disk_bytes(&plan, rig);
     let mut jobs = shared.jobs();
     let committed = jobs.committed_disk_bytes();

@@ -32,6 +32,9 @@ pub struct Overrides {
     /// The print's ink density statistics, for sessions recorded without them.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ink_prior: Option<crate::pipeline::InkPrior>,
+    /// Whether runs take the applied calibration's learnt ink statistics (`false`: not).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration_ink: Option<bool>,
 }
 
 impl Overrides {
@@ -113,6 +116,9 @@ impl Overrides {
                 number(p.corr_um)
             ));
         }
+        if let Some(c) = self.calibration_ink {
+            parts.push(if c { "calink" } else { "nocalink" }.into());
+        }
         match parts.is_empty() {
             true => "recorded".into(),
             false => parts.join("-"),
@@ -155,5 +161,11 @@ mod tests {
             ..Overrides::default()
         };
         assert_eq!(o.settings_name(), "ink0.04_3000");
+        let o = Overrides {
+            calibration_ink: Some(false),
+            ..Overrides::default()
+        };
+        assert_eq!(o.settings_name(), "nocalink");
+        assert!(!o.is_empty());
     }
 }

@@ -93,10 +93,13 @@ pub fn session_runs(
                 r.positions_um.len()
             ));
         }
-        let options = r
+        let mut options = r
             .processing
             .clone()
             .expect("for_replay sets every run's options");
+        if let Some(take) = ov.calibration_ink {
+            options = options.with_calibration_ink(take);
+        }
         runs.push(RunInput {
             plan: r,
             options,

@@ -229,6 +229,13 @@ const DETECT_BYTES_PER_PX: u64 = 6;
 const HORIZONTAL_SCAN_GROUPS: u64 = 3;
 
 impl ValidOptions {
+    /// The same options, taking (or not) a calibration's learnt ink statistics: no limit
+    /// bears on it.
+    pub fn with_calibration_ink(mut self, take: bool) -> ValidOptions {
+        self.0.calibration_ink = take;
+        self
+    }
+
     pub fn into_inner(self) -> ProcessOptions {
         self.0
     }
@@ -244,6 +251,15 @@ impl ValidOptions {
     /// (6 k² w h bytes) and its open row-pass sums (4 k w h each); else the targets'
     /// reconstructions (4 k² s² bytes for a window of side s) and their row-pass sums.
     /// tests/pipeline_memory.rs holds it to the measured peak.
+    /// The print's prior's working set: a fit's on each thread measuring a target at once
+    /// (what [`Self::peak_memory_bytes`] adds with `ink_prior`; a caller that knows a
+    /// calibration's learnt prior will be taken adds it too).
+    pub fn ink_prior_bytes(&self, frame_size: (u32, u32), board: Option<&Board>) -> u64 {
+        let targets = self.window_sides_px(frame_size, board).len().max(1);
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        threads.min(targets) as u64 * super::estimate::PRIOR_PEAK_BYTES
+    }
+
     pub fn peak_memory_bytes(
         &self,
         frame_size: (u32, u32),
@@ -266,12 +282,8 @@ impl ValidOptions {
             false => 0,
         };
         let detect = DETECT_BYTES_PER_PX * w * h + if self.whole_frame { 4 * w * h } else { 0 };
-        // The print's prior: a fit's working set on each thread measuring a target at once.
         let prior = match self.ink_prior {
-            Some(_) => {
-                let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-                threads.min(sides.len().max(1)) as u64 * super::estimate::PRIOR_PEAK_BYTES
-            }
+            Some(_) => self.ink_prior_bytes(frame_size, board),
             None => 0,
         };
         let model = (held + prior + targets_peak.max(whole_peak)).max(detect);
