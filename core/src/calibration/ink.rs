@@ -254,14 +254,12 @@ struct Reml {
 
 /// Every shape's spectrum at one ℓ, with its noise.
 struct AtLength {
-    ln_l: f64,
     shapes: Vec<(f64, Vec<(f64, f64)>)>,
 }
 
 impl AtLength {
     fn new(shapes: &[ShapeCells], ln_l: f64) -> AtLength {
         AtLength {
-            ln_l,
             shapes: shapes
                 .iter()
                 .map(|s| (s.noise, s.spectrum(ln_l.exp())))
@@ -297,7 +295,7 @@ impl AtLength {
     }
 }
 
-/// ℓ's grid, px: 0.7 to 20, 5 % apart in ln ℓ... (36 points).
+/// ℓ's grid (observed, px): e^−0.36 = 0.7 to e³ = 20, 36 points 10 % apart.
 const LN_L_RANGE: (f64, f64) = (-0.36, 3.0);
 const LN_L_POINTS: usize = 36;
 
@@ -336,7 +334,6 @@ fn reml(shapes: &[ShapeCells]) -> Option<Reml> {
         return None;
     }
     let cov = [[-hll / det, hsl / det], [hsl / det, -hss / det]];
-    debug_assert!(around[1].ln_l == ln_l);
     Some(Reml {
         at: [ln_s2, ln_l],
         cov,
