@@ -563,8 +563,8 @@ fn how_smooth_must_the_ink_be() {
 /// radius, and a plane ties the first angular harmonic of the contrast at the edge to its
 /// slope inside (docs/method.md, the `fit` estimator). With `RIGD_PRIOR` set, the fit takes
 /// the print's true statistics as its prior: RMS outer 1.5–1.9, inner 3.6–4.8, offset
-/// 3.5–5.1 µm, the prior's own floor with no noise and no webcam (its modes truncated at
-/// 1 % of the variance, ε multiplying the blurred coverage where the optics blur ε too).
+/// 3.5–5.1 µm, the prior's own floor with no noise and no webcam (not its modes'
+/// truncation: with a mode floor of 0.1 %, 3.4–5.6 µm).
 #[test]
 #[ignore = "a diagnosis: cargo test --release --test webcam_accuracy -- --ignored --nocapture noiseless"]
 fn noiseless_bias_of_each_shape() {
