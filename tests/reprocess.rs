@@ -404,6 +404,10 @@ fn process_on_a_session_applies_a_calibration_run_by_run() {
     for r in runs {
         let res = &r["result"];
         assert_eq!(res["calibration"]["id"], "cal-hand", "{r}");
+        assert!(
+            res["calibration"].get("ink_prior").is_none(),
+            "no ink learnt: {r}"
+        );
         for o in res["objects"].as_array().unwrap() {
             let g = |k: &str, a: usize| o[k][a].as_f64().unwrap();
             for a in 0..2 {
@@ -417,5 +421,64 @@ fn process_on_a_session_applies_a_calibration_run_by_run() {
                 assert!((g("u_b_um", a) - ub).abs() < 1e-6 + 1e-3 * ub, "{o}");
             }
         }
+    }
+}
+
+/// A calibration that learnt the print's ink takes it into every run of a session as the
+/// fit's prior (the result names it, and the posterior replaces the ink model's `u_ink_um`);
+/// `--no-calibration-ink` declines it.
+#[test]
+fn a_sessions_runs_take_the_ink_the_calibration_learnt_unless_declined() {
+    let d = daemon();
+    let (s, _) = recorded(&d, scan(3, "ink"));
+    let tmp = tempfile::tempdir().unwrap();
+    let cal = tmp.path().join("cal.json");
+    let a = 1.0 / 774.0;
+    let rec = serde_json::json!({
+        "version": 1, "id": "cal-ink", "date": "2026-12-06T04:00:00Z", "method": "commanded",
+        "rig": null,
+        "fingerprint": {"frame_size": [300, 200], "scale_um_per_px": 774.0, "board": null},
+        "scan": {"frames": 30, "step_um": 500.0, "travel_um": 14500.0, "piezo_travel_um": null},
+        "reference_rel_u": 1e-4, "targets": [],
+        "field": {"layout": "free", "model": {"centre_px": [149.5, 99.5],
+            "norm_radius_px": 180.3, "a_px_per_um": [[a, 0.0], [0.0, a]],
+            "g_per_um": [0.0, 0.0], "k1": 0.0, "k2": 0.0},
+            "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.0,
+            "print_scale": null, "residual_rms_px": 0.01, "residual_rms_um": 7.7,
+            "residual_max_um": 20.0},
+        "ink": {"density_rms": 0.04, "u_density_rms": 0.002, "corr_um": 3000.0,
+            "u_corr_um": 90.0, "observed_rms": 0.038, "observed_corr_px": 3.8,
+            "blur_px": 0.7, "shapes": 24, "cells": 2500}
+    });
+    std::fs::write(&cal, rec.to_string()).unwrap();
+    let c = cal.to_str().unwrap();
+    let taken = process_json(&s.dir, &["--calibration", c]);
+    let declined = process_json(&s.dir, &["--calibration", c, "--no-calibration-ink"]);
+    for (t, n) in taken["runs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(declined["runs"].as_array().unwrap())
+    {
+        let (t, n) = (&t["result"], &n["result"]);
+        let prior = &t["calibration"]["ink_prior"];
+        assert_eq!(
+            (prior["density_rms"].as_f64(), prior["corr_um"].as_f64()),
+            (Some(0.04), Some(3000.0))
+        );
+        assert!(n["calibration"].get("ink_prior").is_none(), "{n}");
+        // The prior's posterior is wider than the even-ink fit's covariance on this even
+        // print (its density modes unknown): the runs were measured with it (measured: 8.81
+        // against 4.90 µm summed over the targets).
+        let u = |r: &serde_json::Value| -> f64 {
+            let objects = r["objects"].as_array().unwrap();
+            assert!(!objects.is_empty());
+            objects
+                .iter()
+                .map(|o| o["u_a_um"][0].as_f64().unwrap())
+                .sum()
+        };
+        let (ut, un) = (u(t), u(n));
+        assert!(ut > 1.5 * un, "u_a with the prior {ut:.2}, without {un:.2}");
     }
 }
