@@ -36,7 +36,7 @@ pub(super) fn read(prob: &Problem, p: &[f64; MAXP]) -> Vec<DensitySample> {
         f64::NEG_INFINITY
     };
     let inside = |rho: f64, lo: f64, hi: f64| rho > lo + margin && rho < hi - margin;
-    samples(prob)
+    samples(prob, 1)
         .into_iter()
         .filter_map(|s| {
             let (ox, oy) = (s.at[0] - p[CXO], s.at[1] - p[CYO]);

@@ -250,14 +250,12 @@ fn with_prior(
         (None, _) => (first_guess(g, k, paper, ink_level), Steps::ToMinimum),
     };
     let even = solve(prob, p, k, g, steps, None)?;
-    // One sample per `step`² of the plane's pixels: on a reconstruction (`step` < k) the
-    // samples are interpolated from fewer camera pixels, each counted (k/step)² times.
-    let per_camera_px = (k / prob.step as f64).max(1.0).powi(2);
-    let s2 = even.residual_variance(prob).unwrap_or(1.0) * per_camera_px;
-    let map = prior::refine(prob, &even.p, ink, s2).ok_or_else(|| EstimateError::Diverged {
-        iterations: 0,
-        reason: "singular normal equations with the ink prior".into(),
-    })?;
+    let noise = even.residual_variance(prob).unwrap_or(1.0);
+    let map =
+        prior::refine(prob, &even.p, ink, (noise, k)).ok_or_else(|| EstimateError::Diverged {
+            iterations: 0,
+            reason: "singular normal equations with the ink prior".into(),
+        })?;
     if let Some(reason) = insane(&map.p, prob.np, k, g) {
         return Err(EstimateError::Diverged {
             iterations: 0,
