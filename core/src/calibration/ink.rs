@@ -97,7 +97,7 @@ const MAX_SHAPE_CELLS: usize = 160;
 const SIGNIFICANT_U: f64 = 3.0;
 /// ... and at least this: 4 % of uneven ink biases the even-ink fit by ~20 µm RMS on a
 /// webcam (docs/method.md), so under 0.5 % its bias is under ~2.5 µm, not worth the
-/// prior's cost (16x the fit's time).
+/// prior's cost (4x the fit's time on a k = 10 job).
 const MIN_UNEVEN_RMS: f64 = 0.005;
 
 impl InkStatistics {
