@@ -373,19 +373,12 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
     assert_eq!(from(&merged, &[]), k3);
 }
 
-/// `--calibration` on a session: every run is converted through it and names it. The
-/// calibration here is written by hand for the session's 300x200 frames: no tilt or
-/// distortion, 1 % finer than the rig's 774 µm/px, so every offset is 1 % smaller than the
-/// global scale's and its type-B uncertainty is the reference's alone.
-#[test]
-fn process_on_a_session_applies_a_calibration_run_by_run() {
-    let d = daemon();
-    let (s, _) = recorded(&d, scan(5, "cal"));
-    let tmp = tempfile::tempdir().unwrap();
-    let cal = tmp.path().join("cal.json");
-    let a = 1.0 / (0.99 * 774.0);
-    let rec = serde_json::json!({
-        "version": 1, "id": "cal-hand", "date": "2026-12-02T19:00:00Z", "method": "commanded",
+/// A calibration record written by hand for the sessions' 300x200 frames: no tilt or
+/// distortion, `um_per_px` everywhere, a commanded reference of 1e-4.
+fn hand_calibration(id: &str, um_per_px: f64) -> serde_json::Value {
+    let a = 1.0 / um_per_px;
+    serde_json::json!({
+        "version": 1, "id": id, "date": "2026-12-02T19:00:00Z", "method": "commanded",
         "rig": null,
         "fingerprint": {"frame_size": [300, 200], "scale_um_per_px": 774.0, "board": null},
         "scan": {"frames": 30, "step_um": 500.0, "travel_um": 14500.0, "piezo_travel_um": null},
@@ -396,7 +389,20 @@ fn process_on_a_session_applies_a_calibration_run_by_run() {
             "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.0,
             "print_scale": null, "residual_rms_px": 0.01, "residual_rms_um": 7.7,
             "residual_max_um": 20.0}
-    });
+    })
+}
+
+/// `--calibration` on a session: every run is converted through it and names it. The
+/// calibration here is written by hand for the session's 300x200 frames: no tilt or
+/// distortion, 1 % finer than the rig's 774 µm/px, so every offset is 1 % smaller than the
+/// global scale's and its type-B uncertainty is the reference's alone.
+#[test]
+fn process_on_a_session_applies_a_calibration_run_by_run() {
+    let d = daemon();
+    let (s, _) = recorded(&d, scan(5, "cal"));
+    let tmp = tempfile::tempdir().unwrap();
+    let cal = tmp.path().join("cal.json");
+    let rec = hand_calibration("cal-hand", 0.99 * 774.0);
     std::fs::write(&cal, rec.to_string()).unwrap();
     let v = process_json(&s.dir, &["--calibration", cal.to_str().unwrap()]);
     let runs = v["runs"].as_array().unwrap();
@@ -425,7 +431,7 @@ fn process_on_a_session_applies_a_calibration_run_by_run() {
 }
 
 /// A calibration that learnt the print's ink takes it into every run of a session as the
-/// fit's prior (the result names it, and the posterior replaces the ink model's `u_ink_um`);
+/// fit's prior (the result names it, and its posterior widens u_a on this even print);
 /// `--no-calibration-ink` declines it.
 #[test]
 fn a_sessions_runs_take_the_ink_the_calibration_learnt_unless_declined() {
@@ -433,23 +439,10 @@ fn a_sessions_runs_take_the_ink_the_calibration_learnt_unless_declined() {
     let (s, _) = recorded(&d, scan(3, "ink"));
     let tmp = tempfile::tempdir().unwrap();
     let cal = tmp.path().join("cal.json");
-    let a = 1.0 / 774.0;
-    let rec = serde_json::json!({
-        "version": 1, "id": "cal-ink", "date": "2026-12-06T04:00:00Z", "method": "commanded",
-        "rig": null,
-        "fingerprint": {"frame_size": [300, 200], "scale_um_per_px": 774.0, "board": null},
-        "scan": {"frames": 30, "step_um": 500.0, "travel_um": 14500.0, "piezo_travel_um": null},
-        "reference_rel_u": 1e-4, "targets": [],
-        "field": {"layout": "free", "model": {"centre_px": [149.5, 99.5],
-            "norm_radius_px": 180.3, "a_px_per_um": [[a, 0.0], [0.0, a]],
-            "g_per_um": [0.0, 0.0], "k1": 0.0, "k2": 0.0},
-            "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.0,
-            "print_scale": null, "residual_rms_px": 0.01, "residual_rms_um": 7.7,
-            "residual_max_um": 20.0},
-        "ink": {"density_rms": 0.04, "u_density_rms": 0.002, "corr_um": 3000.0,
-            "u_corr_um": 90.0, "observed_rms": 0.038, "observed_corr_px": 3.8,
-            "blur_px": 0.7, "shapes": 24, "cells": 2500}
-    });
+    let mut rec = hand_calibration("cal-ink", 774.0);
+    rec["ink"] = serde_json::json!({"density_rms": 0.04, "u_density_rms": 0.002,
+        "corr_um": 3000.0, "u_corr_um": 90.0, "observed_rms": 0.038, "observed_corr_px": 3.8,
+        "blur_px": 0.7, "shapes": 24, "cells": 2500});
     std::fs::write(&cal, rec.to_string()).unwrap();
     let c = cal.to_str().unwrap();
     let taken = process_json(&s.dir, &["--calibration", c]);
