@@ -13,7 +13,7 @@
 //! blurred one: a Gaussian blur of width s (the fit's, lens and pixel) and the cells' 1 px
 //! boxes widen ℓ² by 2s² + 1/6 and keep σ²ℓ², which is undone to give the print's own.
 
-use crate::pipeline::{DensitySample, InkPrior, Shape};
+use crate::pipeline::{DensitySample, InkPrior, InkShape};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -42,9 +42,15 @@ pub struct InkCell {
 impl InkMap {
     /// One fit's samples, its blur width `blur_px`.
     pub fn add(&mut self, samples: &[DensitySample], blur_px: f64) {
+        if self.index.len() != self.cells.len() {
+            // A map read back (the index is not serialised): index its cells first.
+            self.index = (self.cells.iter().enumerate())
+                .map(|(i, c)| ((c.inner, c.at), i))
+                .collect();
+        }
         for s in samples.iter().filter(|s| s.density.is_finite()) {
             let key = (
-                s.shape == Shape::Inner,
+                s.shape == InkShape::Inner,
                 s.from_centre_px.map(|v| v.round() as i32),
             );
             let i = *self.index.entry(key).or_insert_with(|| {
@@ -385,8 +391,8 @@ mod tests {
                             let p = [ix as f64 + jitter[0], iy as f64 + jitter[1]];
                             let r = p[0].hypot(p[1]);
                             let shape = match r {
-                                r if r < 5.0 => Shape::Inner,
-                                r if r > 10.0 && r < 17.0 => Shape::Outer,
+                                r if r < 5.0 => InkShape::Inner,
+                                r if r > 10.0 && r < 17.0 => InkShape::Outer,
                                 _ => continue,
                             };
                             let q = [p[0] + origin[0], p[1] + origin[1]];
@@ -397,7 +403,7 @@ mod tests {
                             });
                         }
                     }
-                    for shape in [Shape::Inner, Shape::Outer] {
+                    for shape in [InkShape::Inner, InkShape::Outer] {
                         let of = |s: &&mut DensitySample| s.shape == shape;
                         let n = samples.iter_mut().filter(of).count() as f64;
                         let mean = samples
@@ -443,6 +449,28 @@ mod tests {
             (corr / truth_um - 1.0).abs() < 0.03,
             "mean correlation {corr} µm"
         );
+    }
+
+    /// A map cloned without its index (as one read back is) adds into its own cells.
+    #[test]
+    fn a_map_read_back_adds_into_its_cells() {
+        let sample = |x: f64, density: f64| DensitySample {
+            from_centre_px: [x, 0.0],
+            shape: InkShape::Inner,
+            density,
+        };
+        let mut map = InkMap::default();
+        map.add(&[sample(1.0, 0.01), sample(2.0, 0.02)], 0.7);
+        let mut back = InkMap {
+            cells: map.cells.clone(),
+            blur_px_sum: map.blur_px_sum,
+            fits: map.fits,
+            ..InkMap::default()
+        };
+        back.add(&[sample(1.1, 0.03)], 0.7);
+        assert_eq!(back.cells.len(), 2);
+        assert_eq!((back.cells[0].n, back.cells[0].sum), (2, 0.04));
+        assert_eq!(back.fits, 2);
     }
 
     /// Evenly inked: the scan's cells hold noise alone (read as 0.14 % at most, the shapes'

@@ -240,6 +240,15 @@ impl ValidOptions {
         self.0
     }
 
+    /// The print's prior's working set: a fit's on each thread measuring a target at once
+    /// (what [`Self::peak_memory_bytes`] adds with `ink_prior`; a caller that knows a
+    /// calibration's learnt prior will be taken adds it too).
+    pub fn ink_prior_bytes(&self, frame_size: (u32, u32), board: Option<&Board>) -> u64 {
+        let targets = self.window_sides_px(frame_size, board).len().max(1);
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        threads.min(targets) as u64 * super::estimate::PRIOR_PEAK_BYTES
+    }
+
     /// The pipeline's peak heap use for one run of `frames` frames of `frame_size` (w, h)
     /// px, the caller's frames not counted, images kept (`Pipeline::keep_images`, the
     /// default). The targets' windows come from `board` (its outer rims at this scale);
@@ -251,15 +260,6 @@ impl ValidOptions {
     /// (6 k² w h bytes) and its open row-pass sums (4 k w h each); else the targets'
     /// reconstructions (4 k² s² bytes for a window of side s) and their row-pass sums.
     /// tests/pipeline_memory.rs holds it to the measured peak.
-    /// The print's prior's working set: a fit's on each thread measuring a target at once
-    /// (what [`Self::peak_memory_bytes`] adds with `ink_prior`; a caller that knows a
-    /// calibration's learnt prior will be taken adds it too).
-    pub fn ink_prior_bytes(&self, frame_size: (u32, u32), board: Option<&Board>) -> u64 {
-        let targets = self.window_sides_px(frame_size, board).len().max(1);
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-        threads.min(targets) as u64 * super::estimate::PRIOR_PEAK_BYTES
-    }
-
     pub fn peak_memory_bytes(
         &self,
         frame_size: (u32, u32),

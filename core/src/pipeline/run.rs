@@ -151,7 +151,8 @@ impl Pipeline {
     }
 
     /// Keep every target's outer centre in every frame and hand them back
-    /// (`Finished::tracks`): what a calibration is fitted from. Set it before frame 0.
+    /// (`Finished::tracks`) and each target's ink density read off its fits
+    /// (`Finished::ink_maps`): what a calibration is fitted from. Set it before frame 0.
     pub fn record_tracks(&mut self, record: bool) {
         self.tracks = record.then(Vec::new);
         self.ink_maps = record.then(Vec::new);

@@ -10,7 +10,7 @@
 mod fit;
 mod paper;
 
-pub use fit::{DensitySample, PlaneInk, Shape, PRIOR_PEAK_BYTES};
+pub use fit::{DensitySample, InkShape, PlaneInk, PRIOR_PEAK_BYTES};
 
 use super::accumulate::Lattice;
 use super::detect::{Candidate, Detection};

@@ -9,7 +9,7 @@ use super::{Problem, CXI, CXO, CYI, CYO, HOLE, MAXP, RI, RIH, RIM, S};
 
 /// Which shape a density sample lies inside.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Shape {
+pub enum InkShape {
     Outer,
     Inner,
 }
@@ -19,7 +19,7 @@ pub enum Shape {
 pub struct DensitySample {
     /// Where, from the fitted outer centre, px.
     pub from_centre_px: [f64; 2],
-    pub shape: Shape,
+    pub shape: InkShape,
     pub density: f64,
 }
 
@@ -42,9 +42,9 @@ pub(super) fn read(prob: &Problem, p: &[f64; MAXP]) -> Vec<DensitySample> {
             let (ox, oy) = (s.at[0] - p[CXO], s.at[1] - p[CYO]);
             let rho_i = (s.at[0] - p[CXI]).hypot(s.at[1] - p[CYI]);
             let shape = if inside(ox.hypot(oy), p[HOLE], p[RIM]) {
-                Shape::Outer
+                InkShape::Outer
             } else if inside(rho_i, inner_hole, p[RI]) {
-                Shape::Inner
+                InkShape::Inner
             } else {
                 return None;
             };

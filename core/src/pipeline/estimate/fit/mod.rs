@@ -28,7 +28,7 @@ mod edge;
 mod normal;
 mod prior;
 
-pub use density::{DensitySample, Shape};
+pub use density::{DensitySample, InkShape};
 pub use prior::{PlaneInk, PEAK_BYTES as PRIOR_PEAK_BYTES};
 
 use normal::Normal;
