@@ -466,8 +466,8 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
 /// a target, which a plane cannot follow (`how_smooth_must_the_ink_be`), and the sRGB
 /// output curve makes the shift depend on the contrast.
 /// With `RIGD_PRIOR` (the print's true statistics as the prior; measured 2026-12-06, linear
-/// light): all on 11.1 / 22; no MJPEG 9.7 / 21; no sharpening 12.0 / 25; linear output
-/// 9.7 / 19; no lateral colour 10.8 / 21; smooth edges 10.1 / 20; even ink (no prior) 6.4 /
+/// light): all on 11.2 / 21; no MJPEG 9.7 / 21; no sharpening 12.0 / 25; linear output
+/// 9.7 / 19; no lateral colour 10.9 / 21; smooth edges 10.1 / 20; even ink (no prior) 6.4 /
 /// 18; perfect print 4.5 / 13. No one effect holds what the prior leaves: each takes a
 /// little (and 3 repeats' RMS bias carries ~3.5 µm of their scatter, std/√3).
 /// The diagnoses' figure: RMS and max bias (µm) of the fit on layout 11 through `cam`, 10
