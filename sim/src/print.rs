@@ -110,6 +110,37 @@ impl InkDensity {
         })
     }
 
+    /// ε blurred by a Gaussian PSF of variance `var_px2` about the image point that sees
+    /// board point `p_um` (`jt`: Jᵀ, J the board µm per image px there), with its image
+    /// gradient and Hessian (xx, xy, yy): each plane wave blurs to itself times
+    /// `exp(−σ²|k|²/2)`, exactly. The renderer blurs the inked density whole from them
+    /// (`warp::InkTaylor`).
+    pub fn blurred(
+        &self,
+        p_um: [f64; 2],
+        jt: [[f64; 2]; 2],
+        var_px2: f64,
+    ) -> (f64, [f64; 2], [f64; 3]) {
+        let (mut e, mut g, mut h) = (0.0, [0.0; 2], [0.0; 3]);
+        for (k, ph) in &self.waves {
+            let ki = [
+                jt[0][0] * k[0] + jt[0][1] * k[1],
+                jt[1][0] * k[0] + jt[1][1] * k[1],
+            ];
+            let damp = self.amplitude * (-0.5 * var_px2 * (ki[0] * ki[0] + ki[1] * ki[1])).exp();
+            let (sn, cs) = (k[0] * p_um[0] + k[1] * p_um[1] + ph).sin_cos();
+            let (s, c) = (damp * sn, damp * cs);
+            e += c;
+            g = [g[0] - s * ki[0], g[1] - s * ki[1]];
+            h = [
+                h[0] - c * ki[0] * ki[0],
+                h[1] - c * ki[0] * ki[1],
+                h[2] - c * ki[1] * ki[1],
+            ];
+        }
+        (e, g, h)
+    }
+
     /// ε at board point `p_um`.
     #[inline]
     pub fn at(&self, p_um: [f64; 2]) -> f64 {

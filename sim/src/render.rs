@@ -202,6 +202,23 @@ impl EdgeTable {
         let a = self.values[i];
         a + (self.values[i + 1] - a) * f
     }
+
+    /// The profile and its slope d/dd (the table's difference: the slope of the normal
+    /// density to ~1e-6 of its peak).
+    #[inline]
+    pub(crate) fn at_slope(&self, d: f64) -> (f64, f64) {
+        if d <= -self.reach {
+            return (1.0, 0.0);
+        }
+        if d >= self.reach {
+            return (0.0, 0.0);
+        }
+        let x = (d + self.reach) * self.inv_step;
+        let i = x as usize;
+        let f = x - i as f64;
+        let (a, b) = (self.values[i], self.values[i + 1]);
+        (a + (b - a) * f, (b - a) * self.inv_step)
+    }
 }
 
 /// Ink coverage (0..1) of pixel (u, v), area-integrated.

@@ -703,6 +703,23 @@ fn uneven_ink_scales_the_ink_density() {
     let field = rigd_sim::print::InkDensity::new(&cam).unwrap();
     let s = cam.scale_um_per_px;
     let (pg, ig) = (board.paper_rgb[1], board.ink_rgb[1]);
+    // The lens blurs the inked density: a pixel all inked sees ε averaged over its area and
+    // the PSF (by quadrature on a grid 1/8 px apart).
+    let sigma = cam.psf_sigma_px;
+    let phi = |x: f64| 0.5 * libm::erfc(-x / (std::f64::consts::SQRT_2 * sigma));
+    let weights: Vec<(f64, f64)> = (-48..=48)
+        .map(|i| i as f64 / 8.0)
+        .map(|t| (t, (phi(t + 0.5) - phi(t - 0.5)) / 8.0))
+        .collect();
+    let blurred = |p: [f64; 2]| -> f64 {
+        let mut sum = 0.0;
+        for &(ty, wy) in &weights {
+            for &(tx, wx) in &weights {
+                sum += wx * wy * field.at([p[0] + tx * s, p[1] + ty * s]);
+            }
+        }
+        sum
+    };
     let mut eps = Vec::new();
     // Pixels well inside the inner disk (radius 6 mm = 7.8 px) are all ink.
     for y in 46..50u32 {
@@ -711,7 +728,7 @@ fn uneven_ink_scales_the_ink_density() {
                 view.camera_um[0] + (x as f64 + 0.5) * s,
                 view.camera_um[1] + (y as f64 + 0.5) * s,
             ];
-            let e = field.at(p);
+            let e = blurred(p);
             let want = cam.white_dn * (pg - (pg - ig) * (1.0 + e));
             let got = img[((y * 96 + x) * 3 + 1) as usize] as f64;
             assert!((got - want).abs() < 2e-3, "({x}, {y}): {got} vs {want}");
