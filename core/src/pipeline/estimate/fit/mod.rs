@@ -23,6 +23,7 @@ use crate::pipeline::detect::Candidate;
 use crate::pipeline::plane::Plane;
 use nalgebra::{DMatrix, DVector};
 
+mod blur_shift;
 mod density;
 mod edge;
 mod normal;
@@ -264,6 +265,9 @@ fn with_prior(
     }
     let mut est = Fit { p: map.p, ..even }.estimate(prob);
     est.offset_cov_px2 = Some(map.offset_cov_px2);
+    let [so, si] = map.blur_shift_px;
+    est.outer_px = [est.outer_px[0] + so[0], est.outer_px[1] + so[1]];
+    est.inner_px = [est.inner_px[0] + si[0], est.inner_px[1] + si[1]];
     Ok(est)
 }
 
@@ -352,14 +356,15 @@ impl Fit {
 
     fn estimate(&self, prob: &Problem) -> CentreEstimate {
         let p = &self.p;
+        let [so, si] = blur_shift::of_planes(prob, p);
         let offset_cov = prob
             .matrix(&self.normal)
             .try_inverse()
             .zip(self.residual_variance(prob))
             .map(|(inv, s2)| offset_block(&(inv * s2), [CXO, CYO], [CXI, CYI]));
         CentreEstimate {
-            outer_px: [p[CXO], p[CYO]],
-            inner_px: [p[CXI], p[CYI]],
+            outer_px: [p[CXO] + so[0], p[CYO] + so[1]],
+            inner_px: [p[CXI] + si[0], p[CYI] + si[1]],
             outer_radius_px: p[RIM],
             inner_radius_px: p[RI],
             offset_cov_px2: offset_cov,

@@ -38,6 +38,9 @@ const CONVERGED_STEPS: f64 = 1e-4;
 pub(super) struct Map {
     pub p: [f64; MAXP],
     pub offset_cov_px2: [[f64; 2]; 2],
+    /// The centres' corrections [outer, inner] for the lens's blur of the fitted density
+    /// ([`super::blur_shift`]).
+    pub blur_shift_px: [[f64; 2]; 2],
 }
 
 /// The MAP fit from the even fit's `p`, `noise` its residual variance per sample, on a plane
@@ -64,41 +67,13 @@ pub(super) fn refine(
         sigma2,
         base: (0..prob.np).filter(|a| !GRADIENTS.contains(a)).collect(),
     };
-    let (nb, m) = (post.base.len(), post.phi.ncols());
-    let (mut p, mut a) = (*p, DVector::<f64>::zeros(m));
-    let mut lambda = 1e-3;
-    let mut cost = post.objective(&p, &a);
-    for _ in 0..ITERATIONS {
-        let (h, g) = post.normal(&p, &a);
-        let mut damped = h.clone();
-        for i in 0..nb + m {
-            damped[(i, i)] += lambda * h[(i, i)].max(1e-12);
-        }
-        let delta = damped.cholesky()?.solve(&g);
-        let mut q = p;
-        for (i, &b) in post.base.iter().enumerate() {
-            q[b] += delta[i];
-        }
-        let b = &a + delta.rows(nb, m);
-        let next = post.objective(&q, &b);
-        if next > cost {
-            lambda *= 10.0;
-            continue;
-        }
-        let centres = [CXO, CYO, CXI, CYI]
-            .iter()
-            .map(|&i| (q[i] - p[i]).abs())
-            .fold(0.0, f64::max);
-        (p, a, cost) = (q, b, next);
-        lambda = (lambda * 0.3).max(1e-9);
-        if centres < CONVERGED_STEPS * prob.step as f64 {
-            break;
-        }
-    }
+    let grid_p = *p;
+    let (p, a) = post.maximum(*p, DVector::zeros(post.phi.ncols()))?;
     let cov = post.normal(&p, &a).0.cholesky()?.inverse();
     Some(Map {
         p,
         offset_cov_px2: post.offset_cov(&cov)?,
+        blur_shift_px: post.blur_shift((&p, &a), (&grid_p, prior), &cov),
     })
 }
 
@@ -113,6 +88,45 @@ struct Posterior<'a> {
 }
 
 impl Posterior<'_> {
+    /// The maximum a posteriori from (`p`, `a`), by damped Gauss–Newton steps.
+    fn maximum(
+        &self,
+        mut p: [f64; MAXP],
+        mut a: DVector<f64>,
+    ) -> Option<([f64; MAXP], DVector<f64>)> {
+        let (nb, m) = (self.base.len(), self.phi.ncols());
+        let mut lambda = 1e-3;
+        let mut cost = self.objective(&p, &a);
+        for _ in 0..ITERATIONS {
+            let (h, g) = self.normal(&p, &a);
+            let mut damped = h.clone();
+            for i in 0..nb + m {
+                damped[(i, i)] += lambda * h[(i, i)].max(1e-12);
+            }
+            let delta = damped.cholesky()?.solve(&g);
+            let mut q = p;
+            for (i, &b) in self.base.iter().enumerate() {
+                q[b] += delta[i];
+            }
+            let b = &a + delta.rows(nb, m);
+            let next = self.objective(&q, &b);
+            if next > cost {
+                lambda *= 10.0;
+                continue;
+            }
+            let centres = [CXO, CYO, CXI, CYI]
+                .iter()
+                .map(|&i| (q[i] - p[i]).abs())
+                .fold(0.0, f64::max);
+            (p, a, cost) = (q, b, next);
+            lambda = (lambda * 0.3).max(1e-9);
+            if centres < CONVERGED_STEPS * self.prob.step as f64 {
+                break;
+            }
+        }
+        Some((p, a))
+    }
+
     /// `Σ r²/σ² + |a|²`.
     fn objective(&self, p: &[f64; MAXP], a: &DVector<f64>) -> f64 {
         let eps = &self.phi * a;
@@ -128,6 +142,21 @@ impl Posterior<'_> {
     /// `JᵀJ/σ² + diag(0, I)` and `Jᵀr/σ² − (0, a)` (the Jacobian built whole, its products
     /// by the matrix library's blocked kernels).
     fn normal(&self, p: &[f64; MAXP], a: &DVector<f64>) -> (DMatrix<f64>, DVector<f64>) {
+        let (nb, m) = (self.base.len(), self.phi.ncols());
+        let (jac, r) = self.jacobian(p, a);
+        // (`tr_mul` is a dot product per entry: the transpose's product is the blocked one.)
+        let jt = jac.transpose();
+        let mut h = &jt * &jac / self.sigma2;
+        let mut g = &jt * &r / self.sigma2;
+        for k in 0..m {
+            h[(nb + k, nb + k)] += 1.0;
+            g[nb + k] -= a[k];
+        }
+        (h, g)
+    }
+
+    /// The Jacobian (base parameters, then the modes) and the residuals.
+    fn jacobian(&self, p: &[f64; MAXP], a: &DVector<f64>) -> (DMatrix<f64>, DVector<f64>) {
         let (s, phi, base) = (&self.samples, &self.phi, &self.base);
         let (nb, m) = (base.len(), phi.ncols());
         let eps = phi * a;
@@ -145,15 +174,31 @@ impl Posterior<'_> {
             jac.column_mut(nb + k)
                 .zip_zip_apply(&phi.column(k), &dk, |o, f, d| *o = d * f);
         }
-        // (`tr_mul` is a dot product per entry: the transpose's product is the blocked one.)
-        let jt = jac.transpose();
-        let mut h = &jt * &jac / self.sigma2;
-        let mut g = &jt * &r / self.sigma2;
-        for k in 0..m {
-            h[(nb + k, nb + k)] += 1.0;
-            g[nb + k] -= a[k];
-        }
-        (h, g)
+        (jac, r)
+    }
+
+    /// The centres' corrections for the lens's blur of the fitted density
+    /// ([`super::blur_shift`]): the term the model leaves out at each sample, from the
+    /// density's gradient there (the modes' on the grid `grid_p` they were made on),
+    /// answered through the posterior's covariance `cov`.
+    fn blur_shift(
+        &self,
+        (p, a): (&[f64; MAXP], &DVector<f64>),
+        (grid_p, prior): (&[f64; MAXP], PlaneInk),
+        cov: &DMatrix<f64>,
+    ) -> [[f64; 2]; 2] {
+        let grad = density_gradient(grid_p, prior, a, &self.samples);
+        let s2 = p[super::S].powi(2);
+        let m = DVector::from_iterator(
+            self.samples.len(),
+            self.samples.iter().enumerate().map(|(i, smp)| {
+                let j = self.prob.row_f64(p, smp.fx, smp.fy, smp.v).j;
+                super::blur_shift::left_out(&j, s2, grad[i], grad[i])
+            }),
+        );
+        let jtm = self.jacobian(p, a).0.tr_mul(&m) / self.sigma2;
+        let delta = cov * jtm;
+        super::blur_shift::centres(&delta, |i| self.base.iter().position(|&b| b == i))
     }
 
     /// The offset's covariance from the parameters' `cov` (indexed as `base`).
@@ -168,6 +213,7 @@ impl Posterior<'_> {
 }
 
 /// The pixels the fit reads (position from the window's middle, value) and where.
+#[derive(Debug, Clone, Copy)]
 pub(super) struct Sample {
     pub fx: f64,
     pub fy: f64,
@@ -179,9 +225,14 @@ pub(super) struct Sample {
 /// keeps them within [`MAX_SAMPLES`] (a large target's window: memory and time stay
 /// bounded; its samples then count as fewer, so the data weigh less against the prior).
 pub(super) fn samples(prob: &Problem, min_thin: usize) -> Vec<Sample> {
+    samples_at_most(prob, min_thin, MAX_SAMPLES)
+}
+
+/// [`samples`] with at most about `max` of them.
+pub(super) fn samples_at_most(prob: &Problem, min_thin: usize, max: usize) -> Vec<Sample> {
     // The lattice's points in the reach's circle.
     let n = std::f64::consts::FRAC_PI_4 * (2.0 * prob.win.reach / prob.step as f64 + 1.0).powi(2);
-    let thin = (n / MAX_SAMPLES as f64).sqrt().ceil().max(min_thin as f64);
+    let thin = (n / max as f64).sqrt().ceil().max(min_thin as f64);
     let step = prob.step * thin as usize;
     let reach2 = prob.win.reach * prob.win.reach;
     let mut out = Vec::new();
@@ -207,15 +258,8 @@ pub(super) fn samples(prob: &Problem, min_thin: usize) -> Vec<Sample> {
 /// a grid `corr/2` apart over the outer shape (its rim and blur, and half a correlation
 /// length beyond), extended between grid points by the covariance.
 fn modes(p: &[f64; MAXP], prior: PlaneInk, s: &[Sample]) -> DMatrix<f64> {
-    let reach = p[super::RIM] + 3.0 * p[super::S] + 0.5 * prior.corr_px;
-    // corr/2 apart, at most `MAX_GRID_STEPS` from the centre (a target many correlation
-    // lengths wide gets a coarser grid: fewer modes than its print has, bounded work).
-    let spacing = (prior.corr_px / 2.0).max(reach / MAX_GRID_STEPS as f64);
-    let k = ((reach / spacing).ceil() as i64).min(MAX_GRID_STEPS);
-    let basis = Basis::of(k, spacing / prior.corr_px);
-    // The covariance to each grid point, `rms²·exp(−d²/2ℓ²)`, separable in x and y.
-    let (c, rms2) = ([p[CXO], p[CYO]], prior.density_rms.powi(2));
-    let along = |d: f64| (-d * d / (2.0 * prior.corr_px * prior.corr_px)).exp();
+    let grid = Grid::of(p, prior);
+    let (k, basis) = (grid.k, &grid.basis);
     let side = (2 * k + 1) as usize;
     let (mut ex, mut ey) = (vec![0.0; side], vec![0.0; side]);
     let wt = basis.weights.transpose();
@@ -224,13 +268,9 @@ fn modes(p: &[f64; MAXP], prior: PlaneInk, s: &[Sample]) -> DMatrix<f64> {
     for (b, block) in s.chunks(BLOCK).enumerate() {
         let mut to_grid = DMatrix::<f64>::zeros(basis.grid.len(), block.len());
         for (mut col, smp) in to_grid.column_iter_mut().zip(block) {
-            for (t, (x, y)) in ex.iter_mut().zip(ey.iter_mut()).enumerate() {
-                let g = (t as i64 - k) as f64 * spacing;
-                *x = along(smp.at[0] - c[0] - g);
-                *y = along(smp.at[1] - c[1] - g);
-            }
+            grid.along(smp.at, &mut ex, &mut ey);
             for (v, &[gi, gj]) in col.iter_mut().zip(&basis.grid) {
-                *v = rms2 * ex[(gi + k) as usize] * ey[(gj + k) as usize];
+                *v = grid.rms2 * ex[(gi + k) as usize] * ey[(gj + k) as usize];
             }
         }
         // The weights are for unit RMS: the modes' variances scale with rms².
@@ -238,6 +278,83 @@ fn modes(p: &[f64; MAXP], prior: PlaneInk, s: &[Sample]) -> DMatrix<f64> {
         phi.rows_mut(b * BLOCK, block.len()).copy_from(&rows);
     }
     phi
+}
+
+/// The gradient (per plane px) of the density `Σ a_k·φ_k` at each sample, from the
+/// covariance's own derivative: `∂ₓ exp(−d²/2ℓ²) = −(dₓ/ℓ²)·exp(−d²/2ℓ²)`.
+fn density_gradient(
+    p: &[f64; MAXP],
+    prior: PlaneInk,
+    a: &DVector<f64>,
+    s: &[Sample],
+) -> Vec<[f64; 2]> {
+    let grid = Grid::of(p, prior);
+    let (k, basis) = (grid.k, &grid.basis);
+    // ε(x) = Σ_g cov(x, g)·β_g.
+    let beta = &basis.weights * a / prior.density_rms;
+    let side = (2 * k + 1) as usize;
+    let (mut ex, mut ey) = (vec![0.0; side], vec![0.0; side]);
+    let inv_l2 = 1.0 / (prior.corr_px * prior.corr_px);
+    s.iter()
+        .map(|smp| {
+            grid.along(smp.at, &mut ex, &mut ey);
+            let mut g = [0.0; 2];
+            for (&b, &[gi, gj]) in beta.iter().zip(&basis.grid) {
+                let (dx, dy) = grid.to(smp.at, [gi, gj]);
+                let v = b * ex[(gi + k) as usize] * ey[(gj + k) as usize];
+                g = [g[0] - dx * v, g[1] - dy * v];
+            }
+            [grid.rms2 * inv_l2 * g[0], grid.rms2 * inv_l2 * g[1]]
+        })
+        .collect()
+}
+
+/// The modes' grid about a fit's outer centre: corr/2 apart, at most `MAX_GRID_STEPS`
+/// from the centre (a target many correlation lengths wide gets a coarser grid: fewer
+/// modes than its print has, bounded work), reaching the rim, its blur and half a
+/// correlation length beyond.
+struct Grid {
+    centre: [f64; 2],
+    spacing: f64,
+    k: i64,
+    basis: std::sync::Arc<Basis>,
+    rms2: f64,
+    corr_px: f64,
+}
+
+impl Grid {
+    fn of(p: &[f64; MAXP], prior: PlaneInk) -> Grid {
+        let reach = p[super::RIM] + 3.0 * p[super::S] + 0.5 * prior.corr_px;
+        let spacing = (prior.corr_px / 2.0).max(reach / MAX_GRID_STEPS as f64);
+        let k = ((reach / spacing).ceil() as i64).min(MAX_GRID_STEPS);
+        Grid {
+            centre: [p[CXO], p[CYO]],
+            spacing,
+            k,
+            basis: Basis::of(k, spacing / prior.corr_px),
+            rms2: prior.density_rms.powi(2),
+            corr_px: prior.corr_px,
+        }
+    }
+
+    /// The covariance's factors `exp(−d²/2ℓ²)` along x and y from `at` to each grid line
+    /// (the covariance is separable).
+    fn along(&self, at: [f64; 2], ex: &mut [f64], ey: &mut [f64]) {
+        let l2 = 2.0 * self.corr_px * self.corr_px;
+        for (t, (x, y)) in ex.iter_mut().zip(ey.iter_mut()).enumerate() {
+            let (dx, dy) = self.to(at, [t as i64 - self.k; 2]);
+            *x = (-dx * dx / l2).exp();
+            *y = (-dy * dy / l2).exp();
+        }
+    }
+
+    /// `at` less grid point (i, j).
+    fn to(&self, at: [f64; 2], [i, j]: [i64; 2]) -> (f64, f64) {
+        (
+            at[0] - self.centre[0] - i as f64 * self.spacing,
+            at[1] - self.centre[1] - j as f64 * self.spacing,
+        )
+    }
 }
 
 /// Samples whose covariances to the grid are held at once.
