@@ -650,7 +650,7 @@ mod tests {
     /// The depth's gradient from moving the camera is the image's own: against central
     /// differences of neighbouring pixels, through a tilted lens, 7.1 % RMS apart (the
     /// differences' own error on an edge blurred by 1.2 px: f‴/6f′ ≈ 1/6σ², 12 % at its
-    /// steepest). A transposed or flipped map would be 100–200 % apart.
+    /// steepest). A flipped one would be 200 % apart.
     #[test]
     fn the_inks_depth_gradient_is_the_images() {
         let board = Board::paper();

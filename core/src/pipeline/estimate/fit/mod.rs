@@ -265,9 +265,6 @@ fn with_prior(
     }
     let mut est = Fit { p: map.p, ..even }.estimate(prob);
     est.offset_cov_px2 = Some(map.offset_cov_px2);
-    let [so, si] = map.blur_shift_px;
-    est.outer_px = [est.outer_px[0] + so[0], est.outer_px[1] + so[1]];
-    est.inner_px = [est.inner_px[0] + si[0], est.inner_px[1] + si[1]];
     Ok(est)
 }
 

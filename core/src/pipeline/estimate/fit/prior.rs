@@ -24,11 +24,12 @@ const ITERATIONS: usize = 12;
 const MAX_SAMPLES: usize = 16_384;
 /// The grid reaches at most this many steps from the target's centre (see [`modes`]).
 const MAX_GRID_STEPS: i64 = 10;
-/// What a fit with the prior holds at most: the samples' modes, the Jacobian and its
-/// transpose (f64), the grid at most `π·(MAX_GRID_STEPS + 1)²` points, hence modes.
+/// What a fit with the prior holds at most: the samples' modes and their edges' moves, the
+/// Jacobian and its transpose (f64), the grid at most `π·(MAX_GRID_STEPS + 1)²` points,
+/// hence modes.
 pub const PEAK_BYTES: u64 = {
     let modes = 3 * (MAX_GRID_STEPS as u64 + 1) * (MAX_GRID_STEPS as u64 + 1) + 1;
-    8 * MAX_SAMPLES as u64 * (3 * modes + 2 * MAXP as u64)
+    8 * MAX_SAMPLES as u64 * (4 * modes + 2 * MAXP as u64)
 };
 /// Converged: no centre moved more than this, in the plane's sample steps.
 const CONVERGED_STEPS: f64 = 1e-4;
@@ -38,9 +39,6 @@ const CONVERGED_STEPS: f64 = 1e-4;
 pub(super) struct Map {
     pub p: [f64; MAXP],
     pub offset_cov_px2: [[f64; 2]; 2],
-    /// The centres' corrections [outer, inner] for the lens's blur of the fitted density
-    /// ([`super::blur_shift`]).
-    pub blur_shift_px: [[f64; 2]; 2],
 }
 
 /// The MAP fit from the even fit's `p`, `noise` its residual variance per sample, on a plane
@@ -60,20 +58,29 @@ pub(super) fn refine(
     let samples = samples(prob, per_camera);
     let spacing = (prob.step * per_camera) as f64;
     let sigma2 = noise * (k / spacing).max(1.0).powi(2);
+    // The lens blurs the inked density whole ([`super::blur_shift`]): each mode also moves
+    // the edges, by s²·∇φ, through ∇K at the even fit's edges.
+    let edge_weight: Vec<[f64; 2]> = samples
+        .iter()
+        .map(|smp| {
+            let Row { j, l, .. } = prob.row_f64(p, smp.fx, smp.fy, smp.v);
+            let s2 = p[super::S].powi(2) / l.max(1e-9);
+            [s2 * (j[CXO] + j[CXI]), s2 * (j[CYO] + j[CYI])]
+        })
+        .collect();
     let post = Posterior {
         prob,
-        phi: modes(p, prior, &samples),
+        phi: modes(p, prior, &samples, None),
+        edge: modes(p, prior, &samples, Some(&edge_weight)),
         samples,
         sigma2,
         base: (0..prob.np).filter(|a| !GRADIENTS.contains(a)).collect(),
     };
-    let grid_p = *p;
     let (p, a) = post.maximum(*p, DVector::zeros(post.phi.ncols()))?;
     let cov = post.normal(&p, &a).0.cholesky()?.inverse();
     Some(Map {
         p,
         offset_cov_px2: post.offset_cov(&cov)?,
-        blur_shift_px: post.blur_shift((&p, &a), (&grid_p, prior), &cov),
     })
 }
 
@@ -83,6 +90,9 @@ struct Posterior<'a> {
     prob: &'a Problem<'a>,
     samples: Vec<Sample>,
     phi: DMatrix<f64>,
+    /// Each sample's change per mode through the edges' blur, `s²·∇φ·∇K` (see
+    /// [`modes`]).
+    edge: DMatrix<f64>,
     sigma2: f64,
     base: Vec<usize>,
 }
@@ -129,12 +139,12 @@ impl Posterior<'_> {
 
     /// `Σ r²/σ² + |a|²`.
     fn objective(&self, p: &[f64; MAXP], a: &DVector<f64>) -> f64 {
-        let eps = &self.phi * a;
+        let (eps, edge) = (&self.phi * a, &self.edge * a);
         let data: f64 = self
             .samples
             .iter()
-            .zip(eps.iter())
-            .map(|(s, &e)| row(self.prob, p, s, e).2.powi(2))
+            .enumerate()
+            .map(|(i, s)| row(self.prob, p, s, (eps[i], edge[i])).2.powi(2))
             .sum();
         data / self.sigma2 + a.norm_squared()
     }
@@ -159,46 +169,28 @@ impl Posterior<'_> {
     fn jacobian(&self, p: &[f64; MAXP], a: &DVector<f64>) -> (DMatrix<f64>, DVector<f64>) {
         let (s, phi, base) = (&self.samples, &self.phi, &self.base);
         let (nb, m) = (base.len(), phi.ncols());
-        let eps = phi * a;
+        let (eps, edge) = (phi * a, &self.edge * a);
         let mut jac = DMatrix::<f64>::zeros(s.len(), nb + m);
-        let (mut r, mut dk) = (DVector::zeros(s.len()), DVector::zeros(s.len()));
+        let (mut r, mut dk, mut dl) = (
+            DVector::zeros(s.len()),
+            DVector::zeros(s.len()),
+            DVector::zeros(s.len()),
+        );
         for (i, smp) in s.iter().enumerate() {
-            let (j, d, res) = row(self.prob, p, smp, eps[i]);
+            let (j, d, res) = row(self.prob, p, smp, (eps[i], edge[i]));
             for (c, &b) in base.iter().enumerate() {
                 jac[(i, c)] = j[b];
             }
-            (dk[i], r[i]) = (d, res);
+            (dk[i], dl[i], r[i]) = (d[0], d[1], res);
         }
-        // The modes' columns: each sample's ink change times the modes there.
+        // The modes' columns: each sample's ink change times the modes there, and the
+        // edges' moves.
         for k in 0..m {
-            jac.column_mut(nb + k)
-                .zip_zip_apply(&phi.column(k), &dk, |o, f, d| *o = d * f);
+            let mut col = jac.column_mut(nb + k);
+            col.zip_zip_apply(&phi.column(k), &dk, |o, f, d| *o = d * f);
+            col.zip_zip_apply(&self.edge.column(k), &dl, |o, e, l| *o += l * e);
         }
         (jac, r)
-    }
-
-    /// The centres' corrections for the lens's blur of the fitted density
-    /// ([`super::blur_shift`]): the term the model leaves out at each sample, from the
-    /// density's gradient there (the modes' on the grid `grid_p` they were made on),
-    /// answered through the posterior's covariance `cov`.
-    fn blur_shift(
-        &self,
-        (p, a): (&[f64; MAXP], &DVector<f64>),
-        (grid_p, prior): (&[f64; MAXP], PlaneInk),
-        cov: &DMatrix<f64>,
-    ) -> [[f64; 2]; 2] {
-        let grad = density_gradient(grid_p, prior, a, &self.samples);
-        let s2 = p[super::S].powi(2);
-        let m = DVector::from_iterator(
-            self.samples.len(),
-            self.samples.iter().enumerate().map(|(i, smp)| {
-                let j = self.prob.row_f64(p, smp.fx, smp.fy, smp.v).j;
-                super::blur_shift::left_out(&j, s2, grad[i], grad[i])
-            }),
-        );
-        let jtm = self.jacobian(p, a).0.tr_mul(&m) / self.sigma2;
-        let delta = cov * jtm;
-        super::blur_shift::centres(&delta, |i| self.base.iter().position(|&b| b == i))
     }
 
     /// The offset's covariance from the parameters' `cov` (indexed as `base`).
@@ -256,21 +248,37 @@ pub(super) fn samples_at_most(prob: &Problem, min_thin: usize, max: usize) -> Ve
 
 /// Each sample's value of each mode (samples × modes): the field's Karhunen–Loève modes on
 /// a grid `corr/2` apart over the outer shape (its rim and blur, and half a correlation
-/// length beyond), extended between grid points by the covariance.
-fn modes(p: &[f64; MAXP], prior: PlaneInk, s: &[Sample]) -> DMatrix<f64> {
+/// length beyond), extended between grid points by the covariance. With `along_gradient`,
+/// each mode's derivative along the sample's vector instead, `w·∇φ`.
+fn modes(
+    p: &[f64; MAXP],
+    prior: PlaneInk,
+    s: &[Sample],
+    along_gradient: Option<&[[f64; 2]]>,
+) -> DMatrix<f64> {
     let grid = Grid::of(p, prior);
     let (k, basis) = (grid.k, &grid.basis);
     let side = (2 * k + 1) as usize;
     let (mut ex, mut ey) = (vec![0.0; side], vec![0.0; side]);
+    let inv_l2 = 1.0 / (prior.corr_px * prior.corr_px);
     let wt = basis.weights.transpose();
     let mut phi = DMatrix::<f64>::zeros(s.len(), basis.weights.ncols());
     // A block of samples at a time: grid points × samples, each sample's column contiguous.
     for (b, block) in s.chunks(BLOCK).enumerate() {
         let mut to_grid = DMatrix::<f64>::zeros(basis.grid.len(), block.len());
-        for (mut col, smp) in to_grid.column_iter_mut().zip(block) {
+        for (i, (mut col, smp)) in to_grid.column_iter_mut().zip(block).enumerate() {
             grid.along(smp.at, &mut ex, &mut ey);
             for (v, &[gi, gj]) in col.iter_mut().zip(&basis.grid) {
-                *v = grid.rms2 * ex[(gi + k) as usize] * ey[(gj + k) as usize];
+                let c = grid.rms2 * ex[(gi + k) as usize] * ey[(gj + k) as usize];
+                *v = match along_gradient {
+                    None => c,
+                    // w·∇ of the covariance: ∂ₓ exp(−d²/2ℓ²) = −(dₓ/ℓ²)·exp(−d²/2ℓ²).
+                    Some(w) => {
+                        let (dx, dy) = grid.to(smp.at, [gi, gj]);
+                        let w = w[b * BLOCK + i];
+                        -c * inv_l2 * (w[0] * dx + w[1] * dy)
+                    }
+                };
             }
         }
         // The weights are for unit RMS: the modes' variances scale with rms².
@@ -278,35 +286,6 @@ fn modes(p: &[f64; MAXP], prior: PlaneInk, s: &[Sample]) -> DMatrix<f64> {
         phi.rows_mut(b * BLOCK, block.len()).copy_from(&rows);
     }
     phi
-}
-
-/// The gradient (per plane px) of the density `Σ a_k·φ_k` at each sample, from the
-/// covariance's own derivative: `∂ₓ exp(−d²/2ℓ²) = −(dₓ/ℓ²)·exp(−d²/2ℓ²)`.
-fn density_gradient(
-    p: &[f64; MAXP],
-    prior: PlaneInk,
-    a: &DVector<f64>,
-    s: &[Sample],
-) -> Vec<[f64; 2]> {
-    let grid = Grid::of(p, prior);
-    let (k, basis) = (grid.k, &grid.basis);
-    // ε(x) = Σ_g cov(x, g)·β_g.
-    let beta = &basis.weights * a / prior.density_rms;
-    let side = (2 * k + 1) as usize;
-    let (mut ex, mut ey) = (vec![0.0; side], vec![0.0; side]);
-    let inv_l2 = 1.0 / (prior.corr_px * prior.corr_px);
-    s.iter()
-        .map(|smp| {
-            grid.along(smp.at, &mut ex, &mut ey);
-            let mut g = [0.0; 2];
-            for (&b, &[gi, gj]) in beta.iter().zip(&basis.grid) {
-                let (dx, dy) = grid.to(smp.at, [gi, gj]);
-                let v = b * ex[(gi + k) as usize] * ey[(gj + k) as usize];
-                g = [g[0] - dx * v, g[1] - dy * v];
-            }
-            [grid.rms2 * inv_l2 * g[0], grid.rms2 * inv_l2 * g[1]]
-        })
-        .collect()
 }
 
 /// The modes' grid about a fit's outer centre: corr/2 apart, at most `MAX_GRID_STEPS`
@@ -408,16 +387,21 @@ impl Basis {
     }
 }
 
-/// The model's row at a sample with the density `eps`: base parameters' derivatives,
-/// `−L·K` (the density's), residual.
-fn row(prob: &Problem, p: &[f64; MAXP], s: &Sample, eps: f64) -> ([f64; MAXP], f64, f64) {
+/// The model's row at a sample with the density `eps` and its edges' move `edge`: base
+/// parameters' derivatives, `[−L·K, −L]` (the density's and the edges' move's), residual.
+fn row(
+    prob: &Problem,
+    p: &[f64; MAXP],
+    s: &Sample,
+    (eps, edge): (f64, f64),
+) -> ([f64; MAXP], [f64; 2], f64) {
     let Row { j, l, shade } = prob.row_f64(p, s.fx, s.fy, s.v);
     let ink = 1.0 - shade;
-    let shade_e = 1.0 - (1.0 + eps) * ink;
+    let shade_e = 1.0 - (1.0 + eps) * ink - edge;
     let mut out = j.map(|v| v * (1.0 + eps));
     let inv_half = prob.inv_half;
     out[B0] = shade_e;
     out[BX] = s.fx * inv_half * shade_e;
     out[BY] = s.fy * inv_half * shade_e;
-    (out, -l * ink, s.v - l * shade_e)
+    (out, [-l * ink, -l], s.v - l * shade_e)
 }
