@@ -525,6 +525,68 @@ fn which_effect_biases_the_fit() {
     }
 }
 
+/// Which of the webcam's effects lifts the fit's scatter above the raw sensor's bound: each
+/// effect off in turn, 6 random starts of layout 11, one frame and 20 × 50 µm (k = 10), the
+/// even-ink fit (no prior: the camera alone), the global scale. The bound is the webcam's
+/// raw-sensor one with the print known, the same for every variant of the processing.
+#[test]
+#[ignore = "a diagnosis: cargo test --release --test webcam_accuracy -- --ignored --nocapture which_effect_scatters"]
+fn which_effect_scatters() {
+    type Change = fn(&mut CameraModel);
+    let variants: [(&str, Change); 8] = [
+        ("all on", |_| {}),
+        ("uncompressed YUYV 4:2:2", |c| c.mjpeg_quality = None),
+        ("no sharpening", |c| c.sharpen_amount = 0.0),
+        ("linear output", |c| c.gamma = Default::default()),
+        ("steady light (no AE wander, no flicker)", |c| {
+            (c.ae_wander_rms, c.flicker_band_depth) = (0.0, 0.0)
+        }),
+        ("no vibration", |c| c.vibration_um = 0.0),
+        ("perfect print", |c| {
+            (c.edge_roughness_um, c.ink_density_rms) = (0.0, 0.0)
+        }),
+        ("no MJPEG, no sharpening, linear, perfect print", |c| {
+            (c.mjpeg_quality, c.sharpen_amount, c.gamma) = (None, 0.0, Default::default());
+            (c.edge_roughness_um, c.ink_density_rms) = (0.0, 0.0)
+        }),
+    ];
+    let webcam = CameraModel::profile("webcam").unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(11 ^ 0x5eed);
+    let starts: Vec<[f64; 2]> = (0..6)
+        .map(|_| [rng.gen_range(0.0..774.0), rng.gen_range(0.0..774.0)])
+        .collect();
+    let reference = FrameRenderer::new(random_board(11, &webcam), webcam.clone(), 11).unwrap();
+    let bounds = bounds_per_target(&reference, &starts[..2]);
+    for (name, change) in variants {
+        let mut cam = webcam.clone();
+        change(&mut cam);
+        let frames = FrameRenderer::new(random_board(11, &cam), cam, 11).unwrap();
+        let mut seq = 0;
+        let mut line = format!("{name}:");
+        for case in [CASES[0], CASES[2]] {
+            let crb: Bounds = bounds
+                .iter()
+                .map(|(b, h)| (b.map(|v| v / (case.frames as f64).sqrt()), h.offset_um(1)))
+                .collect();
+            let errors: Vec<_> = starts
+                .iter()
+                .map(|&s| {
+                    let imgs = render(&frames, s, case, &mut seq);
+                    measure(&frames, &imgs, case, (Estimator::Fit, None), None)
+                })
+                .collect();
+            let figs = figures(&errors, &crb);
+            let (std, bound) = (rms(&figs, |t| t.std_um), rms(&figs, |t| t.crb_um));
+            line += &format!(
+                " {} frames std {std:.2} µm ({:.2}x the bound);",
+                case.frames,
+                std / bound
+            );
+        }
+        println!("{line}");
+    }
+}
+
 #[test]
 #[ignore = "the full study: cargo test --release --test webcam_accuracy -- --ignored --nocapture"]
 fn study_full() {
