@@ -16,7 +16,9 @@ use rigd::daemon::protocol::{EventBody, Request};
 use rigd::rig::simulated;
 use serde_json::Value;
 use std::path::Path;
-use support::daemon::{assert_finished, run_job, session_of, small_board_sim, Daemon};
+use support::daemon::{
+    assert_finished, events_until_end, job_id, run_job, session_of, small_board_sim, submit, Daemon,
+};
 
 /// The calibration note of a job's `calibration` event.
 fn note(events: &[EventBody]) -> CalibrationNote {
@@ -273,4 +275,52 @@ fn rigctl_calibrate_without_a_folder_runs_the_daemons_job_and_prints_its_summary
         !out.status.success() && err.contains("go with DIR"),
         "{err}"
     );
+}
+
+/// A job queued behind a calibration job counts the ink prior that calibration may learn:
+/// the submit reply's `memory_mb` (what was checked against `[daemon] max_job_memory_mb`)
+/// is the prior's working set more than the same job's alone. Before, only the current
+/// calibration's prior was counted, and a job queued behind a scan was estimated short.
+#[test]
+fn a_job_behind_a_calibration_job_counts_the_prior_it_may_learn() {
+    let d = Daemon::start(simulated(&rigd::cli::demo::sim_settings("webcam").unwrap()).unwrap());
+    let mut c = d.subscribed();
+    let memory_mb = |r: &Value| r["memory_mb"].as_u64().unwrap_or_else(|| panic!("{r}"));
+    let reply = c.request(&Request::Submit { job: measure() }).unwrap();
+    let alone = memory_mb(&reply);
+    assert_finished(&events_until_end(&mut c, job_id(&reply)));
+    // A long job, paused once it runs, holds the queue: the scan waits behind it.
+    let blocker = submit(
+        &mut c,
+        JobSpec {
+            steps: Some(200),
+            ..measure()
+        },
+    );
+    while !matches!(c.next_event().unwrap(), e if e.job_id == blocker && matches!(e.body, EventBody::Step { .. }))
+    {
+    }
+    c.request(&Request::Pause { job_id: blocker }).unwrap();
+    let scan = JobSpec {
+        calibrate: Some(Box::new(CalibrationScan {
+            steps: 11,
+            step_um: 2000.0,
+            ..CalibrationScan::default()
+        })),
+        settle_ms: 0,
+        ..JobSpec::default()
+    };
+    let scan_id = submit(&mut c, scan);
+    let reply = c.request(&Request::Submit { job: measure() }).unwrap();
+    let behind = memory_mb(&reply);
+    // No calibration is current: the scan queued ahead is what was counted.
+    assert!(calibration_store::current(&d.data).unwrap().is_none());
+    let prior_mb = rigd::pipeline::estimate::PRIOR_PEAK_BYTES >> 20;
+    assert!(
+        behind >= alone + prior_mb,
+        "{behind} MB behind the scan, {alone} MB alone, the prior {prior_mb} MB a thread"
+    );
+    for id in [job_id(&reply), scan_id, blocker] {
+        c.request(&Request::Cancel { job_id: id }).unwrap();
+    }
 }

@@ -63,8 +63,8 @@ pub fn handle(shared: &Shared, req: Request) -> Result<ReplyBody, ProtoError> {
             };
             // Checked as a live job is (the replay's frames are referenced, not written again:
             // the check overestimates by them).
-            let (id, ahead) = queue(shared, spec.clone(), plan.clone(), &s.manifest.rig, source)?;
-            Ok(ReplyBody::Submit(announce(shared, id, ahead, spec, &plan)))
+            let queued = queue(shared, spec.clone(), plan.clone(), &s.manifest.rig, source)?;
+            Ok(ReplyBody::Submit(announce(shared, queued, spec, &plan)))
         }
         Request::ResumeSession { session: name } => resume(shared, &name).map(ReplyBody::Submit),
         Request::Status { job_id: None } => {
@@ -136,41 +136,61 @@ fn submit(shared: &Shared, job: JobSpec) -> Result<SubmitReply, ProtoError> {
     // echoed as resolved.
     let job = job.with_defaults(&shared.rig_info.job_defaults);
     let plan = plan(&job, &shared.rig_info, &shared.settings.data_root, 0).map_err(rejected)?;
-    let (id, ahead) = queue(
+    let queued = queue(
         shared,
         job.clone(),
         plan.clone(),
         &shared.rig_info,
         JobSource::Live,
     )?;
-    Ok(announce(shared, id, ahead, job, &plan))
+    Ok(announce(shared, queued, job, &plan))
+}
+
+/// Where a job was queued and the memory its processing was estimated to hold.
+struct Queued {
+    id: u64,
+    ahead: usize,
+    memory_bytes: u64,
 }
 
 /// Check a planned job against the budgets and queue it. The disk must hold it next to what
-/// the queued and running jobs will still write; the table stays locked from the check to
-/// the queueing so two submits cannot both count on the same free space.
+/// the queued and running jobs will still write; the table stays locked from the checks to
+/// the queueing so two submits cannot both count on the same free space, nor miss a
+/// calibration job queued between them.
 fn queue(
     shared: &Shared,
     job: JobSpec,
     plan: Plan,
     rig: &crate::rig::RigInfo,
     source: JobSource,
-) -> Result<(u64, usize), ProtoError> {
-    // A calibration's learnt ink prior is taken when the job runs: counted if today's has one.
-    let learnt = crate::calibration_store::current(&shared.settings.data_root)
-        .ok()
-        .flatten()
-        .is_some_and(|a| a.calibration.ink.as_ref().and_then(|i| i.prior()).is_some());
-    let budget_mb = shared.settings.max_job_memory_mb;
-    budget::check_memory(&plan, rig, budget_mb, learnt).map_err(rejected)?;
-    let disk = budget::disk_bytes(&plan, rig);
+) -> Result<Queued, ProtoError> {
     let mut jobs = shared.jobs();
+    let prior = ink_prior_may_be_taken(shared, &jobs);
+    let budget_mb = shared.settings.max_job_memory_mb;
+    let memory_bytes = budget::check_memory(&plan, rig, budget_mb, prior).map_err(rejected)?;
+    let disk = budget::disk_bytes(&plan, rig);
     let committed = jobs.committed_disk_bytes();
     check_disk(&plan, rig, &shared.settings.data_root, committed).map_err(rejected)?;
-    jobs.submit(job, plan, source, disk).map_err(|e| match e {
+    let (id, ahead) = jobs.submit(job, plan, source, disk).map_err(|e| match e {
         QueueError::Full => ProtoError::new(ErrorCode::Unavailable, e.to_string()),
         QueueError::Id(e) => ProtoError::new(ErrorCode::Internal, e.to_string()),
+    })?;
+    Ok(Queued {
+        id,
+        ahead,
+        memory_bytes,
     })
+}
+
+/// Whether a job queued now may take a calibration's learnt ink prior when it runs: the
+/// current calibration has one, or a calibration job running or queued ahead of it may
+/// learn one (counted as if it will: the estimate errs high, not low).
+fn ink_prior_may_be_taken(shared: &Shared, jobs: &crate::daemon::Jobs) -> bool {
+    jobs.pending().any(|r| r.spec.calibrate.is_some())
+        || crate::calibration_store::current(&shared.settings.data_root)
+            .ok()
+            .flatten()
+            .is_some_and(|a| a.calibration.ink.as_ref().and_then(|i| i.prior()).is_some())
 }
 
 fn refuse_if_stopping(shared: &Shared) -> Result<(), ProtoError> {
@@ -184,7 +204,12 @@ fn refuse_if_stopping(shared: &Shared) -> Result<(), ProtoError> {
 }
 
 /// Tell subscribers and the worker about a queued job; the submit reply.
-fn announce(shared: &Shared, id: u64, ahead: usize, job: JobSpec, plan: &Plan) -> SubmitReply {
+fn announce(shared: &Shared, queued: Queued, job: JobSpec, plan: &Plan) -> SubmitReply {
+    let Queued {
+        id,
+        ahead,
+        memory_bytes,
+    } = queued;
     let total_frames = plan.total_frames;
     shared.events.emit(
         id,
@@ -200,6 +225,7 @@ fn announce(shared: &Shared, id: u64, ahead: usize, job: JobSpec, plan: &Plan) -
         queue_position: ahead,
         total_frames,
         job,
+        memory_mb: memory_bytes.div_ceil(1 << 20),
         resumed_from: None,
     }
 }
@@ -220,8 +246,8 @@ fn resume(shared: &Shared, name: &str) -> Result<SubmitReply, ProtoError> {
         })?;
     let link = origin.link.clone();
     let source = JobSource::Resume(std::sync::Arc::new(origin));
-    let (id, ahead) = queue(shared, spec.clone(), plan.clone(), &shared.rig_info, source)?;
-    let mut reply = announce(shared, id, ahead, spec, &plan);
+    let queued = queue(shared, spec.clone(), plan.clone(), &shared.rig_info, source)?;
+    let mut reply = announce(shared, queued, spec, &plan);
     reply.resumed_from = Some(link);
     Ok(reply)
 }

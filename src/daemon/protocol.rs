@@ -607,6 +607,11 @@ pub struct SubmitReply {
     pub total_frames: u32,
     /// The job as it will run: every processing default resolved.
     pub job: JobSpec,
+    /// The most memory its processing is estimated to hold, MB: what was checked against
+    /// `[daemon] max_job_memory_mb`. It counts the print's ink prior when the current
+    /// calibration learnt one, or a calibration job running or queued ahead may learn one.
+    #[serde(default)]
+    pub memory_mb: u64,
     /// `resume_session`: the session resumed and the first frame this job takes (the
     /// frames before it are that session's; `total_frames` counts the whole plan).
     #[serde(default, skip_serializing_if = "Option::is_none")]
