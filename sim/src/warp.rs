@@ -289,29 +289,19 @@ impl WarpInk {
         ink
     }
 
-    /// The ink of the pixel whose centre sees board point `p` with Jacobian `j`: coverage
-    /// alone on an even print, else the blurred inked density (`InkTaylor::sample`).
-    fn channel_ink(
+    /// The shapes about the pixel whose centre sees board point `p` with Jacobian `j`: those
+    /// whose edge is within the blur's reach (evaluated on the sub-sample grid), and the
+    /// coverage of those wholly over or off it.
+    fn near_edges(
         &self,
         near: &[usize],
         rects: &[usize],
         (p, j): ([f64; 2], &Matrix2<f64>),
         cam: &CameraModel,
-        edge: &EdgeTable,
-        density: Option<InkTaylor>,
-    ) -> f64 {
-        const MAX_ACTIVE: usize = 8;
+    ) -> NearEdges {
         let sigma = cam.psf_sigma_px.max(1e-3);
-        let band = 5.0 * sigma + 0.75;
-        let close = 2.0 * sigma + 0.1;
-        // Active disks: (index, offset from centre, effective radius, px per µm on the
-        // normal, the normal in the image).
-        let mut act = [(0usize, [0.0f64; 2], 0.0f64, 0.0f64, [0.0f64; 2]); MAX_ACTIVE];
-        let mut n_act = 0;
-        let mut act_r = [(0usize, [0.0f64; 2]); MAX_ACTIVE];
-        let mut n_r = 0;
-        let mut flat = 0.0;
-        let mut near_edge = false;
+        let (band, close) = (5.0 * sigma + 0.75, 2.0 * sigma + 0.1);
+        let mut out = NearEdges::default();
         for &i in near {
             let d = &self.disks[i];
             let e = [p[0] - d.centre_um[0], p[1] - d.centre_um[1]];
@@ -327,33 +317,50 @@ impl WarpInk {
             let gy = nx * j[(0, 1)] + ny * j[(1, 1)];
             let k = 1.0 / (gx * gx + gy * gy).sqrt();
             let dist = (rho - r) * k;
-            if dist.abs() < band && n_act < MAX_ACTIVE {
-                near_edge |= dist.abs() < close;
-                act[n_act] = (i, e, r, k, [gx * k, gy * k]);
-                n_act += 1;
+            if dist.abs() < band && out.n_disks < MAX_ACTIVE {
+                out.close |= dist.abs() < close;
+                out.disks[out.n_disks] = (i, e, r, k, [gx * k, gy * k]);
+                out.n_disks += 1;
             } else if dist < 0.0 {
-                flat += d.sign;
+                out.flat += d.sign;
             }
         }
+        let (kx, ky) = row_scales(j);
         for &i in rects {
             let r = &self.rects[i];
             let e = [p[0] - r.centre_um[0], p[1] - r.centre_um[1]];
-            let (kx, ky) = row_scales(j);
             let dx = (e[0].abs() - r.half_um[0]) * kx;
             let dy = (e[1].abs() - r.half_um[1]) * ky;
-            if (dx.abs() < band || dy.abs() < band) && dx < band && dy < band && n_r < MAX_ACTIVE {
-                near_edge |= dx.abs() < close || dy.abs() < close;
-                act_r[n_r] = (i, e);
-                n_r += 1;
+            let reach = (dx.abs() < band || dy.abs() < band) && dx < band && dy < band;
+            if reach && out.n_rects < MAX_ACTIVE {
+                out.close |= dx.abs() < close || dy.abs() < close;
+                out.rects[out.n_rects] = (i, e);
+                out.n_rects += 1;
             } else if dx < 0.0 && dy < 0.0 {
-                flat += 1.0;
+                out.flat += 1.0;
             }
         }
-        let inked = |c: f64| density.map_or(c, |t| c * t.flat());
-        if n_act == 0 && n_r == 0 {
-            return inked(flat.clamp(0.0, 1.0));
+        out
+    }
+
+    /// The ink of the pixel whose centre sees board point `p` with Jacobian `j`: coverage
+    /// alone on an even print, else the blurred inked density (`InkTaylor::sample`),
+    /// area-integrated on the sub-sample grid.
+    fn channel_ink(
+        &self,
+        near: &[usize],
+        rects: &[usize],
+        (p, j): ([f64; 2], &Matrix2<f64>),
+        cam: &CameraModel,
+        edge: &EdgeTable,
+        density: Option<InkTaylor>,
+    ) -> f64 {
+        let at = self.near_edges(near, rects, (p, j), cam);
+        if at.n_disks == 0 && at.n_rects == 0 {
+            let c = at.flat.clamp(0.0, 1.0);
+            return density.map_or(c, |t| c * t.flat());
         }
-        let n = if near_edge {
+        let n = if at.close {
             cam.supersample.max(1)
         } else {
             cam.supersample.clamp(1, 3)
@@ -369,15 +376,15 @@ impl WarpInk {
                 let ox = j[(0, 0)] * du + j[(0, 1)] * dv;
                 let oy = j[(1, 0)] * du + j[(1, 1)] * dv;
                 let mut edges = EdgeSum {
-                    c: flat,
+                    c: at.flat,
                     ..EdgeSum::default()
                 };
-                for &(i, e, r, k, m) in &act[..n_act] {
+                for &(i, e, r, k, m) in &at.disks[..at.n_disks] {
                     let (x, y) = (e[0] + ox, e[1] + oy);
                     let d = ((x * x + y * y).sqrt() - r) * k;
                     edges.add(self.disks[i].sign, d, m, edge, density.is_some());
                 }
-                for &(i, e) in &act_r[..n_r] {
+                for &(i, e) in &at.rects[..at.n_rects] {
                     // (Clutter is not measured: its edges take the density unblurred.)
                     let rc = &self.rects[i];
                     let ex = edge.at(((e[0] + ox).abs() - rc.half_um[0]) * kx);
@@ -392,6 +399,25 @@ impl WarpInk {
         }
         sum * step * step
     }
+}
+
+/// Shapes a pixel's sub-samples evaluate at most.
+const MAX_ACTIVE: usize = 8;
+
+/// The shapes about one pixel (`WarpInk::near_edges`).
+#[derive(Debug, Default)]
+struct NearEdges {
+    /// Disks whose edge is within reach: (index, offset from centre µm, effective radius µm,
+    /// px per µm on the normal, the normal in the image).
+    disks: [(usize, [f64; 2], f64, f64, [f64; 2]); MAX_ACTIVE],
+    n_disks: usize,
+    /// Rectangles within reach: (index, offset from centre µm).
+    rects: [(usize, [f64; 2]); MAX_ACTIVE],
+    n_rects: usize,
+    /// The coverage of the shapes wholly over the pixel.
+    flat: f64,
+    /// An edge within two blur widths: the full sub-sample grid.
+    close: bool,
 }
 
 /// The blurred coverage at one sub-sample: its value, and for an uneven print its image

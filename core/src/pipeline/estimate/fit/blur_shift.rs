@@ -7,11 +7,12 @@
 //! `s²·∇c/c`, an edge shift the model leaves out, of ~5 µm per edge point on the webcam's
 //! print (4 % RMS over 3 mm, s ≈ 0.85 px).
 //!
-//! The fit answers a term it leaves out, m, by moving its parameters by
-//! `Δ = (JᵀWJ + P)⁻¹·JᵀW·m` (its normal matrix, the prior's P included): part into the
-//! centres, part into the contrast planes or the density's modes, which on a ring's band
-//! mimic much of it. The correction takes that Δ from the centres it reports. It does not
-//! change the fit's pixels, its residuals or its seed for the next frame.
+//! The prior's density modes carry the term in the fit's model itself (`prior`: each
+//! mode's column is `−L·(K·φ + s²·∇φ·∇K)`). The contrast planes get it here, as a
+//! correction: the fit answers a term it leaves out, m, by moving its parameters by
+//! `Δ = (JᵀJ)⁻¹·Jᵀ·m`, part into the centres and part into the planes themselves (on a
+//! disk about a fifth), and the correction takes that Δ from the centres it reports. It
+//! does not change the fit's pixels, its residuals or its seed for the next frame.
 
 use super::normal::Row;
 use super::prior::samples_at_most;
@@ -25,19 +26,13 @@ const MAX_SAMPLES: usize = 4096;
 /// The left-out term at one sample, `−s²·(g_o·∇K_o + g_i·∇K_i)·L`, from the row's centre
 /// derivatives (`∂I/∂x_o = L·c_o·∂cov_o/∂x`): `g` is each shape's relative contrast gradient
 /// (px⁻¹), `∇c/c` for the planes, `∇ε` for the print's density.
-pub(super) fn left_out(j: &[f64; MAXP], s2: f64, g_o: [f64; 2], g_i: [f64; 2]) -> f64 {
+fn left_out(j: &[f64; MAXP], s2: f64, g_o: [f64; 2], g_i: [f64; 2]) -> f64 {
     -s2 * (g_o[0] * j[CXO] + g_o[1] * j[CYO] + g_i[0] * j[CXI] + g_i[1] * j[CYI])
 }
 
-/// The centres' corrections `[outer, inner]` (px) from the parameters' response `delta`
-/// (indexed by `at`).
-pub(super) fn centres(delta: &DVector<f64>, at: impl Fn(usize) -> Option<usize>) -> [[f64; 2]; 2] {
-    let d = |i: usize| at(i).map_or(0.0, |k| -delta[k]);
-    [[d(CXO), d(CYO)], [d(CXI), d(CYI)]]
-}
-
-/// The correction for a fit with the contrast planes (none without): the planes are linear,
-/// so each shape's `∇c/c` is its plane's gradient over its level at the sample.
+/// The centres' corrections `[outer, inner]` (px) for a fit with the contrast planes (none
+/// without): the planes are linear, so each shape's `∇c/c` is its plane's gradient over its
+/// level at the sample.
 pub(super) fn of_planes(prob: &Problem, p: &[f64; MAXP]) -> [[f64; 2]; 2] {
     if !prob.planes {
         return [[0.0; 2]; 2];
@@ -61,8 +56,9 @@ pub(super) fn of_planes(prob: &Problem, p: &[f64; MAXP]) -> [[f64; 2]; 2] {
         jtj.ger(1.0, &jv, &jv, 1.0);
         jtm.axpy(m, &jv, 1.0);
     }
-    match jtj.cholesky() {
-        Some(ch) => centres(&ch.solve(&jtm), |i| (i < np).then_some(i)),
+    // The fitted centres are the true ones moved by Δ: the correction is −Δ.
+    match jtj.cholesky().map(|ch| ch.solve(&jtm)) {
+        Some(d) => [[-d[CXO], -d[CYO]], [-d[CXI], -d[CYI]]],
         None => [[0.0; 2]; 2],
     }
 }
