@@ -404,12 +404,14 @@ impl WarpInk {
 /// Shapes a pixel's sub-samples evaluate at most.
 const MAX_ACTIVE: usize = 8;
 
+/// A disk whose edge is within reach of a pixel: (index, offset from its centre µm,
+/// effective radius µm, px per µm along the normal, the normal in the image).
+type NearDisk = (usize, [f64; 2], f64, f64, [f64; 2]);
+
 /// The shapes about one pixel (`WarpInk::near_edges`).
 #[derive(Debug, Default)]
 struct NearEdges {
-    /// Disks whose edge is within reach: (index, offset from centre µm, effective radius µm,
-    /// px per µm on the normal, the normal in the image).
-    disks: [(usize, [f64; 2], f64, f64, [f64; 2]); MAX_ACTIVE],
+    disks: [NearDisk; MAX_ACTIVE],
     n_disks: usize,
     /// Rectangles within reach: (index, offset from centre µm).
     rects: [(usize, [f64; 2]); MAX_ACTIVE],
