@@ -400,16 +400,18 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             c.iter().all(|t| t.n == 3) && even.iter().all(|t| t.n == 3),
             "{case:?}: a target was lost: {c:?}"
         );
-        // Measured: 1.59 / 2.57 / 3.03x the bound with the print known (without the prior
-        // 1.70 / 2.15 / 2.25x); the paper's estimator scatters 6.5 / 3.2 / 2.8x more.
+        // Measured: 1.68 / 2.13 / 2.76x the bound with the print known (without the prior
+        // 1.73 / 1.79 / 2.01x); the paper's estimator scatters 5.8 / 3.3 / 1.8x more (on
+        // the contrast-weighted plane it does much better than on green: 13.5 → 8.1 µm
+        // for 20 frames).
         let (std, crb) = (rms(c, |t| t.std_um), rms(c, |t| t.crb_um));
         let paper = rms(&s.paper[i], |t| t.std_um);
         assert!(
-            std < [1.9, 3.0, 3.3][i] * crb,
+            std < [1.9, 2.5, 3.1][i] * crb,
             "{case:?}: fit std {std:.2} vs bound {crb:.2}"
         );
         assert!(
-            paper > 2.6 * std,
+            paper > [4.0, 2.5, 1.6][i] * std,
             "{case:?}: paper {paper:.1} vs fit {std:.2}"
         );
         let (global, calibrated) = (rms(f, |t| t.bias_um), rms(c, |t| t.bias_um));
@@ -417,23 +419,23 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             (25.0..80.0).contains(&global),
             "{case:?}: RMS bias {global:.1} µm"
         );
-        // Measured: 14.4 / 10.1 / 9.7 µm left once calibrated, 0.36-0.51 of the global
-        // scale's bias (without the prior 17.9 / 13.9 / 13.9 µm: the uneven ink,
+        // Measured: 13.2 / 8.3 / 8.7 µm left once calibrated, 0.32-0.50 of the global
+        // scale's bias (without the prior 17.5 / 14.0 / 13.9 µm: the uneven ink,
         // `which_effect_biases_the_fit`).
         assert!(
-            calibrated < 0.65 * global && calibrated < [17.0, 12.5, 12.0][i],
+            calibrated < 0.65 * global && calibrated < [15.5, 10.5, 10.5][i],
             "{case:?}: calibrated RMS bias {calibrated:.1} µm (global {global:.1} µm)"
         );
-        // The whole RMS error, bias and scatter: 18.4 / 11.7 / 10.9 µm with the prior,
-        // 21.7 / 14.8 / 14.4 µm without (0.85 / 0.79 / 0.75 of it).
+        // The whole RMS error, bias and scatter: 17.9 / 9.6 / 9.8 µm with the prior,
+        // 21.5 / 14.6 / 14.3 µm without (0.83 / 0.66 / 0.68 of it).
         let (total, plain) = (rms_error(c), rms_error(even));
         assert!(
-            total < [0.9, 0.85, 0.82][i] * plain,
+            total < [0.9, 0.75, 0.78][i] * plain,
             "{case:?}: whole RMS error {total:.2} µm with the prior, {plain:.2} µm without"
         );
         // The bound on the whole error with the print unknown (its statistics known):
         // 10.83 / 4.28 / 3.25 µm, 1.50 / 1.88 / 2.02x the bound with the print known. No
-        // estimator does better; the fit's whole error is 1.70 / 2.73 / 3.34x it.
+        // estimator does better; the fit's whole error is 1.65 / 2.25 / 3.01x it.
         let hcrb = rms(c, |t| t.hcrb_um);
         let want = [10.83, 4.28, 3.25][i];
         assert!(
@@ -441,10 +443,10 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             "{case:?}: bound with the print unknown {hcrb:.2} µm (with it known {crb:.2})"
         );
         assert!(
-            total > hcrb && total < [2.0, 3.1, 3.7][i] * hcrb,
+            total > hcrb && total < [1.9, 2.6, 3.4][i] * hcrb,
             "{case:?}: whole RMS error {total:.2} µm against the bound {hcrb:.2} µm"
         );
-        // Measured: 96 / 99 / 99 % with the prior's posterior covariance (93 / 94 / 94 %
+        // Measured: 99 / 96 / 97 % with the prior's posterior covariance (93 / 94 / 94 %
         // without the prior, with the ink model's type B); 72 measurements a case: ±3 % of
         // binomial scatter about the 95 % goal. Never under the goal's 93 %.
         let cover = s.coverage[i][1];

@@ -16,7 +16,7 @@
 //!    regions with a target's outline that are not a ring around a disk. Other red clutter
 //!    (filled disks, rectangles, text) is rejected silently.
 
-use super::plane::Roi;
+use super::plane::{Mix, Roi};
 use super::Skipped;
 use image::RgbImage;
 use rayon::prelude::*;
@@ -785,27 +785,40 @@ fn ring_mean(img: &RgbImage, roi: Roi, c: [f64; 2], r0: f64, r1: f64) -> Option<
 /// The channel (0=R, 1=G, 2=B) with the most ink-to-paper contrast over the found targets.
 /// Green (the contrast of red ink on white paper) when there are no targets.
 pub fn measurement_channel(img: &RgbImage, det: &Detection) -> usize {
+    let contrast = ink_contrast(img, det).map_or([0.0, 1.0, 0.0], |c| c.map(f64::abs));
+    (0..3)
+        .max_by(|&a, &b| contrast[a].total_cmp(&contrast[b]))
+        .unwrap_or(1)
+}
+
+/// The plane the targets are measured in: the channels weighted by the ink's contrast in
+/// each ([`Mix::of_contrast`]); green alone when no target was found.
+pub fn measurement_mix(img: &RgbImage, det: &Detection) -> Mix {
+    ink_contrast(img, det).map_or(Mix::channel(1), Mix::of_contrast)
+}
+
+/// Paper minus ink per channel (DN), summed over the targets: the ink from the middle of
+/// each ring's band (clear of the blurred edges when it is thick), the paper just outside
+/// it. `None` without targets.
+fn ink_contrast(img: &RgbImage, det: &Detection) -> Option<[f64; 3]> {
+    if det.targets.is_empty() {
+        return None;
+    }
     let mut contrast = [0.0f64; 3];
     for t in &det.targets {
         let [hole, rim] = t.outer_radii_px;
         let c = t.outer_centre_px;
-        // Ink: the middle of the ring band, clear of the blurred edges when it is thick.
         let band = ((rim - hole) / 2.0 - 1.5).max(0.3);
         let mid = (rim + hole) / 2.0;
         let ink = ring_mean(img, t.roi, c, mid - band, mid + band);
         let paper = ring_mean(img, t.roi, c, rim + 2.0, f64::INFINITY);
         if let (Some(ink), Some(paper)) = (ink, paper) {
             for k in 0..3 {
-                contrast[k] += (paper[k] - ink[k]).abs();
+                contrast[k] += paper[k] - ink[k];
             }
         }
     }
-    if det.targets.is_empty() {
-        return 1;
-    }
-    (0..3)
-        .max_by(|&a, &b| contrast[a].total_cmp(&contrast[b]))
-        .unwrap_or(1)
+    Some(contrast)
 }
 
 #[cfg(test)]

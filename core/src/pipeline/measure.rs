@@ -13,7 +13,7 @@ use super::estimate::{
     estimate_from, ink_density, CentreEstimate, DensitySample, PlaneInk, Seed, Start,
 };
 use super::options::WINDOW_MARGIN_PX;
-use super::plane::{Plane, Roi};
+use super::plane::{Mix, Plane, Roi};
 use super::register::{At, Dirs};
 use super::{Estimator, Registration, Response};
 use image::RgbImage;
@@ -35,7 +35,7 @@ pub struct Measurer(Arc<Inner>);
 
 struct Inner {
     size: (u32, u32),
-    channel: usize,
+    mix: Mix,
     response: Response,
     estimator: Estimator,
     /// The print's density as a prior for every frame's fit: when the frames' own fits are
@@ -75,7 +75,7 @@ pub struct FrameEstimates {
 /// What a [`Measurer`] is made of: frame 0's measurement and the run's settings.
 pub struct FrameZero<'a> {
     pub size: (u32, u32),
-    pub channel: usize,
+    pub mix: Mix,
     pub response: Response,
     pub estimator: Estimator,
     pub ink: Option<PlaneInk>,
@@ -90,7 +90,7 @@ impl Measurer {
     pub fn new(f: FrameZero) -> Measurer {
         Measurer(Arc::new(Inner {
             size: f.size,
-            channel: f.channel,
+            mix: f.mix,
             response: f.response,
             estimator: f.estimator,
             ink: f.ink,
@@ -181,7 +181,7 @@ impl Measurer {
     ) -> Vec<Option<CentreEstimate>> {
         let m = &self.0;
         let one = |(c, seed): (&Candidate, &Option<Seed>)| {
-            let how = (m.channel, m.response);
+            let how = (m.mix, m.response);
             measure_in_frame(frame, how, (c, *seed), predicted_px, (m.estimator, m.ink))
         };
         let each = m.targets.iter().zip(&m.seeds);
@@ -243,7 +243,7 @@ fn measure_window(c: &Candidate, shift_px: [f64; 2]) -> (f64, f64, u32) {
 /// ([`ink_density`]), and that fit's blur width (px). `None` without a fit's state.
 pub(super) fn density_in_frame(
     frame: &RgbImage,
-    (ch, response): (usize, Response),
+    (mix, response): (Mix, Response),
     c: &Candidate,
     e: &CentreEstimate,
 ) -> Option<(Vec<DensitySample>, f64)> {
@@ -252,17 +252,17 @@ pub(super) fn density_in_frame(
         e.outer_px[0] - c.outer_centre_px[0],
         e.outer_px[1] - c.outer_centre_px[1],
     ];
-    let (crop, guess, [x0, y0]) = crop_window(frame, (ch, response), c, shift_px);
+    let (crop, guess, [x0, y0]) = crop_window(frame, (mix, response), c, shift_px);
     let seed = seed.mapped(|p| [p[0] - x0, p[1] - y0], 1.0);
     let samples = ink_density(&crop, &guess, 1.0, &seed).ok()?;
     Some((samples, seed.blur_px()))
 }
 
 /// Target `c`'s measurement window at its frame-0 place moved by `shift_px`: the crop of
-/// channel `ch`, the target's guess in it, and the crop's origin in the frame.
+/// the plane `mix`, the target's guess in it, and the crop's origin in the frame.
 fn crop_window(
     frame: &RgbImage,
-    (ch, response): (usize, Response),
+    (mix, response): (Mix, Response),
     c: &Candidate,
     shift_px: [f64; 2],
 ) -> (Plane, Candidate, [f64; 2]) {
@@ -273,7 +273,7 @@ fn crop_window(
         w: side,
         h: side,
     };
-    let crop = Plane::from_channel_roi_in(frame, ch, roi, response);
+    let crop = Plane::from_mix_roi_in(frame, mix, roi, response);
     let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
     let guess = Candidate {
         outer_centre_px: mv(c.outer_centre_px),
@@ -291,16 +291,16 @@ fn crop_window(
 }
 
 /// Measure one target in a frame at its frame-0 place moved by `shift_px`, on a window of
-/// channel `ch`, the fit started from frame 0's `seed` (frame coordinates) when there is
+/// the plane `mix`, the fit started from frame 0's `seed` (frame coordinates) when there is
 /// one. `None` when it cannot be measured (out of frame, estimator failure).
 pub(super) fn measure_in_frame(
     frame: &RgbImage,
-    (ch, response): (usize, Response),
+    (mix, response): (Mix, Response),
     (c, seed): (&Candidate, Option<Seed>),
     shift_px: [f64; 2],
     (estimator, ink): (Estimator, Option<PlaneInk>),
 ) -> Option<CentreEstimate> {
-    let (crop, guess, [x0, y0]) = crop_window(frame, (ch, response), c, shift_px);
+    let (crop, guess, [x0, y0]) = crop_window(frame, (mix, response), c, shift_px);
     let mv = |p: [f64; 2]| [p[0] + shift_px[0] - x0, p[1] + shift_px[1] - y0];
     let seed = seed.map(|s| s.mapped(mv, 1.0));
     let start = seed.as_ref().map_or(Start::Guess, Start::Track);
@@ -319,7 +319,7 @@ mod tests {
     fn measurer(registration: Registration, scale_um_per_px: f64) -> Measurer {
         Measurer::new(FrameZero {
             size: (100, 100),
-            channel: 0,
+            mix: Mix::channel(0),
             response: Response::Linear,
             estimator: Estimator::Fit,
             ink: None,

@@ -1,4 +1,5 @@
-//! One image channel as f32, row-major: what the estimators and reconstructions work on.
+//! One plane of an image as f32, row-major (a channel, or the channels mixed by their
+//! contrast: [`Mix`]): what the estimators and reconstructions work on.
 
 use super::response::Response;
 use serde::{Deserialize, Serialize};
@@ -13,9 +14,78 @@ pub struct Roi {
 }
 
 impl Roi {
+    /// The whole of a `width` x `height` image.
+    pub fn whole(width: usize, height: usize) -> Roi {
+        Roi {
+            x: 0,
+            y: 0,
+            w: width as u32,
+            h: height as u32,
+        }
+    }
+
     /// Whether the whole ROI lies inside a `width` x `height` image.
     pub fn fits_in(&self, width: usize, height: usize) -> bool {
         self.x as usize + self.w as usize <= width && self.y as usize + self.h as usize <= height
+    }
+}
+
+/// What a plane is made of: each channel (0 = R, 1 = G, 2 = B) decoded to linear light, then
+/// weighted. Every channel of a target carries its edges; a weighted sum keeps the fit's
+/// model (`L·(1 − c·cov)` is linear in the channels) and, weighted by the channels' ink
+/// contrast, is the matched combination for noise alike in each: red ink on white paper
+/// darkens green and blue alike, and the two together scatter less than green alone
+/// (docs/method.md, "Measurement plane").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Mix {
+    pub weights: [f32; 3],
+}
+
+impl Mix {
+    /// Channel `ch` alone.
+    ///
+    /// # Panics
+    /// If `ch > 2` (a programming error, not bad input).
+    pub fn channel(ch: usize) -> Mix {
+        assert!(ch < 3, "channel {ch} out of 0..3");
+        let mut weights = [0.0; 3];
+        weights[ch] = 1.0;
+        Mix { weights }
+    }
+
+    /// The channels weighted by their ink contrast (paper minus ink, DN; a channel the ink
+    /// does not darken takes no weight), summing to 1: the plane's levels stay in DN. Green
+    /// alone when no channel shows contrast.
+    pub fn of_contrast(contrast: [f64; 3]) -> Mix {
+        let c = contrast.map(|v| v.max(0.0));
+        let sum: f64 = c.iter().sum();
+        if !(sum > 0.0) {
+            return Mix::channel(1);
+        }
+        Mix {
+            weights: c.map(|v| (v / sum) as f32),
+        }
+    }
+
+    /// The channel it is, when it is one.
+    fn single(&self) -> Option<usize> {
+        let w = self.weights;
+        (0..3).find(|&c| w[c] == 1.0 && w.iter().filter(|&&v| v != 0.0).count() == 1)
+    }
+
+    /// One pixel's value through the decoding table `lut`.
+    #[inline]
+    fn value(&self, lut: &[f32; 256], p: &[u8]) -> f32 {
+        let w = self.weights;
+        w[0] * lut[p[0] as usize] + w[1] * lut[p[1] as usize] + w[2] * lut[p[2] as usize]
+    }
+
+    /// The pixels of one row (RGB) into `out`.
+    fn extend(&self, lut: &[f32; 256], row: &[u8], out: &mut Vec<f32>) {
+        match self.single() {
+            Some(ch) => out.extend(row.chunks_exact(3).map(|p| lut[p[ch] as usize])),
+            None => out.extend(row.chunks_exact(3).map(|p| self.value(lut, p))),
+        }
     }
 }
 
@@ -46,18 +116,13 @@ impl Plane {
 
     /// Channel `ch` in linear light through the camera's output curve `response`.
     pub fn from_channel_in(img: &image::RgbImage, ch: usize, response: Response) -> Plane {
-        assert!(ch < 3, "channel {ch} out of 0..3");
-        let lut = response.table();
-        let data = img
-            .as_raw()
-            .chunks_exact(3)
-            .map(|p| lut[p[ch] as usize])
-            .collect();
-        Plane {
-            width: img.width() as usize,
-            height: img.height() as usize,
-            data,
-        }
+        Plane::from_mix_in(img, Mix::channel(ch), response)
+    }
+
+    /// The channels mixed by `mix`, each in linear light through `response`.
+    pub fn from_mix_in(img: &image::RgbImage, mix: Mix, response: Response) -> Plane {
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        Plane::from_mix_roi_in(img, mix, Roi::whole(w, h), response)
     }
 
     /// Channel `ch` of the pixels of `roi` only (cheaper than the whole frame then `crop`).
@@ -73,7 +138,12 @@ impl Plane {
         roi: Roi,
         response: Response,
     ) -> Plane {
-        assert!(ch < 3, "channel {ch} out of 0..3");
+        Plane::from_mix_roi_in(img, Mix::channel(ch), roi, response)
+    }
+
+    /// The channels mixed by `mix` of the pixels of `roi`, each in linear light through
+    /// `response`; the part of `roi` outside the image is dropped.
+    pub fn from_mix_roi_in(img: &image::RgbImage, mix: Mix, roi: Roi, response: Response) -> Plane {
         let lut = response.table();
         let (iw, ih) = (img.width() as usize, img.height() as usize);
         let x0 = (roi.x as usize).min(iw);
@@ -83,8 +153,7 @@ impl Plane {
         let raw = img.as_raw();
         let mut data = Vec::with_capacity((x1 - x0) * (y1 - y0));
         for y in y0..y1 {
-            let row = &raw[(y * iw + x0) * 3..(y * iw + x1) * 3];
-            data.extend(row.chunks_exact(3).map(|p| lut[p[ch] as usize]));
+            mix.extend(lut, &raw[(y * iw + x0) * 3..(y * iw + x1) * 3], &mut data);
         }
         Plane {
             width: x1 - x0,
@@ -120,6 +189,35 @@ impl Plane {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_mix_weighs_each_channel_by_its_ink_contrast() {
+        // Red ink on white paper: green and blue dark alike, red a little; a channel the ink
+        // brightens takes nothing.
+        let m = Mix::of_contrast([20.0, 110.0, 70.0]);
+        assert_eq!(m.weights, [0.1, 0.55, 0.35]);
+        assert_eq!(Mix::of_contrast([-5.0, 0.0, 10.0]).weights, [0.0, 0.0, 1.0]);
+        assert_eq!(Mix::of_contrast([0.0; 3]), Mix::channel(1));
+        // Its plane is that sum of the decoded channels, on the whole image and on a ROI.
+        let img =
+            image::RgbImage::from_fn(4, 3, |x, y| image::Rgb([10 * x as u8, 100, 7 * y as u8]));
+        let p = Plane::from_mix_in(&img, m, Response::Linear);
+        let want = |x: f32, y: f32| 0.1 * 10.0 * x + 0.55 * 100.0 + 0.35 * 7.0 * y;
+        assert!((p.at(3, 2) - want(3.0, 2.0)).abs() < 1e-4, "{}", p.at(3, 2));
+        let roi = Roi {
+            x: 1,
+            y: 1,
+            w: 2,
+            h: 2,
+        };
+        let q = Plane::from_mix_roi_in(&img, m, roi, Response::Linear);
+        assert!((q.at(1, 1) - want(2.0, 2.0)).abs() < 1e-4);
+        // Through the sRGB curve each channel is decoded before the sum.
+        let lut = Response::Srgb.table();
+        let s = Plane::from_mix_in(&img, m, Response::Srgb);
+        let dec = 0.1 * lut[30] + 0.55 * lut[100] + 0.35 * lut[14];
+        assert!((s.at(3, 2) - dec).abs() < 1e-3, "{} vs {dec}", s.at(3, 2));
+    }
 
     #[test]
     fn channel_and_crop_pick_the_right_pixels() {

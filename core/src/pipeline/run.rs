@@ -3,7 +3,7 @@
 //! Frame 0 is searched for targets ([`detect`]); later frames are not: each target is
 //! measured where the displacement of the frame
 //! [`PREDICT_LAG`](super::measure::PREDICT_LAG) back and the positions
-//! since predict it, on a small window of the measurement channel, which keeps a frame to a
+//! since predict it, on a small window of the measurement plane, which keeps a frame to a
 //! few milliseconds while the axis moves ([`Measurer`]: also on the threads that decode
 //! frames ahead).
 //! Everything a frame contributes is accumulated as it is pushed and the frame is then
@@ -22,7 +22,7 @@ use super::measure::{
     density_in_frame, measure_in_frame, windows_bottom, FrameEstimates, FrameZero, Measurer,
 };
 use super::options::WINDOW_MARGIN_PX;
-use super::plane::{Plane, Roi};
+use super::plane::{Mix, Plane, Roi};
 use super::reconstruct::{self, Fine, View};
 use super::register::{self, At, Dirs, StepLog};
 use super::*;
@@ -80,7 +80,7 @@ pub struct Pipeline {
     board: Option<Board>,
     detect_cfg: DetectConfig,
     size: Option<(u32, u32)>,
-    channel: usize,
+    mix: Mix,
     targets: Vec<Candidate>,
     skipped: Vec<Skipped>,
     /// `[target]`: what its frames accumulate into, or why it cannot be measured.
@@ -127,7 +127,7 @@ impl Pipeline {
             board,
             detect_cfg: DetectConfig::default(),
             size: None,
-            channel: 1,
+            mix: Mix::channel(1),
             targets: Vec::new(),
             skipped: Vec::new(),
             combining: Vec::new(),
@@ -239,7 +239,7 @@ impl Pipeline {
     /// target, less than waking rayon's threads costs while decoders hold the cores.
     fn add_windows(&mut self, frame: &RgbImage, shift_px: [f64; 2]) {
         let (w, h) = (frame.width() as usize, frame.height() as usize);
-        let (ch, k, response) = (self.channel, self.opts.k as usize, self.opts.response);
+        let (mix, k, response) = (self.mix, self.opts.k as usize, self.opts.response);
         // The integer part of the displacement moves the window, the rest is resampled.
         let (cx, cy) = (shift_px[0].round(), shift_px[1].round());
         let fine = reconstruct::fine_shift([shift_px[0] - cx, shift_px[1] - cy], k);
@@ -259,7 +259,7 @@ impl Pipeline {
                 w: tw.side,
                 h: tw.side,
             };
-            let crop = Plane::from_channel_roi_in(frame, ch, roi, response);
+            let crop = Plane::from_mix_roi_in(frame, mix, roi, response);
             tw.acc
                 .add(View::new(&crop.data, crop.width, crop.height), fine);
         });
@@ -447,14 +447,14 @@ impl Pipeline {
     }
 
     /// Frame 0: find the targets (and name those of the board in view that were not
-    /// found), fix the frame size and the measurement channel.
+    /// found), fix the frame size and the measurement plane.
     fn detect_frame_zero(&mut self, frame: &RgbImage) -> Result<(), PipelineError> {
         let got = frame.dimensions();
         let det = detect::detect(frame, &self.detect_cfg);
         if det.targets.is_empty() {
             return Err(PipelineError::NoTarget { index: 0 });
         }
-        self.channel = detect::measurement_channel(frame, &det);
+        self.mix = detect::measurement_mix(frame, &det);
         let mut skipped = det.skipped;
         if let Some(board) = &self.board {
             // A board target in view that detection neither found nor reported.
@@ -474,7 +474,7 @@ impl Pipeline {
 
     /// Frame 0's targets measured where detection found them, from its guesses.
     fn frame_zero_estimates(&self, frame: &RgbImage) -> Vec<Option<CentreEstimate>> {
-        let how = (self.channel, self.opts.response);
+        let how = (self.mix, self.opts.response);
         let fit = (self.opts.estimator, self.frames_ink());
         self.targets
             .par_iter()
@@ -583,7 +583,7 @@ impl Pipeline {
             .collect();
         let m = Measurer::new(FrameZero {
             size: self.size.expect("frame 0 detected"),
-            channel: self.channel,
+            mix: self.mix,
             response: self.opts.response,
             estimator: self.opts.estimator,
             ink: self.frames_ink(),
@@ -624,7 +624,7 @@ impl Pipeline {
             return;
         };
         maps.resize_with(est.len(), InkMap::default);
-        let how = (self.channel, self.opts.response);
+        let how = (self.mix, self.opts.response);
         let read: Vec<_> = self
             .targets
             .par_iter()
@@ -653,7 +653,7 @@ impl Pipeline {
             self.add_windows(frame, recon_px);
         }
         if let Some(whole) = self.whole.as_mut() {
-            let plane = Plane::from_channel_in(frame, self.channel, self.opts.response);
+            let plane = Plane::from_mix_in(frame, self.mix, self.opts.response);
             let fine = reconstruct::fine_shift(recon_px, self.opts.k as usize);
             whole.add(View::new(&plane.data, plane.width, plane.height), fine);
         }
