@@ -59,7 +59,7 @@ impl Mix {
     pub fn of_contrast(contrast: [f64; 3]) -> Mix {
         let c = contrast.map(|v| v.max(0.0));
         let sum: f64 = c.iter().sum();
-        if !(sum > 0.0) {
+        if sum <= 0.0 || !sum.is_finite() {
             return Mix::channel(1);
         }
         Mix {
