@@ -18,14 +18,17 @@ use rigd::daemon::session::SessionState;
 use rigd::hw::MotionState;
 use support::daemon::{events_until_end, rig_from_toml, submit, Daemon};
 
-/// A config rig: the sim axis (20 mm/s) behind the GRBL emulator, soft limits [0, 100 mm],
-/// at most 20 mm a move; a small fast camera.
+/// A config rig: the sim axis (10 mm/s: a long move lasts long enough to be seen running
+/// even when the machine is busy) behind the GRBL emulator, soft limits [0, 100 mm], at
+/// most 20 mm a move; a small fast camera.
 const RIG: &str = r#"
 [axis]
 driver = "sim"
 soft_min_um = 0.0
 soft_max_um = 100000.0
 max_step_um = 20000.0
+[axis.sim]
+max_speed_um_s = 10000.0
 [camera]
 driver = "sim"
 [camera.sim]
@@ -109,7 +112,7 @@ fn a_stop_mid_move_leaves_the_stage_short_of_its_target() {
     let mut c = d.client();
     move_to(&mut c, Some(1_000.0), None).unwrap();
     let socket = d.bg.socket.clone();
-    // 20 mm at 20 mm/s: about a second, on another connection.
+    // 20 mm at 10 mm/s: about two seconds, on another connection.
     let mover = std::thread::spawn(move || {
         let mut c = Client::connect(&socket).unwrap();
         // Behind a `position` the polls send, it waits its turn.
@@ -312,7 +315,7 @@ fn rig_state(c: &mut Client) -> serde_json::Value {
     c.request(&Request::Hello {}).unwrap()["rig_state"].clone()
 }
 
-/// Start a long move (20 mm at 20 mm/s, about a second) on its own connection; return once
+/// Start a long move (20 mm at 10 mm/s, about two seconds) on its own connection; return once
 /// `position` sees the axis on its way.
 fn long_move(d: &Daemon, c: &mut Client) -> std::thread::JoinHandle<MoveReply> {
     move_to(c, Some(1_000.0), None).unwrap();
