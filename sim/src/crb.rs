@@ -432,23 +432,17 @@ impl DensityModes {
         let mut cols = vec![vec![0.0f32; 3 * n]; self.weights.len()];
         // The image gradient of a function of the board point: Aᵀ·∇_board.
         let at = to_board.a.transpose();
+        let l2 = self.corr_um * self.corr_um;
         for px in 0..n {
             let (x, y) = (px % w as usize, px / w as usize);
             let p = to_board.board([(x0 as usize + x) as f64, (y0 as usize + y) as f64]);
-            let (mut c, mut cx, mut cy) = (Vec::new(), Vec::new(), Vec::new());
-            for &g in &self.grid {
-                let k = covariance(self.rms, self.corr_um, p, g);
-                let l2 = self.corr_um * self.corr_um;
-                c.push(k);
-                cx.push(-(p[0] - g[0]) / l2 * k);
-                cy.push(-(p[1] - g[1]) / l2 * k);
+            // The covariance to each grid point, and its derivative along x and y.
+            let g = self.grid.len();
+            let (mut c, mut cx, mut cy) = (DVector::zeros(g), DVector::zeros(g), DVector::zeros(g));
+            for (i, &q) in self.grid.iter().enumerate() {
+                let k = covariance(self.rms, self.corr_um, p, q);
+                (c[i], cx[i], cy[i]) = (k, -(p[0] - q[0]) / l2 * k, -(p[1] - q[1]) / l2 * k);
             }
-            let (c, cx, cy) = (
-                DVector::from_vec(c),
-                DVector::from_vec(cx),
-                DVector::from_vec(cy),
-            );
-
             for (col, wts) in cols.iter_mut().zip(&self.weights) {
                 let phi = c.dot(wts);
                 let gb = nalgebra::Vector2::new(cx.dot(wts), cy.dot(wts));

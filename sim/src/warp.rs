@@ -430,7 +430,7 @@ struct EdgeSum {
     c: f64,
     grad: [f64; 2],
     /// Per edge: sign·E″ and its normal, for the density's Hessian.
-    curv: [(f64, [f64; 2]); 4],
+    curv: [(f64, [f64; 2]); MAX_ACTIVE],
     n_curv: usize,
 }
 
@@ -480,13 +480,9 @@ impl InkTaylor {
         InkTaylor { e, g, h, var }
     }
 
-    fn trace(&self) -> f64 {
-        self.h[0] + self.h[2]
-    }
-
     /// A pixel all inked: the blurred density averaged over the pixel.
     fn flat(&self) -> f64 {
-        1.0 + self.e + self.trace() / 24.0
+        1.0 + self.e + (self.h[0] + self.h[2]) / 24.0
     }
 
     /// The blurred inked density at the sub-sample `o` px from the pixel's centre.

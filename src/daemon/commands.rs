@@ -164,8 +164,12 @@ fn queue(
     rig: &crate::rig::RigInfo,
     source: JobSource,
 ) -> Result<Queued, ProtoError> {
+    // The current calibration is read before the table is locked (it is a file); a scan
+    // pending then and finished before the lock still counts.
+    let scan_pending = calibration_pending(&shared.jobs());
+    let learnt = current_calibration_has_prior(shared);
     let mut jobs = shared.jobs();
-    let prior = ink_prior_may_be_taken(shared, &jobs);
+    let prior = learnt || scan_pending || calibration_pending(&jobs);
     let budget_mb = shared.settings.max_job_memory_mb;
     let memory_bytes = budget::check_memory(&plan, rig, budget_mb, prior).map_err(rejected)?;
     let disk = budget::disk_bytes(&plan, rig);
@@ -182,15 +186,18 @@ fn queue(
     })
 }
 
-/// Whether a job queued now may take a calibration's learnt ink prior when it runs: the
-/// current calibration has one, or a calibration job running or queued ahead of it may
-/// learn one (counted as if it will: the estimate errs high, not low).
-fn ink_prior_may_be_taken(shared: &Shared, jobs: &crate::daemon::Jobs) -> bool {
+/// Whether a calibration job is running or queued: it may learn an ink prior that the jobs
+/// queued behind it take (counted as if it will: the memory estimate errs high, not low).
+fn calibration_pending(jobs: &crate::daemon::Jobs) -> bool {
     jobs.pending().any(|r| r.spec.calibrate.is_some())
-        || crate::calibration_store::current(&shared.settings.data_root)
-            .ok()
-            .flatten()
-            .is_some_and(|a| a.calibration.ink.as_ref().and_then(|i| i.prior()).is_some())
+}
+
+/// Whether the current calibration learnt an ink prior, which every job takes when it runs.
+fn current_calibration_has_prior(shared: &Shared) -> bool {
+    crate::calibration_store::current(&shared.settings.data_root)
+        .ok()
+        .flatten()
+        .is_some_and(|a| a.calibration.ink.as_ref().and_then(|i| i.prior()).is_some())
 }
 
 fn refuse_if_stopping(shared: &Shared) -> Result<(), ProtoError> {

@@ -280,12 +280,7 @@ fn crop_window(
         inner_centre_px: mv(c.inner_centre_px),
         outer_radii_px: c.outer_radii_px,
         inner_radii_px: c.inner_radii_px,
-        roi: Roi {
-            x: 0,
-            y: 0,
-            w: crop.width as u32,
-            h: crop.height as u32,
-        },
+        roi: Roi::whole(crop.width, crop.height),
     };
     (crop, guess, [x0, y0])
 }

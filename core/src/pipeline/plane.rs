@@ -80,9 +80,10 @@ impl Mix {
         w[0] * lut[p[0] as usize] + w[1] * lut[p[1] as usize] + w[2] * lut[p[2] as usize]
     }
 
-    /// The pixels of one row (RGB) into `out`.
-    fn extend(&self, lut: &[f32; 256], row: &[u8], out: &mut Vec<f32>) {
-        match self.single() {
+    /// The pixels of one row (RGB) into `out`; `single` is [`Mix::single`] (one channel
+    /// reads one byte a pixel).
+    fn extend(&self, single: Option<usize>, lut: &[f32; 256], row: &[u8], out: &mut Vec<f32>) {
+        match single {
             Some(ch) => out.extend(row.chunks_exact(3).map(|p| lut[p[ch] as usize])),
             None => out.extend(row.chunks_exact(3).map(|p| self.value(lut, p))),
         }
@@ -152,8 +153,14 @@ impl Plane {
         let y1 = (roi.y as usize + roi.h as usize).min(ih);
         let raw = img.as_raw();
         let mut data = Vec::with_capacity((x1 - x0) * (y1 - y0));
+        let single = mix.single();
         for y in y0..y1 {
-            mix.extend(lut, &raw[(y * iw + x0) * 3..(y * iw + x1) * 3], &mut data);
+            mix.extend(
+                single,
+                lut,
+                &raw[(y * iw + x0) * 3..(y * iw + x1) * 3],
+                &mut data,
+            );
         }
         Plane {
             width: x1 - x0,
