@@ -31,6 +31,7 @@
 
 mod fit;
 pub mod ink;
+pub mod ink_field;
 mod lm;
 pub mod model;
 mod outliers;
@@ -40,6 +41,7 @@ pub mod scan;
 mod tests;
 
 pub use ink::{InkMap, InkStatistics};
+pub use ink_field::InkField;
 pub use model::FieldModel;
 pub use outliers::Rejected;
 pub use record::{

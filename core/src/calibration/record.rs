@@ -3,6 +3,7 @@
 
 use super::fit::{line_fit, FieldProblem, Layout, LineFit};
 use super::ink::InkStatistics;
+use super::ink_field::InkField;
 use super::lm::LmResult;
 use super::model::{FieldModel, PARAM_NAMES};
 use super::outliers::{self, Rejected};
@@ -137,6 +138,10 @@ pub struct Calibration {
     /// measurably uneven ([`InkStatistics::prior`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ink: Option<InkStatistics>,
+    /// Each target's own density, mapped by the scan when its statistics were learnt: a
+    /// job's prior is centred on its target's map ([`InkField`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub ink_fields: Vec<InkField>,
 }
 
 /// The circles' radii on the board, for the apparent-centre correction: the outer shape's
@@ -228,7 +233,13 @@ impl Calibration {
             field,
             rejected,
             ink: InkStatistics::estimate(&scan.ink_maps, scan.scale_um_per_px),
+            ink_fields: Vec::new(),
         };
+        if let Some(stats) = &cal.ink {
+            cal.ink_fields = (scan.ink_maps.iter().zip(&scan.targets))
+                .filter_map(|(m, t)| InkField::learn(m, t, stats, scan.scale_um_per_px))
+                .collect();
+        }
         cal.id = cal.content_id();
         Ok(cal)
     }
@@ -291,6 +302,16 @@ impl Calibration {
             }
         }
         Ok(warn)
+    }
+
+    /// The map of the target whose outer centre is at `centre_px` (outer rim `rim_px`): the
+    /// one whose scan track passes nearest, within half the rim.
+    pub fn ink_field_at(&self, centre_px: [f64; 2], rim_px: f64) -> Option<&InkField> {
+        (self.ink_fields.iter())
+            .map(|f| (f.distance_px(centre_px), f))
+            .filter(|(d, _)| *d < 0.5 * rim_px)
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(_, f)| f)
     }
 
     /// Convert an offset measured at `centre_px` (the outer circle's centre) of `offset_px`

@@ -38,9 +38,9 @@ struct Inner {
     mix: Mix,
     response: Response,
     estimator: Estimator,
-    /// The print's density as a prior for every frame's fit: when the frames' own fits are
-    /// the results (`combine = mean`).
-    ink: Option<PlaneInk>,
+    /// `[target]`: the print's density as a prior for every frame's fit, when the frames'
+    /// own fits are the results (`combine = mean`).
+    inks: Vec<Option<PlaneInk>>,
     registration: Registration,
     dirs: Dirs,
     targets: Vec<Candidate>,
@@ -78,7 +78,8 @@ pub struct FrameZero<'a> {
     pub mix: Mix,
     pub response: Response,
     pub estimator: Estimator,
-    pub ink: Option<PlaneInk>,
+    /// `[target]` (none: no prior for any).
+    pub inks: Vec<Option<PlaneInk>>,
     pub registration: Registration,
     pub dirs: Dirs,
     pub targets: &'a [Candidate],
@@ -93,7 +94,7 @@ impl Measurer {
             mix: f.mix,
             response: f.response,
             estimator: f.estimator,
-            ink: f.ink,
+            inks: f.inks,
             registration: f.registration,
             dirs: f.dirs,
             targets: f.targets.to_vec(),
@@ -180,11 +181,12 @@ impl Measurer {
         parallel: bool,
     ) -> Vec<Option<CentreEstimate>> {
         let m = &self.0;
-        let one = |(c, seed): (&Candidate, &Option<Seed>)| {
+        let one = |(t, (c, seed)): (usize, (&Candidate, &Option<Seed>))| {
             let how = (m.mix, m.response);
-            measure_in_frame(frame, how, (c, *seed), predicted_px, (m.estimator, m.ink))
+            let ink = m.inks.get(t).cloned().flatten();
+            measure_in_frame(frame, how, (c, *seed), predicted_px, (m.estimator, ink))
         };
-        let each = m.targets.iter().zip(&m.seeds);
+        let each = m.targets.iter().zip(&m.seeds).enumerate();
         if parallel {
             let each: Vec<_> = each.collect();
             each.into_par_iter().map(one).collect()
@@ -317,7 +319,7 @@ mod tests {
             mix: Mix::channel(0),
             response: Response::Linear,
             estimator: Estimator::Fit,
-            ink: None,
+            inks: Vec::new(),
             registration,
             dirs: Dirs {
                 scale_um_per_px,

@@ -27,7 +27,9 @@ use super::reconstruct::{self, Fine, View};
 use super::register::{self, At, Dirs, StepLog};
 use super::*;
 use crate::board::{Board, Shape};
-use crate::calibration::{Calibration, InkMap, Radii, TargetTrack, UNCALIBRATED_SCALE_REL_U};
+use crate::calibration::{
+    Calibration, InkField, InkMap, Radii, TargetTrack, UNCALIBRATED_SCALE_REL_U,
+};
 use image::RgbImage;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -475,18 +477,23 @@ impl Pipeline {
     /// Frame 0's targets measured where detection found them, from its guesses.
     fn frame_zero_estimates(&self, frame: &RgbImage) -> Vec<Option<CentreEstimate>> {
         let how = (self.mix, self.opts.response);
-        let fit = (self.opts.estimator, self.frames_ink());
-        self.targets
-            .par_iter()
-            .map(|c| measure_in_frame(frame, how, (c, None), [0.0; 2], fit))
+        let inks = self.frames_inks();
+        (self.targets.par_iter().enumerate())
+            .map(|(t, c)| {
+                let fit = (self.opts.estimator, inks[t].clone());
+                measure_in_frame(frame, how, (c, None), [0.0; 2], fit)
+            })
             .collect()
     }
 
-    /// The prior for the frames' own fits: only when they are the results (`combine =
-    /// mean`). Otherwise they register the frames against frame 0, all with one model.
-    fn frames_ink(&self) -> Option<PlaneInk> {
-        self.ink_in(1.0)
-            .filter(|_| self.opts.combine == Combine::Mean)
+    /// Each target's prior for the frames' own fits: only when they are the results
+    /// (`combine = mean`). Otherwise they register the frames against frame 0, all with one
+    /// model.
+    fn frames_inks(&self) -> Vec<Option<PlaneInk>> {
+        (0..self.targets.len())
+            .map(|t| self.ink_in(t, 1.0))
+            .map(|i| i.filter(|_| self.opts.combine == Combine::Mean))
+            .collect()
     }
 
     /// The print's density statistics the fit takes: the options', else (unless they say
@@ -502,12 +509,35 @@ impl Pipeline {
         cal.ink.as_ref().filter(|_| taken)?.prior()
     }
 
-    /// The print's density prior in the pixels of a plane `k` times finer than the camera's.
-    fn ink_in(&self, k: f64) -> Option<PlaneInk> {
-        self.ink_prior().map(|p| PlaneInk {
-            density_rms: p.density_rms,
-            corr_px: p.corr_um / self.opts.scale_um_per_px * k,
+    /// Target `t`'s density prior in the pixels of a plane `k` times finer than the
+    /// camera's: centred on the density the calibration mapped on it, when it did (and the
+    /// statistics are the calibration's).
+    fn ink_in(&self, t: usize, k: f64) -> Option<PlaneInk> {
+        let p = self.ink_prior()?;
+        let px_per_um = k / self.opts.scale_um_per_px;
+        let mapped = (self.calibration_ink().is_some())
+            .then(|| self.ink_field(t))
+            .flatten();
+        Some(match mapped {
+            Some(f) => PlaneInk {
+                density_rms: f.residual_rms,
+                corr_px: p.corr_um * px_per_um,
+                mean: Some(Arc::new(f.in_plane(px_per_um))),
+            },
+            None => PlaneInk {
+                density_rms: p.density_rms,
+                corr_px: p.corr_um * px_per_um,
+                mean: None,
+            },
         })
+    }
+
+    /// The calibration's map of target `t`'s ink: the one whose scan track passes through
+    /// the target's place in frame 0.
+    fn ink_field(&self, t: usize) -> Option<&InkField> {
+        let (cal, _) = self.calibration.as_ref()?;
+        let c = self.targets.get(t)?;
+        cal.ink_field_at(c.outer_centre_px, c.outer_radii_px[1])
     }
 
     /// Where frame `index` at `at` should be ([`Measurer::predicted`]); frame 0 where it is.
@@ -586,7 +616,7 @@ impl Pipeline {
             mix: self.mix,
             response: self.opts.response,
             estimator: self.opts.estimator,
-            ink: self.frames_ink(),
+            inks: self.frames_inks(),
             registration: self.opts.registration,
             dirs: self.dirs(),
             targets: &self.targets,
@@ -932,7 +962,7 @@ impl Pipeline {
             self.opts.estimator,
             kf,
             start,
-            self.ink_in(kf),
+            self.ink_in(t, kf),
         );
         if !self.keep_images {
             if let Ok(mut s) = spare.lock() {

@@ -10,7 +10,9 @@
 mod fit;
 mod paper;
 
-pub use fit::{DensitySample, InkShape, PlaneInk, PRIOR_PEAK_BYTES};
+pub use fit::{
+    DensitySample, InkMean, InkShape, PlaneInk, DENSITY_EDGE_MARGIN_S, PRIOR_PEAK_BYTES,
+};
 
 use super::accumulate::Lattice;
 use super::detect::{Candidate, Detection};
@@ -492,6 +494,7 @@ mod tests {
         let ink = PlaneInk {
             density_rms: 0.04,
             corr_px: 3.9,
+            mean: None,
         };
         let (mut even_sq, mut prior_sq) = (0.0, 0.0);
         for print in 0..8u64 {
@@ -559,6 +562,7 @@ mod tests {
         let ink = Some(PlaneInk {
             density_rms: 0.04,
             corr_px: 4.0,
+            mean: None,
         });
         let e = estimate_from(&plane, &guess, Estimator::Fit, 1.0, Start::Guess, ink).unwrap();
         let o = e.offset_px();

@@ -1,11 +1,12 @@
 //! The print's ink density read off a converged fit: inside a shape, away from its blurred
 //! edges, the model is `I = L·(1 − (1 + ε)·ink)`, so a pixel's residual `r` against the
-//! fit says `ε = −r / (L·ink)` there. The fit's own contrasts (and planes) have taken each
-//! shape's mean (and slope) of ε; what is read is the rest, which is what a calibration
-//! needs to learn the print's statistics ([`crate::calibration::ink`]).
+//! fit says `ε = −r / (L·ink)` there. The fit's own contrasts have taken each shape's mean
+//! of ε (its planes' slopes are put back); what is read is the rest, which is what a
+//! calibration needs to learn the print's statistics and map it
+//! ([`crate::calibration::ink`], [`crate::calibration::ink_field`]).
 
 use super::prior::samples;
-use super::{Problem, CXI, CXO, CYI, CYO, HOLE, MAXP, RI, RIH, RIM, S};
+use super::{Problem, CXI, CXO, CYI, CYO, GRADIENTS, HOLE, MAXP, RI, RIH, RIM, S};
 
 /// Which shape a density sample lies inside.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -25,10 +26,16 @@ pub struct DensitySample {
 
 /// How far inside a shape's edges a sample must lie, in blur widths (plus half a pixel):
 /// 2.5 s leaves under 1 % of the edge's blur in the pixel, far below the ink's own 4 %.
-const EDGE_MARGIN_S: f64 = 2.5;
+pub const EDGE_MARGIN_S: f64 = 2.5;
 
-/// Every sample of the fit inside a shape, with the density the residual says there.
+/// Every sample of the fit inside a shape, with the density the residual says there
+/// against each shape's contrast at its centre: a fit with contrast planes has its planes
+/// added back (they are the density's slope, which a map of the density needs).
 pub(super) fn read(prob: &Problem, p: &[f64; MAXP]) -> Vec<DensitySample> {
+    let mut flat = *p;
+    for i in GRADIENTS {
+        flat[i] = 0.0;
+    }
     let margin = EDGE_MARGIN_S * p[S] + 0.5 * prob.step as f64;
     let inner_hole = if prob.np == MAXP {
         p[RIH]
@@ -48,7 +55,7 @@ pub(super) fn read(prob: &Problem, p: &[f64; MAXP]) -> Vec<DensitySample> {
             } else {
                 return None;
             };
-            let row = prob.row_f64(p, s.fx, s.fy, s.v);
+            let row = prob.row_f64(&flat, s.fx, s.fy, s.v);
             let ink = row.l * (1.0 - row.shade);
             (ink > 0.0).then(|| DensitySample {
                 from_centre_px: [ox, oy],

@@ -29,8 +29,8 @@ mod edge;
 mod normal;
 mod prior;
 
-pub use density::{DensitySample, InkShape};
-pub use prior::{PlaneInk, PEAK_BYTES as PRIOR_PEAK_BYTES};
+pub use density::{DensitySample, InkShape, EDGE_MARGIN_S as DENSITY_EDGE_MARGIN_S};
+pub use prior::{InkMean, PlaneInk, PEAK_BYTES as PRIOR_PEAK_BYTES};
 
 use normal::Normal;
 
@@ -253,7 +253,7 @@ fn with_prior(
     let even = solve(prob, p, k, g, steps, None)?;
     let noise = even.residual_variance(prob).unwrap_or(1.0);
     let map =
-        prior::refine(prob, &even.p, ink, (noise, k)).ok_or_else(|| EstimateError::Diverged {
+        prior::refine(prob, &even.p, &ink, (noise, k)).ok_or_else(|| EstimateError::Diverged {
             iterations: 0,
             reason: "singular normal equations with the ink prior".into(),
         })?;

@@ -7,12 +7,46 @@
 use super::normal::Row;
 use super::{offset_block, Problem, B0, BX, BY, CXI, CXO, CYI, CYO, GRADIENTS, MAXP};
 use nalgebra::{DMatrix, DVector};
+use std::sync::Arc;
 
-/// The ink density's statistics ([`crate::pipeline::InkPrior`]) in a plane's pixels.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// The ink density's statistics ([`crate::pipeline::InkPrior`]) in a plane's pixels: with
+/// `mean`, the density the calibration scan mapped on this target, and `density_rms` what
+/// the map leaves unknown about it; without, a density of mean 0.
+#[derive(Debug, Clone, PartialEq)]
 pub struct PlaneInk {
     pub density_rms: f64,
     pub corr_px: f64,
+    pub mean: Option<Arc<InkMean>>,
+}
+
+/// A density the prior is centred on: Gaussian bumps about the target's outer centre, in a
+/// plane's pixels ([`crate::calibration::InkField`] learns them).
+#[derive(Debug, Clone, PartialEq)]
+pub struct InkMean {
+    /// `[dx, dy, weight]` from the outer centre.
+    pub bumps: Vec<[f64; 3]>,
+    pub width_px: f64,
+}
+
+impl InkMean {
+    /// The density at `d` from the outer centre, and its gradient.
+    pub fn at(&self, d: [f64; 2]) -> (f64, [f64; 2]) {
+        let inv_w2 = 1.0 / (self.width_px * self.width_px);
+        // Bumps beyond 6 widths add under 1e-8 of their weight.
+        let reach2 = 36.0 * self.width_px * self.width_px;
+        let (mut e, mut g) = (0.0, [0.0; 2]);
+        for &[bx, by, w] in &self.bumps {
+            let (dx, dy) = (d[0] - bx, d[1] - by);
+            let d2 = dx * dx + dy * dy;
+            if d2 > reach2 {
+                continue;
+            }
+            let v = w * (-0.5 * d2 * inv_w2).exp();
+            e += v;
+            g = [g[0] - v * dx * inv_w2, g[1] - v * dy * inv_w2];
+        }
+        (e, g)
+    }
 }
 
 /// Modes whose prior variance is at least this share of the largest's: the others move a
@@ -51,7 +85,7 @@ pub(super) struct Map {
 pub(super) fn refine(
     prob: &Problem,
     p: &[f64; MAXP],
-    prior: PlaneInk,
+    prior: &PlaneInk,
     (noise, k): (f64, f64),
 ) -> Option<Map> {
     let per_camera = ((k / prob.step as f64).floor() as usize).max(1);
@@ -68,10 +102,12 @@ pub(super) fn refine(
             [s2 * (j[CXO] + j[CXI]), s2 * (j[CYO] + j[CYI])]
         })
         .collect();
+    let known = known_density(p, prior.mean.as_deref(), &samples, &edge_weight);
     let post = Posterior {
         prob,
         phi: modes(p, prior, &samples, None),
         edge: modes(p, prior, &samples, Some(&edge_weight)),
+        known,
         samples,
         sigma2,
         base: (0..prob.np).filter(|a| !GRADIENTS.contains(a)).collect(),
@@ -93,6 +129,8 @@ struct Posterior<'a> {
     /// Each sample's change per mode through the edges' blur, `s²·∇φ·∇K` (see
     /// [`modes`]).
     edge: DMatrix<f64>,
+    /// Each sample's density and edges' move from the prior's mean ([`known_density`]).
+    known: Vec<(f64, f64)>,
     sigma2: f64,
     base: Vec<usize>,
 }
@@ -144,7 +182,7 @@ impl Posterior<'_> {
             .samples
             .iter()
             .enumerate()
-            .map(|(i, s)| row(self.prob, p, s, (eps[i], edge[i])).2.powi(2))
+            .map(|(i, s)| row(self.prob, p, s, self.density(i, &eps, &edge)).2.powi(2))
             .sum();
         data / self.sigma2 + a.norm_squared()
     }
@@ -177,7 +215,7 @@ impl Posterior<'_> {
             DVector::zeros(s.len()),
         );
         for (i, smp) in s.iter().enumerate() {
-            let (j, d, res) = row(self.prob, p, smp, (eps[i], edge[i]));
+            let (j, d, res) = row(self.prob, p, smp, self.density(i, &eps, &edge));
             for (c, &b) in base.iter().enumerate() {
                 jac[(i, c)] = j[b];
             }
@@ -191,6 +229,12 @@ impl Posterior<'_> {
             col.zip_zip_apply(&self.edge.column(k), &dl, |o, e, l| *o += l * e);
         }
         (jac, r)
+    }
+
+    /// Sample `i`'s density and edges' move: the mean's and the modes' (`eps`, `edge`).
+    fn density(&self, i: usize, eps: &DVector<f64>, edge: &DVector<f64>) -> (f64, f64) {
+        let (e0, m0) = self.known[i];
+        (e0 + eps[i], m0 + edge[i])
     }
 
     /// The offset's covariance from the parameters' `cov` (indexed as `base`).
@@ -246,13 +290,34 @@ pub(super) fn samples_at_most(prob: &Problem, min_thin: usize, max: usize) -> Ve
     out
 }
 
+/// Each sample's density from the prior's `mean` and its edges' move through the blur,
+/// `w·∇ε` with `w` the sample's `edge_weight` (as [`modes`] makes the modes'); zeros
+/// without a mean.
+fn known_density(
+    p: &[f64; MAXP],
+    mean: Option<&InkMean>,
+    s: &[Sample],
+    edge_weight: &[[f64; 2]],
+) -> Vec<(f64, f64)> {
+    let Some(mean) = mean else {
+        return vec![(0.0, 0.0); s.len()];
+    };
+    s.iter()
+        .zip(edge_weight)
+        .map(|(smp, w)| {
+            let (e, g) = mean.at([smp.at[0] - p[CXO], smp.at[1] - p[CYO]]);
+            (e, w[0] * g[0] + w[1] * g[1])
+        })
+        .collect()
+}
+
 /// Each sample's value of each mode (samples × modes): the field's Karhunen–Loève modes on
 /// a grid `corr/2` apart over the outer shape (its rim and blur, and half a correlation
 /// length beyond), extended between grid points by the covariance. With `along_gradient`,
 /// each mode's derivative along the sample's vector instead, `w·∇φ`.
 fn modes(
     p: &[f64; MAXP],
-    prior: PlaneInk,
+    prior: &PlaneInk,
     s: &[Sample],
     along_gradient: Option<&[[f64; 2]]>,
 ) -> DMatrix<f64> {
@@ -302,7 +367,7 @@ struct Grid {
 }
 
 impl Grid {
-    fn of(p: &[f64; MAXP], prior: PlaneInk) -> Grid {
+    fn of(p: &[f64; MAXP], prior: &PlaneInk) -> Grid {
         let reach = p[super::RIM] + 3.0 * p[super::S] + 0.5 * prior.corr_px;
         let spacing = (prior.corr_px / 2.0).max(reach / MAX_GRID_STEPS as f64);
         let k = ((reach / spacing).ceil() as i64).min(MAX_GRID_STEPS);

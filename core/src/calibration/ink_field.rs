@@ -1,0 +1,262 @@
+//! Each target's own ink density, mapped by the calibration scan: the fit's prior is then
+//! centred on it, and only what the map leaves unknown stays free ([`InkField`]).
+//!
+//! The scan's cells ([`InkMap`]) read the density inside each shape, blurred by the fits'
+//! blur width and the 1 px cells, less what each frame's fit took into its contrast (a mean
+//! per shape), plus the cells' noise. With the print's statistics known
+//! ([`InkStatistics`]), the density itself follows by kriging: its best linear unbiased
+//! predictor, the per-shape constant an unknown trend. It is a sum of Gaussian bumps at the
+//! cells (the field's covariance with a blurred cell), which is what a job evaluates. What
+//! the map leaves unknown is largest at the shapes' edges, beyond the last cells and where
+//! the fit reads the offset: its RMS there is the job's prior RMS.
+
+use super::ink::{InkMap, InkStatistics};
+use super::scan::TargetTrack;
+use crate::pipeline::{InkMean, DENSITY_EDGE_MARGIN_S};
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+/// One target's ink density as the scan mapped it, on the board.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InkField {
+    /// The target's outer centre in the first and the last frame of the scan that measured
+    /// it, px: a job's target on this segment (or near it) is this one.
+    pub track_px: [[f64; 2]; 2],
+    /// The density: Gaussian bumps `[dx, dy, weight]` about the outer centre (µm on the
+    /// board, image axes), each `bump_width_um` wide.
+    pub bumps_um: Vec<[f64; 3]>,
+    pub bump_width_um: f64,
+    /// RMS of the density the map leaves unknown at the shapes' edges.
+    pub residual_rms: f64,
+}
+
+/// Fewest frames behind a cell (its noise is the scatter of its readings).
+const MIN_CELL_FRAMES: u32 = 4;
+/// Fewest cells in a map (a constant per shape is the trend).
+const MIN_CELLS: usize = 24;
+/// Most cells kriged (more are thinned on a lattice: the solve is cubic).
+const MAX_CELLS: usize = 400;
+
+impl InkField {
+    /// Target `track`'s field from its `map`, the print's statistics `stats`, the scan's
+    /// scale; `None` with too few cells or a singular system.
+    pub fn learn(
+        map: &InkMap,
+        track: &TargetTrack,
+        stats: &InkStatistics,
+        scale_um_per_px: f64,
+    ) -> Option<InkField> {
+        let cells = Cells::of(map)?;
+        let corr_px = stats.corr_um / scale_um_per_px;
+        let w2 = stats.blur_px * stats.blur_px + 1.0 / 12.0;
+        let krige = Kriging::new(&cells, stats.density_rms, corr_px, w2)?;
+        // The density samples lie this far inside the shapes' edges: the edges are that
+        // far beyond the last cells.
+        let margin = DENSITY_EDGE_MARGIN_S * stats.blur_px + 0.5;
+        let residual = krige.variance_at(&cells.edge_band(margin)?)?;
+        let ends = track_ends(track)?;
+        let weight = krige.bump_weight();
+        Some(InkField {
+            track_px: ends,
+            bumps_um: (cells.at.iter().zip(krige.lambda.iter()))
+                .map(|(a, l)| [a[0] * scale_um_per_px, a[1] * scale_um_per_px, weight * l])
+                .collect(),
+            bump_width_um: krige.bump_width_px * scale_um_per_px,
+            residual_rms: residual.sqrt(),
+        })
+    }
+
+    /// The density at `d_um` from the outer centre.
+    pub fn at(&self, d_um: [f64; 2]) -> f64 {
+        self.in_plane(1.0).at(d_um).0
+    }
+
+    /// The field in the pixels of a plane of `px_per_um`.
+    pub fn in_plane(&self, px_per_um: f64) -> InkMean {
+        InkMean {
+            bumps: (self.bumps_um.iter())
+                .map(|b| [b[0] * px_per_um, b[1] * px_per_um, b[2]])
+                .collect(),
+            width_px: self.bump_width_um * px_per_um,
+        }
+    }
+
+    /// How far `centre_px` lies from the scan's track of this target, px.
+    pub fn distance_px(&self, centre_px: [f64; 2]) -> f64 {
+        let [a, b] = self.track_px;
+        let (ab, ap) = (
+            [b[0] - a[0], b[1] - a[1]],
+            [centre_px[0] - a[0], centre_px[1] - a[1]],
+        );
+        let len2 = ab[0] * ab[0] + ab[1] * ab[1];
+        let t = if len2 > 0.0 {
+            ((ap[0] * ab[0] + ap[1] * ab[1]) / len2).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        (ap[0] - t * ab[0]).hypot(ap[1] - t * ab[1])
+    }
+}
+
+/// The first and last centres a track measured.
+fn track_ends(track: &TargetTrack) -> Option<[[f64; 2]; 2]> {
+    let mut seen = track.centres_px.iter().flatten();
+    let first = *seen.next()?;
+    Some([first, *seen.last().unwrap_or(&first)])
+}
+
+/// A map's cells read often enough: where (px from the outer centre), their means, the
+/// noise of each mean, and which shape.
+struct Cells {
+    at: Vec<[f64; 2]>,
+    mean: DVector<f64>,
+    noise: Vec<f64>,
+    inner: Vec<bool>,
+}
+
+impl Cells {
+    fn of(map: &InkMap) -> Option<Cells> {
+        let read: Vec<_> = (map.cells.iter())
+            .filter(|c| c.n >= MIN_CELL_FRAMES)
+            .collect();
+        // A large target's cells on a coarser lattice.
+        let t = ((read.len() as f64 / MAX_CELLS as f64).sqrt().ceil() as i32).max(1);
+        let cells: Vec<_> = (read.into_iter())
+            .filter(|c| c.at[0].rem_euclid(t) == 0 && c.at[1].rem_euclid(t) == 0)
+            .collect();
+        if cells.len() < MIN_CELLS {
+            return None;
+        }
+        // A reading's variance, pooled over the cells; each mean's, over its count.
+        let var = (cells.iter())
+            .map(|c| {
+                let m = c.sum / c.n as f64;
+                (c.sum2 - c.n as f64 * m * m).max(0.0) / (c.n - 1) as f64
+            })
+            .sum::<f64>()
+            / cells.len() as f64;
+        Some(Cells {
+            at: cells.iter().map(|c| c.at.map(f64::from)).collect(),
+            mean: DVector::from_iterator(cells.len(), cells.iter().map(|c| c.sum / c.n as f64)),
+            noise: cells.iter().map(|c| var / c.n as f64).collect(),
+            inner: cells.iter().map(|c| c.inner).collect(),
+        })
+    }
+
+    /// The trend each frame's fit took: a constant per shape, its contrast (a shape
+    /// without cells has no column).
+    fn trend(&self) -> DMatrix<f64> {
+        let shapes: Vec<bool> = [false, true]
+            .into_iter()
+            .filter(|s| self.inner.contains(s))
+            .collect();
+        DMatrix::from_fn(self.at.len(), shapes.len(), |i, j| {
+            f64::from(u8::from(self.inner[i] == shapes[j]))
+        })
+    }
+
+    /// Points on a half-pixel lattice `margin` (±½ px) from the nearest cell: about the
+    /// shapes' edges.
+    fn edge_band(&self, margin: f64) -> Option<Vec<[f64; 2]>> {
+        let reach = margin + 1.0;
+        let lo = self
+            .at
+            .iter()
+            .fold([f64::MAX; 2], |m, a| [m[0].min(a[0]), m[1].min(a[1])]);
+        let hi = self
+            .at
+            .iter()
+            .fold([f64::MIN; 2], |m, a| [m[0].max(a[0]), m[1].max(a[1])]);
+        let steps = |a: usize| (2.0 * (hi[a] - lo[a] + 2.0 * reach)).ceil() as usize;
+        let mut out = Vec::new();
+        for j in 0..=steps(1) {
+            for i in 0..=steps(0) {
+                let p = [
+                    lo[0] - reach + 0.5 * i as f64,
+                    lo[1] - reach + 0.5 * j as f64,
+                ];
+                let d2 = (self.at.iter())
+                    .map(|a| (a[0] - p[0]).powi(2) + (a[1] - p[1]).powi(2))
+                    .fold(f64::MAX, f64::min);
+                if (d2.sqrt() - margin).abs() <= 0.5 {
+                    out.push(p);
+                }
+            }
+        }
+        (!out.is_empty()).then_some(out)
+    }
+}
+
+/// Universal kriging of the density from the cells: `λ = C⁻¹(c − Xβ̂)`, the predictor
+/// `Σ λᵢ·cov(ε(y), cᵢ)`.
+struct Kriging<'a> {
+    cells: &'a Cells,
+    chol: nalgebra::Cholesky<f64, nalgebra::Dyn>,
+    trend: DMatrix<f64>,
+    /// `(XᵀC⁻¹X)⁻¹`.
+    trend_cov: DMatrix<f64>,
+    lambda: DVector<f64>,
+    rms2: f64,
+    corr2: f64,
+    w2: f64,
+    bump_width_px: f64,
+}
+
+impl<'a> Kriging<'a> {
+    fn new(cells: &'a Cells, rms: f64, corr_px: f64, w2: f64) -> Option<Kriging<'a>> {
+        let (rms2, corr2) = (rms * rms, corr_px * corr_px);
+        let n = cells.at.len();
+        // Two blurred cells: the field's covariance widened by both blurs.
+        let wide = corr2 + 2.0 * w2;
+        let c = DMatrix::from_fn(n, n, |i, j| {
+            let d2 = dist2(cells.at[i], cells.at[j]);
+            let noise = if i == j { cells.noise[i] } else { 0.0 };
+            rms2 * corr2 / wide * (-0.5 * d2 / wide).exp() + noise
+        });
+        let chol = c.cholesky()?;
+        let trend = cells.trend();
+        let ci_x = chol.solve(&trend);
+        let trend_cov = (trend.transpose() * &ci_x).try_inverse()?;
+        let beta = &trend_cov * (ci_x.transpose() * &cells.mean);
+        let lambda = chol.solve(&(&cells.mean - &trend * beta));
+        Some(Kriging {
+            cells,
+            chol,
+            trend,
+            trend_cov,
+            lambda,
+            rms2,
+            corr2,
+            w2,
+            bump_width_px: (corr2 + w2).sqrt(),
+        })
+    }
+
+    /// The weight of a bump per unit λ: the field's covariance with one blurred cell at 0.
+    fn bump_weight(&self) -> f64 {
+        self.rms2 * self.corr2 / (self.corr2 + self.w2)
+    }
+
+    /// The predictor's error variance, averaged over `points`:
+    /// `σ² − kᵀC⁻¹k + uᵀ(XᵀC⁻¹X)⁻¹u`, `u = XᵀC⁻¹k`.
+    fn variance_at(&self, points: &[[f64; 2]]) -> Option<f64> {
+        let inv_2w = 0.5 / (self.bump_width_px * self.bump_width_px);
+        let k = DMatrix::from_fn(self.cells.at.len(), points.len(), |i, j| {
+            self.bump_weight() * (-dist2(self.cells.at[i], points[j]) * inv_2w).exp()
+        });
+        let ci_k = self.chol.solve(&k);
+        let u = self.trend.transpose() * &ci_k;
+        let var: f64 = (0..points.len())
+            .map(|j| {
+                let (kj, cj, uj) = (k.column(j), ci_k.column(j), u.column(j));
+                let trend = (uj.transpose() * &self.trend_cov * uj)[(0, 0)];
+                (self.rms2 - kj.dot(&cj) + trend).max(0.0)
+            })
+            .sum();
+        Some(var / points.len() as f64)
+    }
+}
+
+fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
+    (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)
+}
