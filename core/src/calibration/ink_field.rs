@@ -260,3 +260,142 @@ impl<'a> Kriging<'a> {
 fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
     (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::{DensitySample, InkShape};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+    use rand_distr::{Distribution, StandardNormal};
+
+    /// A Gaussian field (many random plane waves) of 4 % RMS over 4 px, read unblurred over
+    /// 21 frames at random sub-pixel places with 0.5 % noise inside a disk of radius 5 px
+    /// and a ring from 10 to 17 px, each shape's mean taken out per frame; and the field.
+    fn scanned(seed: u64) -> (InkMap, impl Fn([f64; 2]) -> f64) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut normal = move |r: &mut ChaCha8Rng| -> f64 { StandardNormal.sample(r) };
+        let waves: Vec<([f64; 2], f64)> = (0..400)
+            .map(|_| {
+                let k = [normal(&mut rng) / 4.0, normal(&mut rng) / 4.0];
+                (k, rng.gen::<f64>() * std::f64::consts::TAU)
+            })
+            .collect();
+        let amp = 0.04 * (2.0 / waves.len() as f64).sqrt();
+        let field = move |q: [f64; 2]| -> f64 {
+            (waves.iter())
+                .map(|(k, ph)| (k[0] * q[0] + k[1] * q[1] + ph).cos())
+                .sum::<f64>()
+                * amp
+        };
+        let mut map = InkMap::default();
+        for _ in 0..21 {
+            let jitter = [rng.gen::<f64>() - 0.5, rng.gen::<f64>() - 0.5];
+            let mut samples = Vec::new();
+            for (ix, iy) in (-17..=17).flat_map(|y| (-17..=17).map(move |x| (x, y))) {
+                let p = [ix as f64 + jitter[0], iy as f64 + jitter[1]];
+                let shape = match p[0].hypot(p[1]) {
+                    r if r < 5.0 => InkShape::Inner,
+                    r if r > 10.0 && r < 17.0 => InkShape::Outer,
+                    _ => continue,
+                };
+                let density = field(p) + 0.005 * normal(&mut rng);
+                samples.push(DensitySample {
+                    from_centre_px: p,
+                    shape,
+                    density,
+                });
+            }
+            for shape in [InkShape::Inner, InkShape::Outer] {
+                let of = |s: &&DensitySample| s.shape == shape;
+                let n = samples.iter().filter(of).count() as f64;
+                let mean = samples.iter().filter(of).map(|s| s.density).sum::<f64>() / n;
+                (samples.iter_mut())
+                    .filter(|s| s.shape == shape)
+                    .for_each(|s| s.density -= mean);
+            }
+            map.add(&samples, 0.0);
+        }
+        (map, field)
+    }
+
+    fn stats() -> InkStatistics {
+        InkStatistics {
+            density_rms: 0.04,
+            u_density_rms: 0.001,
+            corr_um: 4.0,
+            u_corr_um: 0.1,
+            observed_rms: 0.04,
+            observed_corr_px: 4.0,
+            blur_px: 0.0,
+            shapes: 2,
+            cells: 0,
+        }
+    }
+
+    /// Inside the shapes the map is the field to the cells' noise; half a pixel beyond
+    /// the ring, where the fit reads its edge, it still tells most of it (means over each
+    /// circle removed: the fit's contrast takes them), and it says no less than it leaves.
+    /// Measured over 6 prints: 0.045 and 0.134 of the field's variation; stated 0.26, as
+    /// it counts each shape's unknown mean too (on the webcam's frames, whose readings
+    /// are not as clean, 2.06 % left against 2.2-2.4 % stated: `webcam_accuracy`).
+    #[test]
+    fn the_map_is_the_density_inside_and_near_the_shapes() {
+        let track = TargetTrack {
+            name: None,
+            centres_px: vec![Some([100.0, 50.0]), None, Some([130.0, 50.0])],
+            outer_radius_px: 17.0,
+            inner_radius_px: 5.0,
+        };
+        let mut sums = [[0.0; 2]; 2];
+        let mut stated = 0.0;
+        for seed in 0..6 {
+            let (map, field) = scanned(seed);
+            let f = InkField::learn(&map, &track, &stats(), 1.0).expect("learnt");
+            assert_eq!(f.track_px, [[100.0, 50.0], [130.0, 50.0]]);
+            stated += f.residual_rms.powi(2) / 0.04f64.powi(2) / 6.0;
+            for (i, r) in [3.0, 17.5].into_iter().enumerate() {
+                let d: Vec<[f64; 2]> = (0..64)
+                    .map(|j| {
+                        let a = j as f64 * std::f64::consts::TAU / 64.0;
+                        let p = [r * a.cos(), r * a.sin()];
+                        [field(p), f.at(p) - field(p)]
+                    })
+                    .collect();
+                for k in 0..2 {
+                    let m = d.iter().map(|v| v[k]).sum::<f64>() / 64.0;
+                    sums[i][k] += d.iter().map(|v| (v[k] - m).powi(2)).sum::<f64>();
+                }
+            }
+        }
+        let [inside, edge] = sums.map(|s| (s[1] / s[0]).sqrt());
+        let stated = stated.sqrt();
+        println!("map's error / the field's: inside {inside:.3}, at the rim {edge:.3}; stated {stated:.3}");
+        assert!(inside < 0.06, "{inside}");
+        assert!(edge < 0.17 && stated > edge && stated < 2.2 * edge, "{edge} {stated}");
+    }
+
+    /// A job's target is the one whose scan track passes nearest, within half its rim.
+    #[test]
+    fn a_target_is_matched_to_the_track_it_lies_on() {
+        let (map, _) = scanned(1);
+        let track = |y: f64| TargetTrack {
+            name: None,
+            centres_px: vec![Some([100.0, y]), Some([130.0, y])],
+            outer_radius_px: 17.0,
+            inner_radius_px: 5.0,
+        };
+        let f = InkField::learn(&map, &track(50.0), &stats(), 1.0).unwrap();
+        assert_eq!(f.distance_px([115.0, 53.0]), 3.0);
+        assert_eq!(f.distance_px([96.0, 47.0]), 5.0);
+        let cal = super::super::tests::some_calibration(vec![
+            f.clone(),
+            InkField {
+                track_px: [[100.0, 90.0], [130.0, 90.0]],
+                ..f.clone()
+            },
+        ]);
+        let at = |y| cal.ink_field_at([120.0, y], 17.0).map(|f| f.track_px[0][1]);
+        assert_eq!((at(52.0), at(85.0), at(70.0)), (Some(50.0), Some(90.0), None));
+    }
+}

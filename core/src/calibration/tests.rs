@@ -90,6 +90,12 @@ fn param(c: &Calibration, name: &str) -> Estimate {
         .clone()
 }
 
+/// A calibration of the true field, with these maps of the targets' ink.
+pub(super) fn some_calibration(ink_fields: Vec<super::InkField>) -> Calibration {
+    let cal = Calibration::fit(&scan(&truth(), 0.01, 1), &FitOptions::default()).unwrap();
+    Calibration { ink_fields, ..cal }
+}
+
 #[test]
 fn the_field_fit_recovers_a_known_homography_and_distortion() {
     let m = truth();
