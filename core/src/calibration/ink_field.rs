@@ -372,7 +372,10 @@ mod tests {
         let stated = stated.sqrt();
         println!("map's error / the field's: inside {inside:.3}, at the rim {edge:.3}; stated {stated:.3}");
         assert!(inside < 0.06, "{inside}");
-        assert!(edge < 0.17 && stated > edge && stated < 2.2 * edge, "{edge} {stated}");
+        assert!(
+            edge < 0.17 && stated > edge && stated < 2.2 * edge,
+            "{edge} {stated}"
+        );
     }
 
     /// A job's target is the one whose scan track passes nearest, within half its rim.
@@ -396,6 +399,9 @@ mod tests {
             },
         ]);
         let at = |y| cal.ink_field_at([120.0, y], 17.0).map(|f| f.track_px[0][1]);
-        assert_eq!((at(52.0), at(85.0), at(70.0)), (Some(50.0), Some(90.0), None));
+        assert_eq!(
+            (at(52.0), at(85.0), at(70.0)),
+            (Some(50.0), Some(90.0), None)
+        );
     }
 }
