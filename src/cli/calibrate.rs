@@ -187,9 +187,18 @@ fn ink_line(cal: &Calibration) -> String {
         return "  print's ink: not resolved by the scan (jobs take the print as evenly inked)\n"
             .into();
     };
-    let taken = match i.prior() {
-        Some(_) => "jobs take it as the fit's prior",
-        None => "even enough: jobs take the print as evenly inked",
+    let maps = &cal.ink_fields;
+    let taken = match (i.prior(), maps.is_empty()) {
+        (Some(_), true) => "jobs take it as the fit's prior".to_string(),
+        (Some(_), false) => {
+            let left = maps.iter().map(|f| f.residual_rms).sum::<f64>() / maps.len() as f64;
+            format!(
+                "jobs take it as the fit's prior, centred on {} targets' maps ({:.2} % left unknown at the edges)",
+                maps.len(),
+                100.0 * left
+            )
+        }
+        (None, _) => "even enough: jobs take the print as evenly inked".to_string(),
     };
     format!(
         "  print's ink: density RMS {:.2} % ± {:.2} %, correlation {:.0} ± {:.0} µm ({} shapes, blur {:.2} px): {taken}\n",

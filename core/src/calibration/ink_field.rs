@@ -274,7 +274,7 @@ mod tests {
     /// and a ring from 10 to 17 px, each shape's mean taken out per frame; and the field.
     fn scanned(seed: u64) -> (InkMap, impl Fn([f64; 2]) -> f64) {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let mut normal = move |r: &mut ChaCha8Rng| -> f64 { StandardNormal.sample(r) };
+        let normal = move |r: &mut ChaCha8Rng| -> f64 { StandardNormal.sample(r) };
         let waves: Vec<([f64; 2], f64)> = (0..400)
             .map(|_| {
                 let k = [normal(&mut rng) / 4.0, normal(&mut rng) / 4.0];

@@ -142,6 +142,13 @@ pub struct CalibrationUsed {
     /// The print's ink statistics it learnt, when the run took them as the fit's prior.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ink_prior: Option<InkPrior>,
+    /// How many targets' priors were centred on its map of their ink.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub ink_maps: usize,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// A target candidate that was found but not measured, and why.

@@ -795,6 +795,13 @@ impl Pipeline {
                 source: source.clone(),
                 warnings: self.calibration_warnings.clone(),
                 ink_prior: self.calibration_ink(),
+                ink_maps: (self.calibration_ink().is_some())
+                    .then(|| {
+                        (0..self.targets.len())
+                            .filter_map(|t| self.ink_field(t))
+                            .count()
+                    })
+                    .unwrap_or(0),
             })
     }
 
