@@ -795,14 +795,18 @@ impl Pipeline {
                 source: source.clone(),
                 warnings: self.calibration_warnings.clone(),
                 ink_prior: self.calibration_ink(),
-                ink_maps: (self.calibration_ink().is_some())
-                    .then(|| {
-                        (0..self.targets.len())
-                            .filter_map(|t| self.ink_field(t))
-                            .count()
-                    })
-                    .unwrap_or(0),
+                ink_maps: self.ink_maps_taken(),
             })
+    }
+
+    /// How many targets' priors are centred on the calibration's map of their ink.
+    fn ink_maps_taken(&self) -> usize {
+        if self.calibration_ink().is_none() {
+            return 0;
+        }
+        (0..self.targets.len())
+            .filter(|&t| self.ink_field(t).is_some())
+            .count()
     }
 
     /// The recorded tracks, named by the board as the objects are.
