@@ -46,6 +46,31 @@ impl Print {
         self.edges.get(target)?.get(edge)?.as_ref()
     }
 
+    /// How far the printed offset (inner minus outer centre) lies from the designed one,
+    /// µm: each shape's centre the least-squares one of its rough edges, weighted by their
+    /// radii (an edge's length, hence what a fit of the shape reads of it).
+    pub fn offset_shift_um(&self, board: &Board, target: usize) -> [f64; 2] {
+        let t = &board.targets[target];
+        let radii = shape_radii(&t.outer, &t.inner);
+        let centre = |edges: [usize; 2]| {
+            let (mut c, mut w) = ([0.0; 2], 0.0);
+            for e in edges {
+                if let (Some(r), Some(edge)) = (radii[e], self.edge(target, e)) {
+                    let s = edge.centre_shift_um();
+                    c = [c[0] + r * s[0], c[1] + r * s[1]];
+                    w += r;
+                }
+            }
+            if w > 0.0 {
+                [c[0] / w, c[1] / w]
+            } else {
+                c
+            }
+        };
+        let (o, i) = (centre([0, 1]), centre([2, 3]));
+        [i[0] - o[0], i[1] - o[1]]
+    }
+
     pub fn density(&self) -> Option<&InkDensity> {
         self.density.as_ref()
     }
