@@ -765,8 +765,9 @@ fn noiseless_bias_of_each_shape() {
 }
 
 /// The calibration scan learns the print's ink statistics; rigd is not told the sim's (4 %
-/// RMS over 3 mm). Measured on layout 11: RMS 4.36 % (u 0.21 %), correlation 2833 µm
-/// (u 87 µm), the lens blur undone, in the contrast-weighted plane (in green alone 3.90 %,
+/// RMS over 3 mm). Measured on layout 11: RMS 4.27 % (u 0.22 %), correlation 3205 µm
+/// (u 131 µm), the lens blur undone, in the contrast-weighted plane, each target's cells
+/// together (each shape alone: 4.36 %, 2833 µm; in green alone 3.90 %,
 /// 2767 µm; on the sim before it blurred the density, 4.10 / 3.88 / 4.09 % and 2718 /
 /// 2747 / 2819 µm on layouts 11 / 12 / 13). On the ideal camera's even print it finds no
 /// unevenness worth a prior.

@@ -5,10 +5,10 @@
 //! Each frame of the scan gives, inside every target's shapes, the density its fit's
 //! residuals say ([`crate::pipeline::ink_density`]). Those are binned on the board, 1 px
 //! cells from the target's outer centre ([`InkMap`]): the print moves with the board, the
-//! frames' noise averages away. Each shape's cells then hold the density less the mean and
-//! slope the fit's contrast took (a plane per shape is projected out), blurred by the lens
-//! and the pixels, plus the cells' noise. The statistics are fitted by restricted maximum
-//! likelihood: a Gaussian covariance `σ²·exp(−d²/2ℓ²)` of the cells within a shape, the
+//! frames' noise averages away. Each shape's cells then hold the density less the mean the
+//! fit's contrast took (a constant per shape is projected out), blurred by the lens and
+//! the pixels, plus the cells' noise. The statistics are fitted by restricted maximum
+//! likelihood: a Gaussian covariance `σ²·exp(−d²/2ℓ²)` of the cells within a target, the
 //! noise from each cell's own scatter, σ profiled on a grid of ℓ. The fitted field is the
 //! blurred one: a Gaussian blur of width s (the fit's, lens and pixel) and the cells' 1 px
 //! boxes widen ℓ² by 2s² + 1/6 and keep σ²ℓ², which is undone to give the print's own.
@@ -94,10 +94,10 @@ pub struct InkStatistics {
 
 /// Fewest frames behind a cell (its noise is its own scatter).
 const MIN_CELL_FRAMES: u32 = 4;
-/// Fewest cells in a shape (a plane, 3 of them, is projected out).
-const MIN_SHAPE_CELLS: usize = 12;
-/// Most cells of one shape the likelihood reads (more are thinned on a lattice).
-const MAX_SHAPE_CELLS: usize = 160;
+/// Fewest cells in a target (a constant per shape is projected out).
+const MIN_TARGET_CELLS: usize = 12;
+/// Most cells of one target the likelihood reads (more are thinned on a lattice).
+const MAX_TARGET_CELLS: usize = 160;
 /// The density is taken as uneven, and the prior used, when its RMS is this many standard
 /// uncertainties above 0 ...
 const SIGNIFICANT_U: f64 = 3.0;
@@ -112,11 +112,7 @@ impl InkStatistics {
     pub fn estimate(maps: &[InkMap], scale_um_per_px: f64) -> Option<InkStatistics> {
         let fits: u32 = maps.iter().map(|m| m.fits).sum();
         let blur_px = maps.iter().map(|m| m.blur_px_sum).sum::<f64>() / fits.max(1) as f64;
-        let shapes: Vec<ShapeCells> = maps
-            .iter()
-            .flat_map(|m| [false, true].map(|inner| ShapeCells::of(m, inner)))
-            .flatten()
-            .collect();
+        let shapes: Vec<ShapeCells> = maps.iter().filter_map(ShapeCells::of).collect();
         if shapes.is_empty() {
             return None;
         }
@@ -138,8 +134,8 @@ impl InkStatistics {
             observed_rms: (0.5 * fit.at[0]).exp(),
             observed_corr_px: fit.at[1].exp(),
             blur_px,
-            shapes: shapes.len(),
-            cells: shapes.iter().map(|s| s.y.len() + 3).sum(),
+            shapes: shapes.iter().map(|s| s.shapes).sum(),
+            cells: shapes.iter().map(|s| s.at.len()).sum(),
         })
     }
 
@@ -179,11 +175,16 @@ fn board_u(board: &impl Fn([f64; 2]) -> Option<[f64; 2]>, fit: &Reml) -> Option<
     }))
 }
 
-/// One shape's cells with a plane projected out: where, their means in the projection's
-/// basis, the noise of a cell's mean.
+/// One target's cells, both shapes, each shape's constant projected out (the contrast its
+/// fits took): where, their means in the projection's basis, the noise of a cell's mean.
+/// Both shapes together: a ring a few cells wide says little of the correlation alone, but
+/// much with the disk inside it.
 struct ShapeCells {
     at: Vec<[f64; 2]>,
-    /// The projection's basis (cells x (cells − 3)), orthonormal, orthogonal to 1, x, y.
+    /// The shapes read (1 or 2).
+    shapes: usize,
+    /// The projection's basis (cells x (cells − shapes)), orthonormal, orthogonal to each
+    /// shape's indicator.
     basis: DMatrix<f64>,
     /// The cells' means in that basis.
     y: DVector<f64>,
@@ -191,11 +192,11 @@ struct ShapeCells {
 }
 
 impl ShapeCells {
-    fn of(map: &InkMap, inner: bool) -> Option<ShapeCells> {
-        let read = |c: &&InkCell| c.inner == inner && c.n >= MIN_CELL_FRAMES;
+    fn of(map: &InkMap) -> Option<ShapeCells> {
+        let read = |c: &&InkCell| c.n >= MIN_CELL_FRAMES;
         let all = map.cells.iter().filter(read).count();
-        // A large shape's cells on a coarser lattice (the likelihood's cost is cubic).
-        let t = ((all as f64 / MAX_SHAPE_CELLS as f64).sqrt().ceil() as i32).max(1);
+        // A large target's cells on a coarser lattice (the likelihood's cost is cubic).
+        let t = ((all as f64 / MAX_TARGET_CELLS as f64).sqrt().ceil() as i32).max(1);
         let cells: Vec<&InkCell> = map
             .cells
             .iter()
@@ -203,7 +204,7 @@ impl ShapeCells {
             .filter(|c| c.at[0].rem_euclid(t) == 0 && c.at[1].rem_euclid(t) == 0)
             .collect();
         let n = cells.len();
-        if n < MIN_SHAPE_CELLS {
+        if n < MIN_TARGET_CELLS {
             return None;
         }
         let at: Vec<[f64; 2]> = cells.iter().map(|c| c.at.map(f64::from)).collect();
@@ -217,7 +218,13 @@ impl ShapeCells {
             })
             .sum::<f64>()
             / n as f64;
-        let g = DMatrix::from_fn(n, 3, |i, j| [1.0, at[i][0], at[i][1]][j]);
+        let kinds: Vec<bool> = [false, true]
+            .into_iter()
+            .filter(|k| cells.iter().any(|c| c.inner == *k))
+            .collect();
+        let g = DMatrix::from_fn(n, kinds.len(), |i, j| {
+            f64::from(u8::from(cells[i].inner == kinds[j]))
+        });
         let proj =
             DMatrix::identity(n, n) - &g * (g.transpose() * &g).try_inverse()? * g.transpose();
         let eig = proj.symmetric_eigen();
@@ -226,6 +233,7 @@ impl ShapeCells {
         let y = basis.transpose() * means;
         Some(ShapeCells {
             at,
+            shapes: kinds.len(),
             basis,
             y,
             noise,
