@@ -94,6 +94,7 @@ fn a_webcam_scan_calibrates_the_local_scale_and_removes_the_offsets_bias() {
     ]));
     eprintln!("{out}");
     assert!(out.contains("field model residual RMS"), "{out}");
+    assert!(out.contains("centred on 12 targets' maps"), "{out}");
     let rec: Value = serde_json::from_str(&std::fs::read_to_string(&cal).unwrap()).unwrap();
     assert_eq!(rec["version"], 1);
     assert_eq!(
