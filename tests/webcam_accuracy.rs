@@ -460,9 +460,9 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             c.iter().all(|t| t.n == 3) && even.iter().all(|t| t.n == 3),
             "{case:?}: a target was lost: {c:?}"
         );
-        // Measured: 1.53 / 1.86 / 2.14x the bound with the print known, the prior centred
+        // Measured: 1.52 / 1.84 / 2.07x the bound with the print known, the prior centred
         // on each target's map (1.68 / 2.13 / 2.76x with the statistics alone; without the
-        // prior 1.73 / 1.79 / 2.01x); the paper's estimator scatters 6.4 / 3.7 / 2.4x more
+        // prior 1.73 / 1.79 / 2.01x); the paper's estimator scatters 6.4 / 3.8 / 2.4x more
         // (on the contrast-weighted plane it does much better than on green: 13.5 → 8.1
         // µm for 20 frames).
         let (std, crb) = (rms(c, |t| t.std_um), rms(c, |t| t.crb_um));
@@ -480,7 +480,7 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             (25.0..80.0).contains(&global),
             "{case:?}: RMS bias {global:.1} µm"
         );
-        // Measured: 13.2 / 8.8 / 8.9 µm left once calibrated, 0.33-0.50 of the global
+        // Measured: 13.1 / 8.8 / 8.8 µm left once calibrated, 0.32-0.48 of the global
         // scale's bias (13.2 / 8.3 / 8.7 µm with the statistics alone: the map's edges are
         // too uncertain to move the bias; without the prior 17.5 / 14.0 / 13.9 µm: the
         // uneven ink, `which_effect_biases_the_fit`).
@@ -489,15 +489,15 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             "{case:?}: calibrated RMS bias {calibrated:.1} µm (global {global:.1} µm)"
         );
         // Against the printed circles (the designed offsets moved by the rough edges'
-        // own centres, 4.7 µm RMS): 12.1 / 7.0 / 7.3 µm. The print's roughness is part of
+        // own centres, 4.7 µm RMS): 12.2 / 7.2 / 7.3 µm. The print's roughness is part of
         // the bias against the design, and no estimator sees through it.
         let vs_print = rms_bias_vs_print(c, &s.print_shift_um);
         assert!(
             vs_print < calibrated && (i == 0 || vs_print < 0.9 * calibrated),
             "{case:?}: RMS bias against the print {vs_print:.1} µm, the design {calibrated:.1} µm"
         );
-        // The whole RMS error, bias and scatter: 17.1 / 9.8 / 9.6 µm with the prior,
-        // 21.5 / 14.6 / 14.3 µm without (0.80 / 0.67 / 0.67 of it).
+        // The whole RMS error, bias and scatter: 17.1 / 9.8 / 9.4 µm with the prior,
+        // 21.5 / 14.6 / 14.3 µm without (0.79 / 0.67 / 0.66 of it).
         let (total, plain) = (rms_error(c), rms_error(even));
         assert!(
             total < [0.9, 0.75, 0.78][i] * plain,
@@ -505,7 +505,7 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
         );
         // The bound on the whole error with the print unknown (its statistics known):
         // 10.83 / 4.28 / 3.25 µm, 1.50 / 1.88 / 2.02x the bound with the print known. No
-        // estimator does better; the fit's whole error is 1.58 / 2.28 / 2.95x it.
+        // estimator does better; the fit's whole error is 1.57 / 2.28 / 2.89x it.
         let hcrb = rms(c, |t| t.hcrb_um);
         let want = [10.83, 4.28, 3.25][i];
         assert!(
@@ -516,7 +516,7 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
             total > hcrb && total < [1.9, 2.6, 3.4][i] * hcrb,
             "{case:?}: whole RMS error {total:.2} µm against the bound {hcrb:.2} µm"
         );
-        // Measured: 97 / 96 / 96 % with the prior's posterior covariance (93 / 94 / 94 %
+        // Measured: 97 / 94 / 96 % with the prior's posterior covariance (93 / 94 / 94 %
         // without the prior, with the ink model's type B); 72 measurements a case: ±3 % of
         // binomial scatter about the 95 % goal. Never under the goal's 93 %.
         let cover = s.coverage[i][1];
@@ -804,8 +804,8 @@ fn the_calibration_scan_learns_the_prints_ink() {
 /// density, each circle's mean removed (the fit's contrast takes it): inside the shapes,
 /// where the scan read it, and along their edges, where the fit reads the offset and the
 /// map extrapolates. Measured on layout 11: the density varies 2.88 % RMS about the inner
-/// shape's 0.6-radius circle and 3.81 % along the edges; the map errs by 0.44 % and
-/// 2.06 %, and says it leaves 2.2-2.4 % unknown at the edges.
+/// shape's 0.6-radius circle and 3.81 % along the edges; the map errs by 0.43 % and
+/// 2.00 %, and says it leaves 2.05-2.24 % unknown at the edges.
 #[test]
 fn the_calibration_maps_each_targets_ink() {
     use rigd::sim::board::Shape;
