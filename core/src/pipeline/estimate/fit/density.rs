@@ -25,8 +25,13 @@ pub struct DensitySample {
 }
 
 /// How far inside a shape's edges a sample must lie, in blur widths (plus half a pixel):
-/// 2.5 s leaves under 1 % of the edge's blur in the pixel, far below the ink's own 4 %.
-pub const EDGE_MARGIN_S: f64 = 2.5;
+/// the edge's model leaves ~2 % of its blur in the pixel there, and the readings the
+/// webcam's sharpening halos reach still learn the print's statistics (4.27 % over 3037 µm,
+/// the print's 4 % over 3000). At 2.5 s a softer, unsharpened edge (blur 0.88 px) left
+/// the paper board's disks unread, and the rings' thin band alone read 2.9 % over 1423 µm;
+/// at 2.0 s it reads 4.17 % over 3217 µm. At 1.5 s the sharpened webcam's halos read 12 %
+/// high; at 3.0 s both lose shapes and read 2.7-3.4 % over 1.6-2.4 mm.
+pub const EDGE_MARGIN_S: f64 = 2.0;
 
 /// Every sample of the fit inside a shape, with the density the residual says there
 /// against each shape's contrast at its centre: a fit with contrast planes has its planes
