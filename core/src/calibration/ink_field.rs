@@ -338,7 +338,7 @@ mod tests {
     /// circle removed: the fit's contrast takes them), and it says no less than it leaves.
     /// Measured over 6 prints: 0.045 and 0.134 of the field's variation; stated 0.26, as
     /// it counts each shape's unknown mean too (on the webcam's frames, whose readings
-    /// are not as clean, 2.00 % left against 2.05-2.24 % stated: `webcam_accuracy`).
+    /// are not as clean, 1.69 % left against 1.72-1.87 % stated: `webcam_accuracy`).
     #[test]
     fn the_map_is_the_density_inside_and_near_the_shapes() {
         let track = TargetTrack {
