@@ -262,17 +262,41 @@ async fn position(shared: &Arc<Shared>) -> Result<ReplyBody, ProtoError> {
             rig_state: shared.rig_state(),
         }));
     }
-    if let Some((axis, piezo, _)) = move_reading(shared).await {
-        return Ok(ReplyBody::Position(PositionReply {
-            axis: Some(axis),
-            piezo: shared.rig_info.piezo_limits_um.map(|_| piezo),
-            interferometer: None,
-            source: PositionSource::Move,
-            job_id: None,
-            rig_state: shared.rig_state(),
-        }));
+    if let Some(reading) = move_reading(shared).await {
+        return Ok(move_reply(shared, reading));
     }
-    rig_commands::send(shared, RigAction::Position, None, None).await
+    // A move sent meanwhile may get ahead of this request in the worker's queue: answer
+    // from its first reading then, rather than wait for the whole move.
+    tokio::select! {
+        r = rig_commands::send(shared, RigAction::Position, None, None) => r,
+        reading = move_begun(shared) => Ok(move_reply(shared, reading)),
+    }
+}
+
+/// `position`'s reply from a running move's reading.
+fn move_reply(
+    shared: &Shared,
+    (axis, piezo, _): (StageReading, StageReading, StageKind),
+) -> ReplyBody {
+    ReplyBody::Position(PositionReply {
+        axis: Some(axis),
+        piezo: shared.rig_info.piezo_limits_um.map(|_| piezo),
+        interferometer: None,
+        source: PositionSource::Move,
+        job_id: None,
+        rig_state: shared.rig_state(),
+    })
+}
+
+/// The first reading of a manual move that starts from now on (pending while none runs).
+async fn move_begun(shared: &Shared) -> (StageReading, StageReading, StageKind) {
+    loop {
+        let moving = shared.rig().request == Some(RigAction::Move);
+        if let Some(last) = shared.manual.last().filter(|_| moving) {
+            return last;
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
 }
 
 /// The running manual move's latest reading. A move that has just been handed to the worker
