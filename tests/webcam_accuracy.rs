@@ -787,7 +787,7 @@ fn noiseless_bias_of_each_shape() {
 
 /// The calibration scan learns the print's ink statistics; rigd is not told the sim's (4 %
 /// RMS over 3 mm). Measured on layout 11: RMS 4.27 % (u 0.19 %), correlation 3037 µm
-/// (u 98 µm), the lens blur undone, in the contrast-weighted plane, each target's cells
+/// (u 101 µm), the lens blur undone, in the contrast-weighted plane, each target's cells
 /// together, read 2 blur widths inside the edges (each shape alone, 2.5 widths inside:
 /// 4.36 %, 2833 µm; in green alone 3.90 %,
 /// 2767 µm; on the sim before it blurred the density, 4.10 / 3.88 / 4.09 % and 2718 /

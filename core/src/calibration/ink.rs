@@ -175,6 +175,46 @@ fn board_u(board: &impl Fn([f64; 2]) -> Option<[f64; 2]>, fit: &Reml) -> Option<
     }))
 }
 
+impl InkCell {
+    /// The mean of its readings.
+    pub(super) fn mean(&self) -> f64 {
+        self.sum / self.n as f64
+    }
+
+    /// Its readings' variance (0 under two readings).
+    pub(super) fn variance(&self) -> f64 {
+        if self.n < 2 {
+            return 0.0;
+        }
+        let m = self.mean();
+        (self.sum2 - self.n as f64 * m * m).max(0.0) / (self.n - 1) as f64
+    }
+}
+
+/// A map's cells read in at least [`MIN_CELL_FRAMES`] frames; more than `max` of them are
+/// thinned on a coarser lattice.
+pub(super) fn cells_read(map: &InkMap, max: usize) -> Vec<&InkCell> {
+    let read = |c: &&InkCell| c.n >= MIN_CELL_FRAMES;
+    let all = map.cells.iter().filter(read).count();
+    let t = ((all as f64 / max as f64).sqrt().ceil() as i32).max(1);
+    (map.cells.iter())
+        .filter(read)
+        .filter(|c| c.at[0].rem_euclid(t) == 0 && c.at[1].rem_euclid(t) == 0)
+        .collect()
+}
+
+/// A column per shape read, 1 on its cells (`inner` says which each is): the constant
+/// each frame's fit took into that shape's contrast.
+pub(super) fn shape_constants(inner: &[bool]) -> DMatrix<f64> {
+    let shapes: Vec<bool> = [false, true]
+        .into_iter()
+        .filter(|s| inner.contains(s))
+        .collect();
+    DMatrix::from_fn(inner.len(), shapes.len(), |i, j| {
+        f64::from(u8::from(inner[i] == shapes[j]))
+    })
+}
+
 /// One target's cells, both shapes, each shape's constant projected out (the contrast its
 /// fits took): where, their means in the projection's basis, the noise of a cell's mean.
 /// Both shapes together: a ring a few cells wide says little of the correlation alone, but
@@ -193,38 +233,19 @@ struct ShapeCells {
 
 impl ShapeCells {
     fn of(map: &InkMap) -> Option<ShapeCells> {
-        let read = |c: &&InkCell| c.n >= MIN_CELL_FRAMES;
-        let all = map.cells.iter().filter(read).count();
-        // A large target's cells on a coarser lattice (the likelihood's cost is cubic).
-        let t = ((all as f64 / MAX_TARGET_CELLS as f64).sqrt().ceil() as i32).max(1);
-        let cells: Vec<&InkCell> = map
-            .cells
-            .iter()
-            .filter(read)
-            .filter(|c| c.at[0].rem_euclid(t) == 0 && c.at[1].rem_euclid(t) == 0)
-            .collect();
+        // (The likelihood's cost is cubic in the cells.)
+        let cells = cells_read(map, MAX_TARGET_CELLS);
         let n = cells.len();
         if n < MIN_TARGET_CELLS {
             return None;
         }
         let at: Vec<[f64; 2]> = cells.iter().map(|c| c.at.map(f64::from)).collect();
-        let means = DVector::from_iterator(n, cells.iter().map(|c| c.sum / c.n as f64));
+        let means = DVector::from_iterator(n, cells.iter().map(|c| c.mean()));
         // The noise of a cell's mean: its samples' scatter over their count, pooled.
-        let noise = cells
-            .iter()
-            .map(|c| {
-                let m = c.sum / c.n as f64;
-                (c.sum2 - c.n as f64 * m * m).max(0.0) / ((c.n - 1) as f64 * c.n as f64)
-            })
-            .sum::<f64>()
-            / n as f64;
-        let kinds: Vec<bool> = [false, true]
-            .into_iter()
-            .filter(|k| cells.iter().any(|c| c.inner == *k))
-            .collect();
-        let g = DMatrix::from_fn(n, kinds.len(), |i, j| {
-            f64::from(u8::from(cells[i].inner == kinds[j]))
-        });
+        let noise = cells.iter().map(|c| c.variance() / c.n as f64).sum::<f64>() / n as f64;
+        let inner: Vec<bool> = cells.iter().map(|c| c.inner).collect();
+        let g = shape_constants(&inner);
+        let shapes = g.ncols();
         let proj =
             DMatrix::identity(n, n) - &g * (g.transpose() * &g).try_inverse()? * g.transpose();
         let eig = proj.symmetric_eigen();
@@ -233,7 +254,7 @@ impl ShapeCells {
         let y = basis.transpose() * means;
         Some(ShapeCells {
             at,
-            shapes: kinds.len(),
+            shapes,
             basis,
             y,
             noise,

@@ -10,9 +10,9 @@
 //! the map leaves unknown is largest at the shapes' edges, beyond the last cells and where
 //! the fit reads the offset: its RMS there is the job's prior RMS.
 
-use super::ink::{InkMap, InkStatistics};
+use super::ink::{cells_read, shape_constants, InkMap, InkStatistics};
 use super::scan::TargetTrack;
-use crate::pipeline::{InkMean, DENSITY_EDGE_MARGIN_S};
+use crate::pipeline::{bumps_at, InkMean, DENSITY_EDGE_MARGIN_S};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
@@ -30,11 +30,10 @@ pub struct InkField {
     pub residual_rms: f64,
 }
 
-/// Fewest frames behind a cell (its noise is the scatter of its readings).
-const MIN_CELL_FRAMES: u32 = 4;
 /// Fewest cells in a map (a constant per shape is the trend).
 const MIN_CELLS: usize = 24;
-/// Most cells kriged (more are thinned on a lattice: the solve is cubic).
+/// Most cells kriged (more are thinned on a lattice: the solve is cubic). A cell is read
+/// in at least `ink::MIN_CELL_FRAMES` frames.
 const MAX_CELLS: usize = 400;
 
 impl InkField {
@@ -53,7 +52,7 @@ impl InkField {
         // The density samples lie this far inside the shapes' edges: the edges are that
         // far beyond the last cells.
         let margin = DENSITY_EDGE_MARGIN_S * stats.blur_px + 0.5;
-        let residual = krige.variance_at(&cells.edge_band(margin)?)?;
+        let residual = krige.variance_at(&cells.edge_band(margin)?);
         let ends = track_ends(track)?;
         let weight = krige.bump_weight();
         Some(InkField {
@@ -66,9 +65,37 @@ impl InkField {
         })
     }
 
+    /// Whether a map read back can be used: finite numbers, a positive width and a
+    /// residual RMS in (0, 1); else what is wrong.
+    pub fn check(&self) -> Result<(), String> {
+        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+        if !(self.bump_width_um.is_finite() && self.bump_width_um > 0.0) {
+            return Err(format!(
+                "bump_width_um must be a positive number of µm, got {}",
+                self.bump_width_um
+            ));
+        }
+        if !(self.residual_rms > 0.0 && self.residual_rms < 1.0) {
+            return Err(format!(
+                "residual_rms must be in (0, 1), got {}",
+                self.residual_rms
+            ));
+        }
+        if let Some(i) = self.bumps_um.iter().position(|b| !finite(b)) {
+            return Err(format!(
+                "bumps_um[{i}] is not finite: {:?}",
+                self.bumps_um[i]
+            ));
+        }
+        if !finite(self.track_px.as_flattened()) {
+            return Err(format!("track_px is not finite: {:?}", self.track_px));
+        }
+        Ok(())
+    }
+
     /// The density at `d_um` from the outer centre.
     pub fn at(&self, d_um: [f64; 2]) -> f64 {
-        self.in_plane(1.0).at(d_um).0
+        bumps_at(&self.bumps_um, self.bump_width_um, d_um).0
     }
 
     /// The field in the pixels of a plane of `px_per_um`.
@@ -116,42 +143,17 @@ struct Cells {
 
 impl Cells {
     fn of(map: &InkMap) -> Option<Cells> {
-        let read: Vec<_> = (map.cells.iter())
-            .filter(|c| c.n >= MIN_CELL_FRAMES)
-            .collect();
-        // A large target's cells on a coarser lattice.
-        let t = ((read.len() as f64 / MAX_CELLS as f64).sqrt().ceil() as i32).max(1);
-        let cells: Vec<_> = (read.into_iter())
-            .filter(|c| c.at[0].rem_euclid(t) == 0 && c.at[1].rem_euclid(t) == 0)
-            .collect();
+        let cells = cells_read(map, MAX_CELLS);
         if cells.len() < MIN_CELLS {
             return None;
         }
         // A reading's variance, pooled over the cells; each mean's, over its count.
-        let var = (cells.iter())
-            .map(|c| {
-                let m = c.sum / c.n as f64;
-                (c.sum2 - c.n as f64 * m * m).max(0.0) / (c.n - 1) as f64
-            })
-            .sum::<f64>()
-            / cells.len() as f64;
+        let var = cells.iter().map(|c| c.variance()).sum::<f64>() / cells.len() as f64;
         Some(Cells {
             at: cells.iter().map(|c| c.at.map(f64::from)).collect(),
-            mean: DVector::from_iterator(cells.len(), cells.iter().map(|c| c.sum / c.n as f64)),
+            mean: DVector::from_iterator(cells.len(), cells.iter().map(|c| c.mean())),
             noise: cells.iter().map(|c| var / c.n as f64).collect(),
             inner: cells.iter().map(|c| c.inner).collect(),
-        })
-    }
-
-    /// The trend each frame's fit took: a constant per shape, its contrast (a shape
-    /// without cells has no column).
-    fn trend(&self) -> DMatrix<f64> {
-        let shapes: Vec<bool> = [false, true]
-            .into_iter()
-            .filter(|s| self.inner.contains(s))
-            .collect();
-        DMatrix::from_fn(self.at.len(), shapes.len(), |i, j| {
-            f64::from(u8::from(self.inner[i] == shapes[j]))
         })
     }
 
@@ -214,7 +216,8 @@ impl<'a> Kriging<'a> {
             rms2 * corr2 / wide * (-0.5 * d2 / wide).exp() + noise
         });
         let chol = c.cholesky()?;
-        let trend = cells.trend();
+        // The trend each frame's fit took: a constant per shape, its contrast.
+        let trend = shape_constants(&cells.inner);
         let ci_x = chol.solve(&trend);
         let trend_cov = (trend.transpose() * &ci_x).try_inverse()?;
         let beta = &trend_cov * (ci_x.transpose() * &cells.mean);
@@ -239,7 +242,7 @@ impl<'a> Kriging<'a> {
 
     /// The predictor's error variance, averaged over `points`:
     /// `σ² − kᵀC⁻¹k + uᵀ(XᵀC⁻¹X)⁻¹u`, `u = XᵀC⁻¹k`.
-    fn variance_at(&self, points: &[[f64; 2]]) -> Option<f64> {
+    fn variance_at(&self, points: &[[f64; 2]]) -> f64 {
         let inv_2w = 0.5 / (self.bump_width_px * self.bump_width_px);
         let k = DMatrix::from_fn(self.cells.at.len(), points.len(), |i, j| {
             self.bump_weight() * (-dist2(self.cells.at[i], points[j]) * inv_2w).exp()
@@ -253,7 +256,7 @@ impl<'a> Kriging<'a> {
                 (self.rms2 - kj.dot(&cj) + trend).max(0.0)
             })
             .sum();
-        Some(var / points.len() as f64)
+        var / points.len() as f64
     }
 }
 
@@ -403,5 +406,43 @@ mod tests {
             (at(52.0), at(85.0), at(70.0)),
             (Some(50.0), Some(90.0), None)
         );
+    }
+
+    /// A map read back with a width of 0 (or a NaN) is refused when the calibration is
+    /// checked, naming the map and the field: a job never fits with it.
+    #[test]
+    fn a_broken_map_is_refused_by_name() {
+        let (map, _) = scanned(1);
+        let track = TargetTrack {
+            name: None,
+            centres_px: vec![Some([100.0, 50.0])],
+            outer_radius_px: 17.0,
+            inner_radius_px: 5.0,
+        };
+        let good = InkField::learn(&map, &track, &stats(), 1.0).unwrap();
+        let mut nan = good.clone();
+        nan.bumps_um[3][2] = f64::NAN;
+        let zero = InkField {
+            bump_width_um: 0.0,
+            ..good.clone()
+        };
+        for (bad, says) in [
+            (
+                zero,
+                "ink_fields[1] bump_width_um must be a positive number of µm",
+            ),
+            (nan, "ink_fields[1] bumps_um[3] is not finite"),
+        ] {
+            let cal = super::super::tests::some_calibration(vec![good.clone(), bad]);
+            let [w, h] = cal.fingerprint.frame_size;
+            let e = cal.check((w, h), cal.fingerprint.scale_um_per_px, None);
+            let e = e.unwrap_err().to_string();
+            assert!(e.contains(says), "{e}");
+        }
+        let cal = super::super::tests::some_calibration(vec![good]);
+        let [w, h] = cal.fingerprint.frame_size;
+        assert!(cal
+            .check((w, h), cal.fingerprint.scale_um_per_px, None)
+            .is_ok());
     }
 }

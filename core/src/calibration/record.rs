@@ -285,6 +285,13 @@ impl Calibration {
                 got_h: frame_size.1,
             });
         }
+        for (index, f) in self.ink_fields.iter().enumerate() {
+            f.check().map_err(|what| CalibrationError::InkField {
+                id: self.id.clone(),
+                index,
+                what,
+            })?;
+        }
         let mut warn = Vec::new();
         let s = self.fingerprint.scale_um_per_px;
         if (s - scale_um_per_px).abs() > 1e-9 * s {

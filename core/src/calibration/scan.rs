@@ -94,6 +94,12 @@ pub enum CalibrationError {
         got_w: u32,
         got_h: u32,
     },
+    #[error("calibration {id}: ink_fields[{index}] {what}")]
+    InkField {
+        id: String,
+        index: usize,
+        what: String,
+    },
 }
 
 impl Scan {

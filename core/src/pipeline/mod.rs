@@ -24,7 +24,9 @@ pub mod response;
 pub mod run;
 pub mod stats;
 
-pub use estimate::{ink_density, DensitySample, InkMean, InkShape, DENSITY_EDGE_MARGIN_S};
+pub use estimate::{
+    bumps_at, ink_density, DensitySample, InkMean, InkShape, DENSITY_EDGE_MARGIN_S,
+};
 pub use options::{InkPrior, OptionError, ProcessOptions, ValidOptions, K_RANGE, MAX_K};
 pub use response::Response;
 pub use run::{process_frames, Pipeline};

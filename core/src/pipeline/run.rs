@@ -515,26 +515,18 @@ impl Pipeline {
     fn ink_in(&self, t: usize, k: f64) -> Option<PlaneInk> {
         let p = self.ink_prior()?;
         let px_per_um = k / self.opts.scale_um_per_px;
-        let mapped = (self.calibration_ink().is_some())
-            .then(|| self.ink_field(t))
-            .flatten();
-        Some(match mapped {
-            Some(f) => PlaneInk {
-                density_rms: f.residual_rms,
-                corr_px: p.corr_um * px_per_um,
-                mean: Some(Arc::new(f.in_plane(px_per_um))),
-            },
-            None => PlaneInk {
-                density_rms: p.density_rms,
-                corr_px: p.corr_um * px_per_um,
-                mean: None,
-            },
+        let mapped = self.ink_field_taken(t);
+        Some(PlaneInk {
+            density_rms: mapped.map_or(p.density_rms, |f| f.residual_rms),
+            corr_px: p.corr_um * px_per_um,
+            mean: mapped.map(|f| Arc::new(f.in_plane(px_per_um))),
         })
     }
 
-    /// The calibration's map of target `t`'s ink: the one whose scan track passes through
-    /// the target's place in frame 0.
-    fn ink_field(&self, t: usize) -> Option<&InkField> {
+    /// The calibration's map of target `t`'s ink, when the calibration's statistics are the
+    /// prior taken: the map whose scan track passes through the target's place in frame 0.
+    fn ink_field_taken(&self, t: usize) -> Option<&InkField> {
+        self.calibration_ink()?;
         let (cal, _) = self.calibration.as_ref()?;
         let c = self.targets.get(t)?;
         cal.ink_field_at(c.outer_centre_px, c.outer_radii_px[1])
@@ -801,11 +793,8 @@ impl Pipeline {
 
     /// How many targets' priors are centred on the calibration's map of their ink.
     fn ink_maps_taken(&self) -> usize {
-        if self.calibration_ink().is_none() {
-            return 0;
-        }
         (0..self.targets.len())
-            .filter(|&t| self.ink_field(t).is_some())
+            .filter(|&t| self.ink_field_taken(t).is_some())
             .count()
     }
 

@@ -11,7 +11,7 @@ mod fit;
 mod paper;
 
 pub use fit::{
-    DensitySample, InkMean, InkShape, PlaneInk, DENSITY_EDGE_MARGIN_S, PRIOR_PEAK_BYTES,
+    bumps_at, DensitySample, InkMean, InkShape, PlaneInk, DENSITY_EDGE_MARGIN_S, PRIOR_PEAK_BYTES,
 };
 
 use super::accumulate::Lattice;

@@ -30,7 +30,7 @@ mod normal;
 mod prior;
 
 pub use density::{DensitySample, InkShape, EDGE_MARGIN_S as DENSITY_EDGE_MARGIN_S};
-pub use prior::{InkMean, PlaneInk, PEAK_BYTES as PRIOR_PEAK_BYTES};
+pub use prior::{bumps_at, InkMean, PlaneInk, PEAK_BYTES as PRIOR_PEAK_BYTES};
 
 use normal::Normal;
 

@@ -31,22 +31,28 @@ pub struct InkMean {
 impl InkMean {
     /// The density at `d` from the outer centre, and its gradient.
     pub fn at(&self, d: [f64; 2]) -> (f64, [f64; 2]) {
-        let inv_w2 = 1.0 / (self.width_px * self.width_px);
-        // Bumps beyond 6 widths add under 1e-8 of their weight.
-        let reach2 = 36.0 * self.width_px * self.width_px;
-        let (mut e, mut g) = (0.0, [0.0; 2]);
-        for &[bx, by, w] in &self.bumps {
-            let (dx, dy) = (d[0] - bx, d[1] - by);
-            let d2 = dx * dx + dy * dy;
-            if d2 > reach2 {
-                continue;
-            }
-            let v = w * (-0.5 * d2 * inv_w2).exp();
-            e += v;
-            g = [g[0] - v * dx * inv_w2, g[1] - v * dy * inv_w2];
-        }
-        (e, g)
+        bumps_at(&self.bumps, self.width_px, d)
     }
+}
+
+/// The sum of Gaussian `bumps` (`[x, y, weight]`, each `width` wide) at `d`, and its
+/// gradient.
+pub fn bumps_at(bumps: &[[f64; 3]], width: f64, d: [f64; 2]) -> (f64, [f64; 2]) {
+    let inv_w2 = 1.0 / (width * width);
+    // Bumps beyond 6 widths add under 1e-8 of their weight.
+    let reach2 = 36.0 * width * width;
+    let (mut e, mut g) = (0.0, [0.0; 2]);
+    for &[bx, by, w] in bumps {
+        let (dx, dy) = (d[0] - bx, d[1] - by);
+        let d2 = dx * dx + dy * dy;
+        if d2 > reach2 {
+            continue;
+        }
+        let v = w * (-0.5 * d2 * inv_w2).exp();
+        e += v;
+        g = [g[0] - v * dx * inv_w2, g[1] - v * dy * inv_w2];
+    }
+    (e, g)
 }
 
 /// Modes whose prior variance is at least this share of the largest's: the others move a
