@@ -11,6 +11,7 @@ use crate::offline::push::{process_folder, FrameIn};
 use crate::pipeline::{Combine, Estimator, Pipeline, ProcessOptions, Registration};
 use anyhow::Context;
 use std::path::Path;
+use std::sync::Arc;
 
 /// How to fit a folder's scan.
 #[derive(Debug, Clone)]
@@ -31,23 +32,9 @@ pub struct FolderFit {
     pub response: crate::pipeline::Response,
 }
 
-/// Measure every frame of `dir` and fit its calibration; errors name `dir`.
+/// Measure every frame of `dir` and fit its calibration (twice: `Calibration::fit_twice`);
+/// errors name `dir`.
 pub fn fit_folder(dir: &Path, fit: &FolderFit) -> anyhow::Result<Calibration> {
-    let options = ProcessOptions {
-        scale_um_per_px: fit.scale_um_per_px,
-        k: 1,
-        estimator: Estimator::Fit,
-        combine: Combine::Mean,
-        registration: Registration::Image,
-        axis_dir: fit.axis_dir,
-        piezo_dir: None,
-        whole_frame: false,
-        response: fit.response,
-        // The print's density moves with the board: displacements do not see it.
-        ink_prior: None,
-        calibration_ink: true,
-    }
-    .validate()?;
     let folder = folder::open(dir, None)?;
     let positions = match fit.reference {
         Reference::Interferometer => {
@@ -65,21 +52,22 @@ pub fn fit_folder(dir: &Path, fit: &FolderFit) -> anyhow::Result<Calibration> {
             piezo_um: None,
         })
         .collect();
-    let mut pipeline = Pipeline::new(options, fit.board.clone());
-    pipeline.keep_images(false);
-    pipeline.record_tracks(true);
-    let done = process_folder(pipeline, &frames, dir)?;
-    let (w, h) = (done.result.width, done.result.height);
-    let scan = Scan {
-        frame_size: (w, h),
-        scale_um_per_px: fit.scale_um_per_px,
-        axis_dir: fit.axis_dir,
-        reference: fit.reference,
-        positions_um: positions,
-        piezo_um: folder.piezo_um.clone(),
-        targets: done.tracks,
-        ink_maps: done.ink_maps,
+    let measure = |first: Option<Arc<Calibration>>| -> anyhow::Result<Scan> {
+        let done = process_folder(scan_pipeline(fit, first)?, &frames, dir)?;
+        Ok(Scan {
+            frame_size: (done.result.width, done.result.height),
+            scale_um_per_px: fit.scale_um_per_px,
+            axis_dir: fit.axis_dir,
+            reference: fit.reference,
+            positions_um: positions.clone(),
+            piezo_um: folder.piezo_um.clone(),
+            targets: done.tracks,
+            ink_maps: done.ink_maps,
+        })
     };
+    let first_frame = folder.frames.first().context("a scan has frames")?;
+    let (w, h) = image::image_dimensions(first_frame)
+        .with_context(|| format!("reading {}", first_frame.display()))?;
     let rig = fit.rig.clone().unwrap_or_else(|| {
         format!(
             "{w}x{h} frames from {}, {} µm/px given",
@@ -93,5 +81,31 @@ pub fn fit_folder(dir: &Path, fit: &FolderFit) -> anyhow::Result<Calibration> {
         rig: Some(rig),
         reference_rel_u: fit.reference_rel_u,
     };
-    Calibration::fit(&scan, &opts).with_context(|| dir.display().to_string())
+    Calibration::fit_twice(measure, &opts).with_context(|| dir.display().to_string())
+}
+
+/// The pipeline a scan's frames are measured with: `fit` at k = 1, per-frame centres and
+/// ink recorded; with `first`, each target's circles measured as the ellipses its field
+/// images them as (its ink is not taken: the scan maps it).
+fn scan_pipeline(fit: &FolderFit, first: Option<Arc<Calibration>>) -> anyhow::Result<Pipeline> {
+    let options = ProcessOptions {
+        scale_um_per_px: fit.scale_um_per_px,
+        k: 1,
+        estimator: Estimator::Fit,
+        combine: Combine::Mean,
+        registration: Registration::Image,
+        axis_dir: fit.axis_dir,
+        piezo_dir: None,
+        whole_frame: false,
+        response: fit.response,
+        // The print's density moves with the board: displacements do not see it.
+        ink_prior: None,
+        calibration_ink: false,
+    }
+    .validate()?;
+    let mut pipeline = Pipeline::new(options, fit.board.clone());
+    pipeline.keep_images(false);
+    pipeline.record_tracks(true);
+    pipeline.set_calibration(first, None);
+    Ok(pipeline)
 }

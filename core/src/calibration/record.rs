@@ -11,6 +11,7 @@ use super::scan::{CalibrationError, Reference, Scan};
 use crate::board::Board;
 use nalgebra::{DMatrix, DVector, Matrix2, Vector2};
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// The record's format; a reader refuses any other.
 pub const CALIBRATION_VERSION: u32 = 1;
@@ -168,6 +169,21 @@ pub struct Converted {
 }
 
 impl Calibration {
+    /// Fit a calibration from a scan measured twice: once as `measure(None)` gives it, and
+    /// again as `measure` gives it with that first fit, whose field tells the fits the
+    /// ellipses each target's circles image as ([`Calibration::rectify_at`]). The scan's
+    /// ink maps are read inside the shapes' edges, where a round model's misfit of an
+    /// ellipse 3 % out of round reads as ~2 % of density; the second reading is the
+    /// print's. `measure` must not take the first fit's ink as a prior.
+    pub fn fit_twice<E: From<CalibrationError>>(
+        mut measure: impl FnMut(Option<Arc<Calibration>>) -> Result<Scan, E>,
+        opts: &FitOptions,
+    ) -> Result<Calibration, E> {
+        let first = Calibration::fit(&measure(None)?, opts)?;
+        let scan = measure(Some(Arc::new(first)))?;
+        Ok(Calibration::fit(&scan, opts)?)
+    }
+
     /// Fit a calibration from a scan.
     pub fn fit(scan: &Scan, opts: &FitOptions) -> Result<Calibration, CalibrationError> {
         scan.check()?;
@@ -319,6 +335,20 @@ impl Calibration {
             .filter(|(d, _)| *d < 0.5 * rim_px)
             .min_by(|a, b| a.0.total_cmp(&b.0))
             .map(|(_, f)| f)
+    }
+
+    /// The map (det 1, row-major) from image offsets about `centre_px` to offsets in which
+    /// a printed circle there is round again: the field model's local Jacobian J inverted
+    /// and scaled, `J⁻¹·√|det J|`. The fit measures its shapes in it (a circle images as an
+    /// ellipse up to ~3 % out of round at a tilted board's corner, and a round model of
+    /// it lets the ink's modes take the misfit into the centres). `None` where the model
+    /// does not invert.
+    pub fn rectify_at(&self, centre_px: [f64; 2]) -> Option<[[f64; 2]; 2]> {
+        let m = &self.field.model;
+        let j = m.jacobian(m.inverse(centre_px)?);
+        let s = j.determinant().abs().sqrt();
+        let a = j.try_inverse()? * s;
+        Some([[a[(0, 0)], a[(0, 1)]], [a[(1, 0)], a[(1, 1)]]])
     }
 
     /// Convert an offset measured at `centre_px` (the outer circle's centre) of `offset_px`

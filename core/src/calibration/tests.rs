@@ -330,3 +330,41 @@ fn bad_scans_and_mismatched_frames_are_refused_by_name() {
     let w = cal.check((1280, 720), 770.0, None).unwrap();
     assert!(w[0].contains("fitted at scale 774"), "{w:?}");
 }
+
+/// The fitted field's rectifying map at a corner target makes the image of a printed
+/// circle round again: the second harmonic of its distances from the centre (the
+/// ellipse's) is 1.0 % of the radius as imaged, 0.008 % through the map,
+/// and the map keeps areas (det 1).
+#[test]
+fn the_rectifying_map_makes_a_corner_circle_round() {
+    let m = truth();
+    let cal = Calibration::fit(&scan(&m, 0.01, 3), &FitOptions::default()).unwrap();
+    let (b, r_um) = ([330.0 * 774.0, 190.0 * 774.0], 15_000.0);
+    let c = m.forward(b);
+    let a = cal.rectify_at(c).expect("the model inverts at the corner");
+    let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
+    assert!((det - 1.0).abs() < 1e-9, "det {det}");
+    // The relative amplitude of cos 2θ and sin 2θ in the distances through `f`.
+    let out_of_round = |f: &dyn Fn([f64; 2]) -> f64| {
+        let n = 64;
+        let (mut mean, mut cs, mut sn) = (0.0, 0.0, 0.0);
+        for i in 0..n {
+            let t = std::f64::consts::TAU * i as f64 / n as f64;
+            let x = m.forward([b[0] + r_um * t.cos(), b[1] + r_um * t.sin()]);
+            let d = f([x[0] - c[0], x[1] - c[1]]);
+            mean += d / n as f64;
+            cs += 2.0 * d * (2.0 * t).cos() / n as f64;
+            sn += 2.0 * d * (2.0 * t).sin() / n as f64;
+        }
+        cs.hypot(sn) / mean
+    };
+    let imaged = out_of_round(&|d| d[0].hypot(d[1]));
+    let rectified =
+        out_of_round(&|d| (a[0][0] * d[0] + a[0][1] * d[1]).hypot(a[1][0] * d[0] + a[1][1] * d[1]));
+    eprintln!("out of round: imaged {imaged:.5}, rectified {rectified:.5}");
+    assert!(
+        imaged > 0.008,
+        "the corner images circles out of round: {imaged}"
+    );
+    assert!(rectified < 0.02 * imaged, "{rectified} vs {imaged}");
+}

@@ -63,6 +63,12 @@ pub struct Candidate {
     pub inner_radii_px: [f64; 2],
     /// Box around the whole target with a margin for the blur.
     pub roi: Roi,
+    /// The map (det 1) from image offsets about the target to offsets in which its printed
+    /// circles are circles: a board off parallel and the lens image them as ellipses whose
+    /// axes differ by up to ~3 % at a frame's corner. Known from a calibration's field
+    /// model ([`crate::calibration::Calibration::rectify_at`]); `None` takes them round.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rectify: Option<[[f64; 2]; 2]>,
 }
 
 impl Candidate {
@@ -86,6 +92,7 @@ impl Candidate {
             outer_radii_px: self.outer_radii_px.map(|r| r * k),
             inner_radii_px: self.inner_radii_px.map(|r| r * k),
             roi: self.roi,
+            rectify: self.rectify,
         }
     }
 }
@@ -737,6 +744,7 @@ fn detect_at(
                 w: (x1 - x0) as u32 + 1,
                 h: (y1 - y0) as u32 + 1,
             },
+            rectify: None,
         });
     }
     for (i, c) in comps.iter().enumerate() {
@@ -837,6 +845,7 @@ mod tests {
                 w: 5,
                 h: 5,
             },
+            rectify: None,
         }
     }
 

@@ -74,6 +74,7 @@ mod tests {
                 w: 56,
                 h: 56,
             },
+            rectify: None,
         };
         (img, cand)
     }

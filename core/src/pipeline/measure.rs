@@ -283,6 +283,7 @@ fn crop_window(
         outer_radii_px: c.outer_radii_px,
         inner_radii_px: c.inner_radii_px,
         roi: Roi::whole(crop.width, crop.height),
+        rectify: c.rectify,
     };
     (crop, guess, [x0, y0])
 }

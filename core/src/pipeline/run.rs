@@ -468,6 +468,12 @@ impl Pipeline {
         }
         self.check_calibration(got)?;
         self.targets = det.targets;
+        if let Some((cal, _)) = &self.calibration {
+            // The fit measures each target's circles as the ellipses they image as.
+            for c in &mut self.targets {
+                c.rectify = cal.rectify_at(c.outer_centre_px);
+            }
+        }
         self.skipped = skipped;
         self.size = Some(got);
         self.publish_rows(DETECTION_SLACK_ROWS);
@@ -1034,6 +1040,7 @@ fn fine_guess(
             w: (side * k) as u32,
             h: (side * k) as u32,
         },
+        rectify: c.rectify,
     }
 }
 

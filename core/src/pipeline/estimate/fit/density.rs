@@ -52,8 +52,9 @@ pub(super) fn read(prob: &Problem, p: &[f64; MAXP]) -> Vec<DensitySample> {
         .into_iter()
         .filter_map(|s| {
             let (ox, oy) = (s.at[0] - p[CXO], s.at[1] - p[CYO]);
-            let rho_i = (s.at[0] - p[CXI]).hypot(s.at[1] - p[CYI]);
-            let shape = if inside(ox.hypot(oy), p[HOLE], p[RIM]) {
+            let rho_o = prob.rho(ox, oy).0;
+            let rho_i = prob.rho(s.at[0] - p[CXI], s.at[1] - p[CYI]).0;
+            let shape = if inside(rho_o, p[HOLE], p[RIM]) {
                 InkShape::Outer
             } else if inside(rho_i, inner_hole, p[RI]) {
                 InkShape::Inner

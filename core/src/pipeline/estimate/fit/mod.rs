@@ -77,6 +77,9 @@ struct Problem<'a> {
     reach_centre: [f64; 2],
     /// Whether the contrast planes' gradients are free (else held at 0).
     planes: bool,
+    /// Image offsets to offsets in which the target's circles are circles (det 1,
+    /// row-major; the identity unless the guess knows the local shape).
+    rectify: [[f64; 2]; 2],
 }
 
 impl<'a> Problem<'a> {
@@ -96,7 +99,26 @@ impl<'a> Problem<'a> {
             inv_half: 1.0 / half.max(1.0),
             reach_centre: g.outer_centre_px,
             planes: false,
+            rectify: g.rectify.unwrap_or([[1.0, 0.0], [0.0, 1.0]]),
         }
+    }
+
+    /// Distance of offset (`dx`, `dy`) from a centre in the rectified frame, and its
+    /// derivatives with respect to the centre: an edge's distance `ρ − R` measures the
+    /// imaged ellipse, not a circle.
+    #[inline(always)]
+    fn rho<T: edge::Real>(&self, dx: T, dy: T) -> (T, T, T) {
+        let c = T::c;
+        let [[a, b], [cc, d]] = self.rectify;
+        let (u, v) = (c(a) * dx + c(b) * dy, c(cc) * dx + c(d) * dy);
+        let r = (u * u + v * v).sqrt().max(c(1e-9));
+        let inv = c(1.0) / r;
+        // dρ/dcx = −(Aᵀ·u)_x / ρ.
+        (
+            r,
+            -(c(a) * u + c(cc) * v) * inv,
+            -(c(b) * u + c(d) * v) * inv,
+        )
     }
 
     /// `JᵀJ`, with a unit diagonal for the held gradients (their steps are then 0).

@@ -241,10 +241,8 @@ impl Problem<'_> {
         let ring_inner = c(if self.np == MAXP { 1.0 } else { 0.0 });
         let free_gradients = c(if self.planes { 1.0 } else { 0.0 });
         let inv_s = c(1.0) / p[S];
-        let (dxo, dyo) = (fx - p[CXO], fy - p[CYO]);
-        let ro = (dxo * dxo + dyo * dyo).sqrt().max(c(1e-9));
-        let (dxi, dyi) = (fx - p[CXI], fy - p[CYI]);
-        let ri = (dxi * dxi + dyi * dyi).sqrt().max(c(1e-9));
+        let (ro, dro_x, dro_y) = self.rho(fx - p[CXO], fy - p[CYO]);
+        let (ri, dri_x, dri_y) = self.rho(fx - p[CXI], fy - p[CYI]);
         let at = |active: bool, d: T| {
             if active {
                 edge(d, inv_s)
@@ -276,15 +274,13 @@ impl Problem<'_> {
         }
         let (lco, lci) = (-l * c_o, -l * c_i);
         let douter = d_rim - d_hole;
-        // dρ/dcx = −dx/ρ.
-        let (inv_ro, inv_ri) = (c(1.0) / ro, c(1.0) / ri);
-        j[CXO] = lco * douter * (-dxo * inv_ro);
-        j[CYO] = lco * douter * (-dyo * inv_ro);
+        j[CXO] = lco * douter * dro_x;
+        j[CYO] = lco * douter * dro_y;
         j[RIM] = lco * -d_rim;
         j[HOLE] = lco * d_hole;
         let dinner = d_in - d_ih;
-        j[CXI] = lci * dinner * (-dxi * inv_ri);
-        j[CYI] = lci * dinner * (-dyi * inv_ri);
+        j[CXI] = lci * dinner * dri_x;
+        j[CYI] = lci * dinner * dri_y;
         j[RI] = lci * -d_in;
         j[RIH] = lci * d_ih;
         // dE/ds = −E'(d)·d/s.
@@ -305,6 +301,8 @@ const INNER: usize = 2;
 /// The classes' bounds at one parameter vector, and each class's free parameters.
 struct Classes {
     centre: [[f64; 2]; 2],
+    /// The problem's rectifying map: the radii are the rectified frame's.
+    rectify: [[f64; 2]; 2],
     /// Per shape, squared radii: flat inside `lo2`, flat outside `hi2` (`lo2` < 0: never
     /// flat inside).
     lo2: [f64; 2],
@@ -331,6 +329,7 @@ impl Classes {
         let (lo_i, hi_i) = bounds(inner);
         let mut out = Classes {
             centre: [[p[CXO], p[CYO]], [p[CXI], p[CYI]]],
+            rectify: prob.rectify,
             lo2: [lo_o, lo_i],
             hi2: [hi_o, hi_i],
             free: [[0; MAXP]; 4],
@@ -357,7 +356,10 @@ impl Classes {
     fn of(&self, fx: f64, fy: f64) -> usize {
         let active = |shape: usize| {
             let [cx, cy] = self.centre[shape];
-            let d2 = (fx - cx) * (fx - cx) + (fy - cy) * (fy - cy);
+            let [[a, b], [c, d]] = self.rectify;
+            let (dx, dy) = (fx - cx, fy - cy);
+            let (u, v) = (a * dx + b * dy, c * dx + d * dy);
+            let d2 = u * u + v * v;
             d2 >= self.lo2[shape] && d2 <= self.hi2[shape]
         };
         (if active(0) { OUTER } else { 0 }) | (if active(1) { INNER } else { 0 })
