@@ -240,8 +240,14 @@ fn a_webcam_scan_calibrates_the_local_scale_and_removes_the_offsets_bias() {
             true_px[0] * 774.0 - t.offset_um[0],
             true_px[1] * 774.0 - t.offset_um[1],
         ];
-        // What is left after calibration: the estimator's own error on webcam frames.
-        let meas = [f(&o["offset_px"][0]), f(&o["offset_px"][1])];
+        // What is left after calibration: the estimator's own error on webcam frames, in
+        // the calibrated run (which measures each target's circles as the field's
+        // ellipses, so its px offsets are not the global run's).
+        let after_o = objects(&after)
+            .into_iter()
+            .find(|a| a["name"] == o["name"])
+            .unwrap();
+        let meas = [f(&after_o["offset_px"][0]), f(&after_o["offset_px"][1])];
         let e = [meas[0] - true_px[0], meas[1] - true_px[1]];
         let m = c.um_per_px;
         let est = [
@@ -305,19 +311,8 @@ fn apparent_px(c_um: [f64; 2], radii_um: &[f64]) -> [f64; 2] {
                 v.project(&cam, 1, [c_um[0] + r * t.cos(), c_um[1] + r * t.sin()])
             })
             .collect();
-        let o = pts[0];
-        let (mut a, mut cx, mut cy) = (0.0, 0.0, 0.0);
-        for i in 0..pts.len() {
-            let p = [pts[i][0] - o[0], pts[i][1] - o[1]];
-            let q = pts[(i + 1) % pts.len()];
-            let q = [q[0] - o[0], q[1] - o[1]];
-            let x = p[0] * q[1] - q[0] * p[1];
-            (a, cx, cy) = (a + x, cx + (p[0] + q[0]) * x, cy + (p[1] + q[1]) * x);
-        }
-        sum = [
-            sum[0] + o[0] + cx / (3.0 * a),
-            sum[1] + o[1] + cy / (3.0 * a),
-        ];
+        let c = rigd::calibration::model::polygon_centroid(&pts);
+        sum = [sum[0] + c[0], sum[1] + c[1]];
     }
     [
         sum[0] / radii_um.len() as f64,

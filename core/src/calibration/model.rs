@@ -143,7 +143,7 @@ impl FieldModel {
 
 /// Area centroid of a closed polygon (shoelace), taken about its first vertex so that the
 /// small polygon far from the origin keeps its digits.
-fn polygon_centroid(pts: &[[f64; 2]]) -> [f64; 2] {
+pub fn polygon_centroid(pts: &[[f64; 2]]) -> [f64; 2] {
     let o = pts[0];
     let (mut a, mut cx, mut cy) = (0.0, 0.0, 0.0);
     for i in 0..pts.len() {
