@@ -209,6 +209,11 @@ pub struct CameraConfig {
     /// Manual white balance colour temperature, kelvin.
     #[serde(default)]
     pub white_balance_k: Option<u32>,
+    /// The camera's sharpening, V4L2 `sharpness` in its own units: 0 turns a UVC webcam's
+    /// off on most. Its halos, made in sRGB, are the largest single bias a webcam's
+    /// processing puts on an offset (docs/method.md, "What is left"). Absent: leave it.
+    #[serde(default)]
+    pub sharpness: Option<i64>,
     /// Capture buffers to queue.
     #[serde(default = "default_buffers")]
     pub buffers: u32,
@@ -744,6 +749,7 @@ impl CameraConfig {
             exposure_us: self.exposure_us,
             gain: self.gain,
             white_balance_k: self.white_balance_k,
+            sharpness: self.sharpness,
             buffers: self.buffers,
             frame_timeout: Duration::from_millis(self.frame_timeout_ms),
         }

@@ -41,6 +41,9 @@ fn documented_example_loads() {
     assert_eq!(cam.format, PixelFormat::Yuyv);
     assert_eq!((cam.width, cam.height), (1280, 720));
     assert_eq!(cam.exposure_us, Some(10_000));
+    // The camera's sharpening off, as the V4L2 driver is told.
+    assert_eq!(cam.sharpness, Some(0));
+    assert_eq!(cam.v4l2_options().sharpness, Some(0));
     let x = cfg.xl80("test").unwrap();
     assert_eq!(x.format, Xl80Format::Rtx);
     assert_eq!(cfg.daemon.group.as_deref(), Some("rigd"));

@@ -223,6 +223,7 @@ fn manual_controls_are_applied_or_reported() {
     o.exposure_us = Some(10_000);
     o.gain = Some(10);
     o.white_balance_k = Some(4600);
+    o.sharpness = Some(0);
     let cam = V4l2Camera::open(&o).unwrap();
     let r = cam.controls();
     println!("controls: {r:?}");
@@ -231,6 +232,7 @@ fn manual_controls_are_applied_or_reported() {
         "exposure_time_absolute",
         "gain",
         "white_balance_temperature",
+        "sharpness",
     ] {
         let n = r.applied.iter().filter(|(a, _, _)| a == name).count()
             + r.missing.iter().filter(|m| *m == name).count()

@@ -35,6 +35,7 @@ mod cid {
     pub const EXPOSURE_MANUAL: i64 = 1;
     /// In units of 100 µs.
     pub const EXPOSURE_ABSOLUTE: u32 = 0x009a_0902;
+    pub const SHARPNESS: u32 = 0x0098_091b;
 }
 
 /// Longest single wait (the v4l crate's poll timeout is an i32 of milliseconds).
@@ -387,6 +388,9 @@ impl V4l2Camera {
                 cid::WHITE_BALANCE_TEMPERATURE,
                 i64::from(k),
             );
+        }
+        if let Some(s) = o.sharpness {
+            self.set(&mut r, "sharpness", cid::SHARPNESS, s);
         }
         // An absent *auto* control is no problem when the manual one exists.
         let have = |n: &str| r.applied.iter().any(|(a, _, _)| a == n);

@@ -15,6 +15,9 @@ pub struct V4l2Options {
     pub exposure_us: Option<u32>,
     pub gain: Option<i64>,
     pub white_balance_k: Option<u32>,
+    /// The camera's sharpening (V4L2 `sharpness`, its own units; 0 on most UVC webcams is
+    /// off). Absent: leave the camera's setting alone.
+    pub sharpness: Option<i64>,
     pub buffers: u32,
     pub frame_timeout: Duration,
 }
@@ -29,6 +32,7 @@ impl V4l2Options {
             exposure_us: None,
             gain: None,
             white_balance_k: None,
+            sharpness: None,
             buffers: 4,
             frame_timeout: Duration::from_secs(2),
         }
