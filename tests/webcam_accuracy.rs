@@ -1023,13 +1023,7 @@ fn conversion_or_fit() {
     let cal = calibrate(&frames, &mut seq);
     let learnt = (cal.ink.as_ref().and_then(|i| i.prior()))
         .filter(|_| std::env::var("RIGD_NOPRIOR").is_err());
-    let edges = |s: &Shape| match *s {
-        Shape::Ring {
-            inner_radius_um,
-            outer_radius_um,
-        } => [inner_radius_um, outer_radius_um],
-        Shape::Disk { radius_um } => [radius_um; 2],
-    };
+    let edges = |s: &Shape| s.edges_um();
     let view0 = frames.views(0, &[[0.0, 0.0]])[0];
     for t in &board.targets {
         let c = view0.project(&cam, 1, t.centre_um);
@@ -1161,13 +1155,15 @@ fn diagnosis_camera() -> CameraModel {
     cam
 }
 
-/// The suite's study on layout `RIGD_LAYOUT` (default 11), 3 repeats, through the webcam
-/// with the effects `RIGD_OFF` names turned off ([`diagnosis_camera`]).
+/// The suite's study on layout `RIGD_LAYOUT` (default 11), `RIGD_REPEATS` repeats (default
+/// 3), through the webcam with the effects `RIGD_OFF` names turned off
+/// ([`diagnosis_camera`]).
 #[test]
 #[ignore = "a diagnosis: RIGD_OFF=lateral cargo test --release --test webcam_accuracy -- --ignored --nocapture study_without"]
 fn the_study_without_an_effect() {
     let seed: u64 = std::env::var("RIGD_LAYOUT").map_or(11, |v| v.parse().unwrap());
-    print(&study_on(diagnosis_camera(), seed, 3));
+    let repeats = std::env::var("RIGD_REPEATS").map_or(3, |v| v.parse().unwrap());
+    print(&study_on(diagnosis_camera(), seed, repeats));
 }
 
 /// A diagnosis's frame (`RIGD_UNSHARPEN` set): the webcam's unsharp mask on sRGB luma

@@ -23,6 +23,18 @@ pub enum Shape {
 }
 
 impl Shape {
+    /// Its edges' radii, `[inner, outer]` (a disk's one edge twice): the circles whose
+    /// apparent centres a calibration's conversion averages.
+    pub fn edges_um(&self) -> [f64; 2] {
+        match *self {
+            Shape::Ring {
+                inner_radius_um,
+                outer_radius_um,
+            } => [inner_radius_um, outer_radius_um],
+            Shape::Disk { radius_um } => [radius_um; 2],
+        }
+    }
+
     /// Radius of the outermost edge.
     pub fn outer_radius_um(&self) -> f64 {
         match *self {

@@ -26,7 +26,7 @@ use super::plane::{Mix, Plane, Roi};
 use super::reconstruct::{self, Fine, View};
 use super::register::{self, At, Dirs, StepLog};
 use super::*;
-use crate::board::{Board, Shape};
+use crate::board::Board;
 use crate::calibration::{
     Calibration, InkField, InkMap, Radii, TargetTrack, UNCALIBRATED_SCALE_REL_U,
 };
@@ -861,21 +861,14 @@ impl Pipeline {
     /// The object's circles on the board: the board's shapes when it is named, else its
     /// measured rims at the global scale.
     fn radii(&self, o: &ObjectResult) -> Radii {
-        let edges = |s: &Shape| match *s {
-            Shape::Ring {
-                inner_radius_um,
-                outer_radius_um,
-            } => [inner_radius_um, outer_radius_um],
-            Shape::Disk { radius_um } => [radius_um; 2],
-        };
         let named = o
             .name
             .as_deref()
             .and_then(|n| self.board.as_ref()?.target(n));
         match named {
             Some(t) => Radii {
-                outer_um: edges(&t.outer),
-                inner_um: edges(&t.inner),
+                outer_um: t.outer.edges_um(),
+                inner_um: t.inner.edges_um(),
             },
             None => {
                 let s = self.opts.scale_um_per_px;
