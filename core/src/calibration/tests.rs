@@ -368,3 +368,40 @@ fn the_rectifying_map_makes_a_corner_circle_round() {
     );
     assert!(rectified < 0.02 * imaged, "{rectified} vs {imaged}");
 }
+
+/// `fit_twice` measures the scan first without a calibration, then with the first fit (the
+/// one that scan gives), and the record is the second scan's; an error in either pass is
+/// the caller's, unchanged.
+#[test]
+fn fit_twice_measures_again_with_the_first_fit_and_keeps_the_second() {
+    let m = truth();
+    let (first, second) = (scan(&m, 0.01, 1), scan(&m, 0.01, 2));
+    let mut given: Vec<Option<String>> = vec![];
+    let cal = Calibration::fit_twice(
+        |c: Option<std::sync::Arc<Calibration>>| -> Result<Scan, CalibrationError> {
+            given.push(c.as_ref().map(|c| c.id.clone()));
+            Ok(if c.is_none() {
+                first.clone()
+            } else {
+                second.clone()
+            })
+        },
+        &FitOptions::default(),
+    )
+    .unwrap();
+    let opts = FitOptions::default();
+    let want_first = Calibration::fit(&first, &opts).unwrap();
+    assert_eq!(given, vec![None, Some(want_first.id.clone())]);
+    assert_eq!(cal.id, Calibration::fit(&second, &opts).unwrap().id);
+    assert_ne!(cal.id, want_first.id);
+    let failing = Calibration::fit_twice(
+        |_| -> Result<Scan, CalibrationError> {
+            Err(CalibrationError::TooFewSteps { got: 1, need: 2 })
+        },
+        &opts,
+    );
+    assert_eq!(
+        failing.unwrap_err(),
+        CalibrationError::TooFewSteps { got: 1, need: 2 }
+    );
+}
