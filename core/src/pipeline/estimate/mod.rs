@@ -645,6 +645,47 @@ mod tests {
         assert!(rectified < 0.003, "{rectified:.4} px");
     }
 
+    /// A rectifying map that only turns (a board turned in the image, no stretch) keeps
+    /// distances: the fit, with the prior centred on the print's density, lands where it
+    /// lands without one, to f32 rounding.
+    #[test]
+    fn a_rectifying_map_that_only_turns_changes_nothing() {
+        let n = 48;
+        let (co, ci) = ([23.7, 24.2], [25.1, 23.4]);
+        let waves = ink_waves(3, 3.9);
+        let mut plane = Plane::new(n, n);
+        for (i, v) in plane.data.iter_mut().enumerate() {
+            let (x, y) = ((i % n) as f64, (i / n) as f64);
+            let (eps, grad) = wave_density(&waves, 0.04, [x, y]);
+            let (cov, cov_grad) = coverage([x, y], (co, ci), ([11.0, 14.0], 7.0), 0.8);
+            let noise = ((i * 7919 % 101) as f64 / 101.0 - 0.5) * 2.0;
+            *v = (200.0 * (1.0 - 0.6 * inked(eps, grad, (cov, cov_grad), 0.8)) + noise) as f32;
+        }
+        let ink = Some(PlaneInk {
+            density_rms: 0.04,
+            corr_px: 3.9,
+            mean: None,
+        });
+        let (sn, cs) = 0.7f64.sin_cos();
+        let offsets = [None, Some([[cs, -sn], [sn, cs]])].map(|rectify| {
+            let guess = Candidate {
+                rectify,
+                ..whole_plane_guess(n, ([24.0, 24.0], [25.0, 23.5]), [11.0, 14.0], 7.0)
+            };
+            let e = estimate_from(
+                &plane,
+                &guess,
+                Estimator::Fit,
+                1.0,
+                Start::Guess,
+                ink.clone(),
+            );
+            e.unwrap().offset_px()
+        });
+        let d = (offsets[0][0] - offsets[1][0]).hypot(offsets[0][1] - offsets[1][1]);
+        assert!(d < 1e-4, "{offsets:?}");
+    }
+
     /// A target many correlation lengths wide (rim 80 px, the print's ℓ 4 px): the prior's
     /// grid and samples are capped (bounded memory and time), and the fit still lands on
     /// the offset of an evenly printed target.

@@ -199,8 +199,14 @@ fn inner_window() -> Window {
 #[test]
 fn batched_sums_equal_the_per_pixel_ones() {
     let (plane, win) = (plane(), inner_window());
-    // The last two measure the shapes as ellipses 3 % out of round (`rectify`).
+    // The last three measure the shapes as ellipses 3 % out of round (`rectify`), the last
+    // turned too (a map that is not symmetric: a board turned in the image).
     let ellipse = [[1.012, 0.008], [0.008, 0.988]];
+    let (sn, cs) = 0.3f64.sin_cos();
+    let turned = [
+        [cs * 1.012 - sn * 0.008, cs * 0.008 - sn * 0.988],
+        [sn * 1.012 + cs * 0.008, sn * 0.008 + cs * 0.988],
+    ];
     for (ring_inner, planes, step, rectify) in [
         (false, false, 1, None),
         (false, true, 1, None),
@@ -208,6 +214,7 @@ fn batched_sums_equal_the_per_pixel_ones() {
         (true, false, 3, None),
         (false, true, 1, Some(ellipse)),
         (true, false, 2, Some(ellipse)),
+        (true, true, 1, Some(turned)),
     ] {
         let mut prob = problem(&plane, &win, ring_inner, planes, step);
         prob.rectify = rectify.unwrap_or(prob.rectify);
