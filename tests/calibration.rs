@@ -302,22 +302,7 @@ fn a_webcam_scan_calibrates_the_local_scale_and_removes_the_offsets_bias() {
 /// The centre (area centroid) of the image of the circles of `radii_um` about board point
 /// `c_um` through the sim's lens at the run's middle, averaged over the radii.
 fn apparent_px(c_um: [f64; 2], radii_um: &[f64]) -> [f64; 2] {
-    let (cam, v) = (webcam(), View::at([5450.0, 0.0]));
-    let mut sum = [0.0; 2];
-    for &r in radii_um {
-        let pts: Vec<[f64; 2]> = (0..96)
-            .map(|i| {
-                let t = std::f64::consts::TAU * i as f64 / 96.0;
-                v.project(&cam, 1, [c_um[0] + r * t.cos(), c_um[1] + r * t.sin()])
-            })
-            .collect();
-        let c = rigd::calibration::model::polygon_centroid(&pts);
-        sum = [sum[0] + c[0], sum[1] + c[1]];
-    }
-    [
-        sum[0] / radii_um.len() as f64,
-        sum[1] / radii_um.len() as f64,
-    ]
+    View::at([5450.0, 0.0]).apparent_centre(&webcam(), 1, c_um, radii_um)
 }
 
 /// Bad input is refused with what and where: too few steps, no interferometer column, a

@@ -948,16 +948,11 @@ fn the_calibration_maps_each_targets_ink() {
 #[test]
 #[ignore = "a diagnosis: cargo test --release --test webcam_accuracy -- --ignored --nocapture which_targets"]
 fn which_targets_carry_the_bias() {
-    let seed: u64 = std::env::var("RIGD_LAYOUT").map_or(13, |v| v.parse().unwrap());
-    let cam = diagnosis_camera();
-    let board = random_board(seed, &cam);
-    let frames = FrameRenderer::new(board.clone(), cam.clone(), seed).unwrap();
-    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed);
+    let (cam, board, frames, mut seq, cal) = diagnosis_layout();
+    let mut rng = ChaCha8Rng::seed_from_u64(frames.seed() ^ 0x5eed);
     let starts: Vec<[f64; 2]> = (0..6)
         .map(|_| [rng.gen_range(0.0..774.0), rng.gen_range(0.0..774.0)])
         .collect();
-    let mut seq = 0;
-    let cal = calibrate(&frames, &mut seq);
     let learnt = cal.ink.as_ref().and_then(|i| i.prior());
     let case = CASES[std::env::var("RIGD_CASE").map_or(1, |v| v.parse().unwrap())];
     for t in &cal.targets {
@@ -970,13 +965,25 @@ fn which_targets_carry_the_bias() {
             t.residual_rms_um
         );
     }
-    let global: Vec<_> = starts
-        .iter()
-        .map(|&s| {
-            let imgs = render(&frames, s, case, &mut seq);
-            measure(&frames, &imgs, case, (Estimator::Fit, learnt), None)
-        })
-        .collect();
+    // Each start's frames measured at the global scale and with the calibration.
+    let (mut global, mut errors) = (vec![], vec![]);
+    for &s in &starts {
+        let imgs = render(&frames, s, case, &mut seq);
+        global.push(measure(
+            &frames,
+            &imgs,
+            case,
+            (Estimator::Fit, learnt),
+            None,
+        ));
+        errors.push(measure(
+            &frames,
+            &imgs,
+            case,
+            (Estimator::Fit, learnt),
+            Some(&cal),
+        ));
+    }
     let gfigs = figures(&global, &vec![([0.0; 2], [0.0; 2]); board.targets.len()]);
     for (t, g) in board.targets.iter().zip(&gfigs) {
         println!(
@@ -984,13 +991,6 @@ fn which_targets_carry_the_bias() {
             t.name, g.bias_um[0], g.bias_um[1]
         );
     }
-    let errors: Vec<_> = starts
-        .iter()
-        .map(|&s| {
-            let imgs = render(&frames, s, case, &mut seq);
-            measure(&frames, &imgs, case, (Estimator::Fit, learnt), Some(&cal))
-        })
-        .collect();
     let figs = figures(&errors, &vec![([0.0; 2], [0.0; 2]); board.targets.len()]);
     let print = rigd::sim::warp::Print::new(&board, &cam);
     let view = frames.views(0, &[[0.0, 0.0]])[0];
@@ -1014,39 +1014,9 @@ fn which_targets_carry_the_bias() {
 #[ignore = "a diagnosis: cargo test --release --test webcam_accuracy -- --ignored --nocapture conversion_or_fit"]
 fn conversion_or_fit() {
     use rigd::calibration::Radii;
-    use rigd::sim::board::Shape;
-    let seed: u64 = std::env::var("RIGD_LAYOUT").map_or(13, |v| v.parse().unwrap());
-    let cam = diagnosis_camera();
-    let board = random_board(seed, &cam);
-    let frames = FrameRenderer::new(board.clone(), cam.clone(), seed).unwrap();
-    let mut seq = 0;
-    let cal = calibrate(&frames, &mut seq);
+    let (cam, board, frames, mut seq, cal) = diagnosis_layout();
     let learnt = (cal.ink.as_ref().and_then(|i| i.prior()))
         .filter(|_| std::env::var("RIGD_NOPRIOR").is_err());
-    let edges = |s: &Shape| s.edges_um();
-    let view0 = frames.views(0, &[[0.0, 0.0]])[0];
-    for t in &board.targets {
-        let c = view0.project(&cam, 1, t.centre_um);
-        let rim = t.outer.outer_radius_um() / cam.scale_um_per_px;
-        let d: Vec<String> = (cal.ink_fields.iter())
-            .map(|f| format!("{:.1}", f.distance_px(c)))
-            .collect();
-        println!(
-            "{} mapped {}: {}",
-            t.name,
-            cal.ink_field_at(c, rim).is_some(),
-            d.join(" ")
-        );
-        let m = &cal.field.model;
-        let j = m.jacobian(m.inverse(c).unwrap());
-        let svd = j.svd(false, false);
-        println!(
-            "  J {:?} singular {:?} ratio {:.4}",
-            j,
-            svd.singular_values,
-            svd.singular_values[0] / svd.singular_values[1]
-        );
-    }
     let mut sums = vec![[0.0f64; 4]; board.targets.len()];
     let starts = [
         [100.0, 200.0],
@@ -1058,20 +1028,6 @@ fn conversion_or_fit() {
         seq += 1;
         let img = maybe_unsharpened(frames.render_at(seq, start), &cam);
         let view = frames.views(seq, &[start])[0];
-        let apparent = |c_um: [f64; 2], r_um: [f64; 2]| {
-            let mut acc = [0.0; 2];
-            for r in r_um {
-                let pts: Vec<[f64; 2]> = (0..256)
-                    .map(|i| {
-                        let a = std::f64::consts::TAU * i as f64 / 256.0;
-                        view.project(&cam, 1, [c_um[0] + r * a.cos(), c_um[1] + r * a.sin()])
-                    })
-                    .collect();
-                let c = rigd::calibration::model::polygon_centroid(&pts);
-                acc = [acc[0] + c[0] / 2.0, acc[1] + c[1] / 2.0];
-            }
-            acc
-        };
         let response = rigd::rig::sim::response(&cam);
         let mut opts = options(CASES[0], Estimator::Fit, response, learnt);
         if learnt.is_some() {
@@ -1091,15 +1047,13 @@ fn conversion_or_fit() {
                 t.centre_um[0] + t.offset_um[0],
                 t.centre_um[1] + t.offset_um[1],
             ];
-            let (co, ci) = (
-                apparent(t.centre_um, edges(&t.outer)),
-                apparent(inner_um, edges(&t.inner)),
-            );
-            let true_px = [ci[0] - co[0], ci[1] - co[1]];
             let radii = Radii {
-                outer_um: edges(&t.outer),
-                inner_um: edges(&t.inner),
+                outer_um: t.outer.edges_um(),
+                inner_um: t.inner.edges_um(),
             };
+            let co = view.apparent_centre(&cam, 1, t.centre_um, &radii.outer_um);
+            let ci = view.apparent_centre(&cam, 1, inner_um, &radii.inner_um);
+            let true_px = [ci[0] - co[0], ci[1] - co[1]];
             let conv = cal.convert(co, true_px, radii).offset_um;
             for a in 0..2 {
                 sums[i][a] += (conv[a] - t.offset_um[a]) / starts.len() as f64;
@@ -1126,6 +1080,18 @@ fn conversion_or_fit() {
         (sq[0] / n).sqrt(),
         (sq[1] / n).sqrt()
     );
+}
+
+/// A per-target diagnosis's layout `RIGD_LAYOUT` (default 13) through [`diagnosis_camera`],
+/// calibrated: the camera, board, frames, the frames' sequence so far and the calibration.
+fn diagnosis_layout() -> (CameraModel, Board, FrameRenderer, u64, Arc<Calibration>) {
+    let seed: u64 = std::env::var("RIGD_LAYOUT").map_or(13, |v| v.parse().unwrap());
+    let cam = diagnosis_camera();
+    let board = random_board(seed, &cam);
+    let frames = FrameRenderer::new(board.clone(), cam.clone(), seed).unwrap();
+    let mut seq = 0;
+    let cal = calibrate(&frames, &mut seq);
+    (cam, board, frames, seq, cal)
 }
 
 /// The webcam with the effects `RIGD_OFF` names (comma-separated) turned off, for the

@@ -47,11 +47,42 @@ impl View {
     /// Image coordinates of a board point through the camera's whole lens (tilt, distortion)
     /// in `channel` (0 R, 1 G, 2 B: lateral colour); `board_to_image` for an ideal lens.
     pub fn project(&self, cam: &CameraModel, channel: usize, p_um: [f64; 2]) -> [f64; 2] {
+        self.lens(cam).to_image(channel, p_um)
+    }
+
+    /// Where the circles of `radii_um` about board point `c_um` image, in `channel`: each
+    /// circle's image's area centroid (a tilted circle images as an ellipse whose centre is
+    /// not the projected one), averaged over the radii. The truth a calibration's
+    /// conversion is held to.
+    pub fn apparent_centre(
+        &self,
+        cam: &CameraModel,
+        channel: usize,
+        c_um: [f64; 2],
+        radii_um: &[f64],
+    ) -> [f64; 2] {
+        let lens = self.lens(cam);
+        let mut sum = [0.0; 2];
+        for &r in radii_um {
+            let pts: Vec<[f64; 2]> = (0..96)
+                .map(|i| {
+                    let t = std::f64::consts::TAU * i as f64 / 96.0;
+                    lens.to_image(channel, [c_um[0] + r * t.cos(), c_um[1] + r * t.sin()])
+                })
+                .collect();
+            let c = rigd_core::calibration::model::polygon_centroid(&pts);
+            sum = [sum[0] + c[0], sum[1] + c[1]];
+        }
+        sum.map(|v| v / radii_um.len() as f64)
+    }
+
+    /// The camera's whole lens at this view, on a bare board.
+    fn lens(&self, cam: &CameraModel) -> WarpInk {
         let mut bare = Board::paper();
         bare.targets.clear();
         bare.clutter.clear();
         let print = Arc::new(Print::new(&bare, cam));
-        WarpInk::new(&bare, cam, self, print).to_image(channel, p_um)
+        WarpInk::new(&bare, cam, self, print)
     }
 }
 
