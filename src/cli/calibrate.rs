@@ -178,7 +178,35 @@ pub fn summary(cal: &Calibration) -> String {
         );
     }
     s += &ink_line(cal);
+    s += &lateral_line(cal);
     s
+}
+
+/// The lens's lateral colour as the scan measured it: each registered channel's
+/// magnification against green and what it comes to at the frame's corner.
+fn lateral_line(cal: &Calibration) -> String {
+    let Some(l) = &cal.lateral_colour else {
+        return "  lateral colour: not measured (jobs mix the channels as they are)\n".into();
+    };
+    let corner = l.model.centre_px[0].hypot(l.model.centre_px[1]);
+    let channels: Vec<String> = [(0, "red"), (2, "blue")]
+        .into_iter()
+        .filter(|&(c, _)| l.shifts[c] > 0)
+        .map(|(c, name)| {
+            format!(
+                "{name} {:+.2e} ± {:.1e} ({:+.3} px at the corner, {:.3} px RMS residual, {} shifts)",
+                l.model.magnification[c],
+                l.magnification_u[c],
+                l.model.magnification[c] * corner,
+                l.residual_rms_px[c],
+                l.shifts[c]
+            )
+        })
+        .collect();
+    format!(
+        "  lateral colour against green: {}; jobs register these channels onto green\n",
+        channels.join(", ")
+    )
 }
 
 /// What the scan learnt of the print's ink, and whether jobs take it as the fit's prior.

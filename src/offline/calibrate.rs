@@ -63,6 +63,7 @@ pub fn fit_folder(dir: &Path, fit: &FolderFit) -> anyhow::Result<Calibration> {
             piezo_um: folder.piezo_um.clone(),
             targets: done.tracks,
             ink_maps: done.ink_maps,
+            lateral_colour: done.lateral_colour,
         })
     };
     let first_frame = folder.frames.first().context("a scan has frames")?;

@@ -9,6 +9,7 @@ use super::model::{FieldModel, PARAM_NAMES};
 use super::outliers::{self, Rejected};
 use super::scan::{CalibrationError, Reference, Scan};
 use crate::board::Board;
+use crate::pipeline::lateral::LateralColourFit;
 use nalgebra::{DMatrix, DVector, Matrix2, Vector2};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -143,6 +144,12 @@ pub struct Calibration {
     /// job's prior is centred on its target's map ([`InkField`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub ink_fields: Vec<InkField>,
+    /// The lens's lateral colour, measured by the scan at its targets: jobs register the
+    /// red and blue channels onto green with it before mixing them (docs/calibration.md).
+    /// Absent in records made before it was measured, or when no channel was measured
+    /// well enough to move by.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lateral_colour: Option<LateralColourFit>,
 }
 
 /// The circles' radii on the board, for the apparent-centre correction: the outer shape's
@@ -250,6 +257,7 @@ impl Calibration {
             rejected,
             ink: InkStatistics::estimate(&scan.ink_maps, scan.scale_um_per_px),
             ink_fields: Vec::new(),
+            lateral_colour: scan.lateral_colour,
         };
         if let Some(stats) = &cal.ink {
             cal.ink_fields = (scan.ink_maps.iter().zip(&scan.targets))

@@ -59,6 +59,12 @@ pub struct Scan {
     /// [`Pipeline::record_tracks`]: crate::pipeline::Pipeline::record_tracks
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub ink_maps: Vec<super::InkMap>,
+    /// The lens's lateral colour as the scan's frames show it
+    /// ([`Pipeline::record_tracks`] measures it). `None`: not measured.
+    ///
+    /// [`Pipeline::record_tracks`]: crate::pipeline::Pipeline::record_tracks
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lateral_colour: Option<crate::pipeline::lateral::LateralColourFit>,
 }
 
 /// Why a scan cannot be calibrated, or a calibration not applied.

@@ -78,6 +78,7 @@ fn scan(m: &FieldModel, noise_px: f64, seed: u64) -> Scan {
         piezo_um: None,
         targets,
         ink_maps: Vec::new(),
+        lateral_colour: None,
     }
 }
 

@@ -13,6 +13,7 @@ pub mod accumulate;
 pub mod detect;
 pub mod estimate;
 pub mod focus;
+pub mod lateral;
 pub mod layout;
 pub mod mean;
 pub mod measure;

@@ -1,6 +1,7 @@
 //! One plane of an image as f32, row-major (a channel, or the channels mixed by their
 //! contrast: [`Mix`]): what the estimators and reconstructions work on.
 
+use super::lateral::{self, LateralColour};
 use super::response::Response;
 use serde::{Deserialize, Serialize};
 
@@ -35,10 +36,13 @@ impl Roi {
 /// model (`L·(1 − c·cov)` is linear in the channels) and, weighted by the channels' ink
 /// contrast, is the matched combination for noise alike in each: red ink on white paper
 /// darkens green and blue alike, and the two together scatter less than green alone
-/// (docs/method.md, "Measurement plane").
+/// (docs/method.md, "Measurement plane"). With a lens's lateral colour measured (by a
+/// calibration), each channel is registered onto green before the sum: unregistered, one
+/// edge of the plane would be two, a fraction of a pixel apart at the frame's corners.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Mix {
     pub weights: [f32; 3],
+    pub lateral: Option<LateralColour>,
 }
 
 impl Mix {
@@ -50,7 +54,15 @@ impl Mix {
         assert!(ch < 3, "channel {ch} out of 0..3");
         let mut weights = [0.0; 3];
         weights[ch] = 1.0;
-        Mix { weights }
+        Mix {
+            weights,
+            lateral: None,
+        }
+    }
+
+    /// The same mix with its channels registered for `lateral`.
+    pub fn registered(self, lateral: Option<LateralColour>) -> Mix {
+        Mix { lateral, ..self }
     }
 
     /// The channels weighted by their ink contrast (paper minus ink, DN; a channel the ink
@@ -64,6 +76,7 @@ impl Mix {
         }
         Mix {
             weights: c.map(|v| (v / sum) as f32),
+            lateral: None,
         }
     }
 
@@ -152,6 +165,9 @@ impl Plane {
         let x1 = (roi.x as usize + roi.w as usize).min(iw);
         let y1 = (roi.y as usize + roi.h as usize).min(ih);
         let raw = img.as_raw();
+        if let Some(lat) = mix.lateral.filter(|l| (0..3).any(|c| l.moves(c, (iw, ih)))) {
+            return Plane::registered((raw, iw, ih), mix, &lat, lut, [x0, y0, x1, y1]);
+        }
         let mut data = Vec::with_capacity((x1 - x0) * (y1 - y0));
         let single = mix.single();
         for y in y0..y1 {
@@ -165,6 +181,36 @@ impl Plane {
         Plane {
             width: x1 - x0,
             height: y1 - y0,
+            data,
+        }
+    }
+
+    /// [`Plane::from_mix_roi_in`] with the channels `lat` displaces registered onto green.
+    fn registered(
+        (raw, iw, ih): (&[u8], usize, usize),
+        mix: Mix,
+        lat: &LateralColour,
+        lut: &[f32; 256],
+        [x0, y0, x1, y1]: [usize; 4],
+    ) -> Plane {
+        let (w, h) = (x1 - x0, y1 - y0);
+        let mut data = vec![0.0f32; w * h];
+        for (c, &weight) in mix.weights.iter().enumerate().filter(|(_, &w)| w != 0.0) {
+            if lat.moves(c, (iw, ih)) {
+                lateral::add_registered((raw, iw, ih), (c, weight), lat, lut, [x0, y0, x1, y1], &mut data);
+                continue;
+            }
+            for y in y0..y1 {
+                let row = &raw[(y * iw + x0) * 3..(y * iw + x1) * 3];
+                let line = &mut data[(y - y0) * w..(y - y0 + 1) * w];
+                for (o, p) in line.iter_mut().zip(row.chunks_exact(3)) {
+                    *o += weight * lut[p[c] as usize];
+                }
+            }
+        }
+        Plane {
+            width: w,
+            height: h,
             data,
         }
     }

@@ -17,6 +17,7 @@
 use super::accumulate::{Accumulator, Method};
 use super::detect::{self, Candidate, DetectConfig};
 use super::estimate::{self, estimate_from, CentreEstimate, EvenInk, PlaneInk, Start};
+use super::lateral::{LateralColourFit, LateralScan};
 use super::mean::OffsetMean;
 use super::measure::{
     density_in_frame, measure_in_frame, windows_bottom, FrameEstimates, FrameZero, Measurer,
@@ -66,6 +67,9 @@ pub struct Finished {
     pub tracks: Vec<TargetTrack>,
     /// Every target's ink density over the frames, read off its fits, with the tracks.
     pub ink_maps: Vec<InkMap>,
+    /// The lens's lateral colour, measured at the targets over the frames, with the tracks
+    /// (`None` without them, or when no channel was measured well enough).
+    pub lateral_colour: Option<LateralColourFit>,
 }
 
 /// How one target's frames are being combined.
@@ -105,6 +109,8 @@ pub struct Pipeline {
     tracks: Option<Vec<Vec<Option<[f64; 2]>>>>,
     /// `[target]`: the ink density its fits read, with the tracks.
     ink_maps: Option<Vec<InkMap>>,
+    /// The channels' shifts against green at the targets, with the tracks.
+    lateral: Option<LateralScan>,
     /// The calibration the offsets are converted with, and where it came from.
     calibration: Option<(Arc<Calibration>, Option<String>)>,
     calibration_warnings: Vec<String>,
@@ -149,6 +155,7 @@ impl Pipeline {
             rows_shared: None,
             measurer: None,
             measurer_shared: None,
+            lateral: None,
         }
     }
 
@@ -158,6 +165,7 @@ impl Pipeline {
     pub fn record_tracks(&mut self, record: bool) {
         self.tracks = record.then(Vec::new);
         self.ink_maps = record.then(Vec::new);
+        self.lateral = record.then(LateralScan::default);
     }
 
     /// Convert the offsets with `calibration` (its field model, not the global scale) and
@@ -439,6 +447,7 @@ impl Pipeline {
         self.accumulate(frame, &est, recon_px);
         self.observe(&est);
         self.read_ink(frame, &est);
+        self.read_lateral(frame, &est);
         self.record(index, at, shift, piezo_um.is_some(), est);
         Ok(Some(FrameReport {
             index,
@@ -469,6 +478,8 @@ impl Pipeline {
         self.check_calibration(got)?;
         self.targets = det.targets;
         if let Some((cal, _)) = &self.calibration {
+            // The channels registered onto green for the lens's lateral colour.
+            self.mix = self.mix.registered(cal.lateral_colour.map(|l| l.model));
             // The fit measures each target's circles as the ellipses they image as.
             for c in &mut self.targets {
                 c.rectify = cal.rectify_at(c.outer_centre_px);
@@ -666,6 +677,18 @@ impl Pipeline {
         }
     }
 
+    /// A calibration scan's frame: each measured target's red and blue images against its
+    /// green one (the lens's lateral colour: `lateral`).
+    fn read_lateral(&mut self, frame: &RgbImage, est: &[Option<CentreEstimate>]) {
+        let Some(lateral) = self.lateral.as_mut() else {
+            return;
+        };
+        let at: Vec<_> = (est.iter().flatten())
+            .map(|e| (e.outer_px, e.outer_radius_px))
+            .collect();
+        lateral.add_frame(frame, self.opts.response.table(), &at);
+    }
+
     /// Add the frame to what its targets (and the whole frame) accumulate.
     fn accumulate(&mut self, frame: &RgbImage, est: &[Option<CentreEstimate>], recon_px: [f64; 2]) {
         if self.frames == 0 {
@@ -739,6 +762,7 @@ impl Pipeline {
         self.convert_objects(&mut objects, &uncertain);
         let tracks = self.take_tracks();
         let ink_maps = self.ink_maps.take().unwrap_or_default();
+        let lateral_colour = self.lateral.take().and_then(|l| l.finish());
         let mut named: Vec<NamedImage> = images
             .into_iter()
             .map(|(i, f)| NamedImage {
@@ -770,6 +794,7 @@ impl Pipeline {
             images: named,
             tracks,
             ink_maps,
+            lateral_colour,
         })
     }
 
