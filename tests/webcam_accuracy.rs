@@ -398,7 +398,22 @@ struct Study {
 }
 
 fn study(seed: u64, repeats: usize) -> Study {
-    study_on(CameraModel::profile("webcam").unwrap(), seed, repeats)
+    let cam = match std::env::var("RIGD_CONFIGURED") {
+        Ok(_) => configured_webcam(),
+        Err(_) => CameraModel::profile("webcam").unwrap(),
+    };
+    study_on(cam, seed, repeats)
+}
+
+/// The webcam configured as config/rigd.toml has it: uncompressed YUYV 4:2:2
+/// (`format = "YUYV"`) and its sharpening off (`sharpness = 0`); every other effect of the
+/// profile on.
+fn configured_webcam() -> CameraModel {
+    CameraModel {
+        mjpeg_quality: None,
+        sharpen_amount: 0.0,
+        ..CameraModel::profile("webcam").unwrap()
+    }
 }
 
 /// [`study`] on camera `cam`.
@@ -587,18 +602,13 @@ fn webcam_offsets_precise_calibration_cuts_the_bias() {
     }
 }
 
-/// The same study through the webcam configured as config/rigd.toml has it: uncompressed
-/// YUYV 4:2:2 (`format = "YUYV"`) and its sharpening off (`sharpness = 0`); every other
-/// effect of the profile on (Bayer, crosstalk, demosaicing, sRGB, the tilted board, the
-/// lens's distortion and lateral colour, the light, the rough unevenly inked print).
+/// The same study through the webcam configured as config/rigd.toml has it
+/// ([`configured_webcam`]: YUYV, sharpening off; Bayer, crosstalk, demosaicing, sRGB, the
+/// tilted board, the lens's distortion and lateral colour, the light, the rough unevenly
+/// inked print all on). `RIGD_CONFIGURED=1` runs `study_full` on it.
 #[test]
 fn webcam_configured_as_rigd_asks() {
-    let cam = CameraModel {
-        mjpeg_quality: None,
-        sharpen_amount: 0.0,
-        ..CameraModel::profile("webcam").unwrap()
-    };
-    let s = study_on(cam, 11, 3);
+    let s = study_on(configured_webcam(), 11, 3);
     print(&s);
     for (i, case) in CASES.iter().enumerate() {
         let c = &s.calibrated[i];
@@ -996,11 +1006,7 @@ fn the_calibration_maps_each_targets_ink() {
 /// green's): measured blue −2.87e-4, red +1.0e-4 (red ink barely darkens red).
 #[test]
 fn the_calibration_measures_the_lenss_lateral_colour() {
-    let cam = CameraModel {
-        mjpeg_quality: None,
-        sharpen_amount: 0.0,
-        ..CameraModel::profile("webcam").unwrap()
-    };
+    let cam = configured_webcam();
     let board = random_board(11, &cam);
     let frames = FrameRenderer::new(board, cam.clone(), 11).unwrap();
     let cal = calibrate(&frames, &mut 0);
@@ -1012,7 +1018,10 @@ fn the_calibration_measures_the_lenss_lateral_colour() {
     assert_eq!(m[1], 0.0, "green is the reference");
     // 12 targets in 21 frames, both passes' frames alike.
     assert_eq!((l.shifts[0], l.shifts[2]), (252, 252));
-    assert!(l.magnification_u[2] < 5e-6 && l.residual_rms_px[2] < 0.015, "{l:?}");
+    assert!(
+        l.magnification_u[2] < 5e-6 && l.residual_rms_px[2] < 0.015,
+        "{l:?}"
+    );
     // The record keeps it, and a record from before it was measured reads as unmeasured.
     let json = serde_json::to_value(&*cal).unwrap();
     let back: Calibration = serde_json::from_value(json.clone()).unwrap();

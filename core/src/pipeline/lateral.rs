@@ -119,7 +119,14 @@ pub fn channel_shift_px(
         };
         let (w, h) = (x1 - x0, y1 - y0);
         let mut g = vec![0.0f32; w * h];
-        add_registered((raw, iw, ih), (1, 1.0), &shifted, lut, [x0, y0, x1, y1], &mut g);
+        add_registered(
+            (raw, iw, ih),
+            (1, 1.0),
+            &shifted,
+            lut,
+            [x0, y0, x1, y1],
+            &mut g,
+        );
         let gv = |x: usize, y: usize| g[(y - y0) * w + (x - x0)] as f64;
         // Normal equations of v_c ≈ α·G + β − α·∇G·Δ, unknowns (α, β, αΔx, αΔy).
         let mut n = nalgebra::Matrix4::<f64>::zeros();
@@ -227,7 +234,12 @@ pub struct LateralScan {
 impl LateralScan {
     /// The frame's red and blue shifts at each target (`(outer centre, rim radius)`, px),
     /// the channels decoded through `lut`.
-    pub fn add_frame(&mut self, img: &image::RgbImage, lut: &[f32; 256], targets: &[([f64; 2], f64)]) {
+    pub fn add_frame(
+        &mut self,
+        img: &image::RgbImage,
+        lut: &[f32; 256],
+        targets: &[([f64; 2], f64)],
+    ) {
         let size = (img.width() as usize, img.height() as usize);
         self.frame_size = Some(size);
         let centre = centre_of(size);
@@ -323,7 +335,10 @@ mod tests {
             let img = disk([23.4, 19.7], db);
             let d = channel_shift_px(&img, 2, roi, lut).expect("edges to register by");
             // 8-bit rounding of the rendered levels leaves ~0.005 px.
-            assert!((d[0] - db[0]).abs() < 0.01 && (d[1] - db[1]).abs() < 0.01, "{d:?} vs {db:?}");
+            assert!(
+                (d[0] - db[0]).abs() < 0.01 && (d[1] - db[1]).abs() < 0.01,
+                "{d:?} vs {db:?}"
+            );
         }
         // A flat channel has nothing to register by.
         assert!(channel_shift_px(&disk([23.4, 19.7], [0.0; 2]), 0, roi, lut).is_none());
@@ -341,7 +356,14 @@ mod tests {
         };
         let (w, h) = (img.width() as usize, img.height() as usize);
         let mut blue = vec![0.0f32; w * h];
-        add_registered((img.as_raw(), w, h), (2, 1.0), &lat, lut, [0, 0, w, h], &mut blue);
+        add_registered(
+            (img.as_raw(), w, h),
+            (2, 1.0),
+            &lat,
+            lut,
+            [0, 0, w, h],
+            &mut blue,
+        );
         // Registered, blue is green (the same levels here) to within the cubic's error on
         // a sharp edge (2.5 DN) and the 8-bit rounding; unregistered it is off by ~25 DN.
         let worst = |f: &dyn Fn(usize, usize) -> f32| {
@@ -352,7 +374,10 @@ mod tests {
         };
         let registered = worst(&|x, y| blue[y * w + x]);
         let raw = worst(&|x, y| img.get_pixel(x as u32, y as u32)[2] as f32);
-        assert!(registered < 4.0, "registered blue off green by {registered} DN");
+        assert!(
+            registered < 4.0,
+            "registered blue off green by {registered} DN"
+        );
         assert!(raw > 15.0, "the test's displacement shows: {raw} DN");
     }
 
@@ -360,9 +385,15 @@ mod tests {
     fn the_fit_recovers_magnification_and_shift() {
         let (m, t, centre) = (-4e-4, [0.02, -0.01], [639.5, 359.5]);
         let mut fit = LateralFit::default();
-        for (i, at) in [[100.0, 80.0], [1200.0, 90.0], [640.0, 360.0], [150.0, 650.0], [1180.0, 640.0]]
-            .into_iter()
-            .enumerate()
+        for (i, at) in [
+            [100.0, 80.0],
+            [1200.0, 90.0],
+            [640.0, 360.0],
+            [150.0, 650.0],
+            [1180.0, 640.0],
+        ]
+        .into_iter()
+        .enumerate()
         {
             let wobble = if i % 2 == 0 { 1e-3 } else { -1e-3 };
             let d = [0, 1].map(|a| m * (at[a] - centre[a]) + t[a] + wobble);

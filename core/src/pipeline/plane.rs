@@ -197,7 +197,14 @@ impl Plane {
         let mut data = vec![0.0f32; w * h];
         for (c, &weight) in mix.weights.iter().enumerate().filter(|(_, &w)| w != 0.0) {
             if lat.moves(c, (iw, ih)) {
-                lateral::add_registered((raw, iw, ih), (c, weight), lat, lut, [x0, y0, x1, y1], &mut data);
+                lateral::add_registered(
+                    (raw, iw, ih),
+                    (c, weight),
+                    lat,
+                    lut,
+                    [x0, y0, x1, y1],
+                    &mut data,
+                );
                 continue;
             }
             for y in y0..y1 {
