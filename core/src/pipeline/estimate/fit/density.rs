@@ -24,13 +24,26 @@ pub struct DensitySample {
     pub density: f64,
 }
 
-/// How far inside a shape's edges a sample must lie, in blur widths (plus half a pixel):
-/// the edge's model leaves ~2 % of its blur in the pixel there, and the readings the
-/// webcam's sharpening halos reach still learn the print's statistics (4.27 % over 3037 µm,
-/// the print's 4 % over 3000). At 2.5 s a softer, unsharpened edge (blur 0.88 px) left
-/// the paper board's disks unread, and the rings' thin band alone read 2.9 % over 1423 µm;
-/// at 2.0 s it reads 4.17 % over 3217 µm. At 1.5 s the sharpened webcam's halos read 12 %
-/// high; at 3.0 s both lose shapes and read 2.7-3.4 % over 1.6-2.4 mm.
+/// How far inside a shape's edges a sample must lie, in blur widths (plus half a pixel).
+/// The closer the readings come to the edges, the less a target's map extrapolates to
+/// where the offsets are read. Layout 11 of the webcam study, 3 repeats (the calibrated
+/// bias against the printed circles, 1 frame / 10 × 100 µm / 20 × 50 µm, µm; the scan's
+/// statistics of the print's 4 % over 3000 µm):
+///
+/// | margin | webcam (MJPEG, sharpened) | the same as config/rigd.toml has it (YUYV, unsharpened) |
+/// |---|---|---|
+/// | 2.0 s | 12.4 / 6.8 / 6.9; 4.39 % over 2677 µm | 9.1 / 4.9 / 5.1; 4.05 % over 1727 µm |
+/// | 1.5 s | 11.7 / 6.8 / 6.8; 4.31 % over 2868 µm | 8.0 / 4.8 / 4.9; 4.35 % over 2847 µm |
+/// | 1.0 s | 10.6 / 6.7 / 6.0; 4.37 % over 3016 µm | 8.1 / 3.8 / 3.9; 4.68 % over 3058 µm |
+///
+/// Over the full study (3 layouts, 20 repeats), 1.0 s cut the bias on every layout
+/// through the camera as configured (against the print 5.1–7.0 → 4.0–5.7 µm, the scatter
+/// 1.20–1.54 → 1.18–1.47x the bound), but through the sharpened MJPEG webcam it raised
+/// layout 13's (8.6 / 7.4 / 7.3 → 8.5 / 7.9 / 8.0 µm) and left 92 % of its errors within
+/// 2u: the halos the sharpening puts just inside the edges enter its maps. So 2.0 s stays
+/// until a calibration can tell a sharpened camera from its frames; at 2.0 s the
+/// unsharpened camera's thin rings leave few cells for the correlation (1727 µm). (An
+/// earlier fit, in sRGB and green alone, read 12 % high at 1.5 s through the halos.)
 pub const EDGE_MARGIN_S: f64 = 2.0;
 
 /// Every sample of the fit inside a shape, with the density the residual says there
