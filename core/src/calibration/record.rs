@@ -316,6 +316,12 @@ impl Calibration {
                 what,
             })?;
         }
+        if let Some(l) = &self.lateral_colour {
+            l.check().map_err(|what| CalibrationError::LateralColour {
+                id: self.id.clone(),
+                what,
+            })?;
+        }
         let mut warn = Vec::new();
         let s = self.fingerprint.scale_um_per_px;
         if (s - scale_um_per_px).abs() > 1e-9 * s {

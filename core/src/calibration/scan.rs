@@ -106,6 +106,8 @@ pub enum CalibrationError {
         index: usize,
         what: String,
     },
+    #[error("calibration {id}: lateral_colour {what}")]
+    LateralColour { id: String, what: String },
 }
 
 impl Scan {

@@ -406,3 +406,45 @@ fn fit_twice_measures_again_with_the_first_fit_and_keeps_the_second() {
         CalibrationError::TooFewSteps { got: 1, need: 2 }
     );
 }
+
+/// A lateral-colour entry read back broken (a NaN, a magnification no lens has, green
+/// moved) is refused when the calibration is checked, naming the field; a sound one passes.
+#[test]
+fn a_broken_lateral_colour_is_refused_by_name() {
+    use crate::pipeline::lateral::{LateralColour, LateralColourFit};
+    let good = LateralColourFit {
+        model: LateralColour {
+            centre_px: [639.5, 359.5],
+            magnification: [1e-4, 0.0, -2.9e-4],
+            shift_px: [[0.02, 0.0], [0.0; 2], [0.01, 0.0]],
+        },
+        magnification_u: [3e-6, 0.0, 1e-6],
+        residual_rms_px: [0.02, 0.0, 0.008],
+        shifts: [252, 0, 252],
+    };
+    let check = |l: LateralColourFit| {
+        let cal = Calibration {
+            lateral_colour: Some(l),
+            ..some_calibration(Vec::new())
+        };
+        let [w, h] = cal.fingerprint.frame_size;
+        cal.check((w, h), cal.fingerprint.scale_um_per_px, None)
+            .map(|_| ())
+            .map_err(|e| e.to_string())
+    };
+    assert_eq!(check(good), Ok(()));
+    let mut nan = good;
+    nan.model.magnification[2] = f64::NAN;
+    let mut huge = good;
+    huge.model.shift_px[0] = [40.0, 0.0];
+    let mut green = good;
+    green.model.magnification[1] = 1e-4;
+    for (bad, says) in [
+        (nan, "lateral_colour magnification[2] NaN is not a number"),
+        (huge, "lateral_colour shift_px[0] [40.0, 0.0] is not within"),
+        (green, "lateral_colour green (channel 1) is the reference"),
+    ] {
+        let e = check(bad).unwrap_err();
+        assert!(e.contains(says), "{e}");
+    }
+}

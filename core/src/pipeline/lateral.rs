@@ -218,6 +218,40 @@ pub struct LateralColourFit {
     pub shifts: [usize; 3],
 }
 
+/// The largest magnification (less 1) and shift a record may say: a lens with more
+/// lateral colour than 1 % of the radius, or a channel 5 px off, is not what a scan of
+/// this kind measures (a webcam's is ~4e-4 and ~0.02 px).
+const MAX_MAGNIFICATION: f64 = 0.01;
+const MAX_SHIFT_PX: f64 = 5.0;
+
+impl LateralColourFit {
+    /// Whether a record read back can be used: finite numbers within what a lens does,
+    /// green the reference; else what is wrong, naming the field.
+    pub fn check(&self) -> Result<(), String> {
+        let m = &self.model;
+        if !m.centre_px.iter().all(|v| v.is_finite()) {
+            return Err(format!("centre_px {:?} is not finite", m.centre_px));
+        }
+        for c in 0..3 {
+            let (mag, t) = (m.magnification[c], m.shift_px[c]);
+            if !(mag.is_finite() && mag.abs() <= MAX_MAGNIFICATION) {
+                return Err(format!(
+                    "magnification[{c}] {mag} is not a number within ±{MAX_MAGNIFICATION}"
+                ));
+            }
+            if !t.iter().all(|v| v.is_finite() && v.abs() <= MAX_SHIFT_PX) {
+                return Err(format!(
+                    "shift_px[{c}] {t:?} is not within ±{MAX_SHIFT_PX} px"
+                ));
+            }
+        }
+        if m.magnification[1] != 0.0 || m.shift_px[1] != [0.0; 2] {
+            return Err("green (channel 1) is the reference: its entries must be 0".into());
+        }
+        Ok(())
+    }
+}
+
 /// A channel is registered only when its magnification is known to this many pixels at
 /// the frame's corner (a channel the ink barely darkens, red under red ink, is measured
 /// too loosely to move by; its weight in the plane is small anyway).
