@@ -40,8 +40,19 @@ exposure_ms = 1.0
 "#;
 
 fn start() -> Daemon {
+    start_at(10_000.0)
+}
+
+/// The rig with the axis at `max_speed_um_s`: the queue and stop tests race a move against
+/// a busy machine's scheduler, so they run one long enough to outlast any stall (CI ran a
+/// 2 s move to its end before the `stop` sent right behind it arrived).
+fn start_at(max_speed_um_s: f64) -> Daemon {
     let dir = tempfile::tempdir().unwrap();
-    let rig = rig_from_toml(dir.path(), RIG);
+    let text = RIG.replace(
+        "max_speed_um_s = 10000.0",
+        &format!("max_speed_um_s = {max_speed_um_s:.1}"),
+    );
+    let rig = rig_from_toml(dir.path(), &text);
     Daemon::start_in(rig, dir)
 }
 
@@ -108,11 +119,11 @@ fn moves_go_where_asked_and_limits_are_refused_naming_them() {
 
 #[test]
 fn a_stop_mid_move_leaves_the_stage_short_of_its_target() {
-    let d = start();
+    let d = start_at(2_000.0);
     let mut c = d.client();
     move_to(&mut c, Some(1_000.0), None).unwrap();
     let socket = d.bg.socket.clone();
-    // 20 mm at 10 mm/s: about two seconds, on another connection.
+    // 20 mm at 2 mm/s: ten seconds, on another connection.
     let mover = std::thread::spawn(move || {
         let mut c = Client::connect(&socket).unwrap();
         // Behind a `position` the polls send, it waits its turn.
@@ -315,7 +326,7 @@ fn rig_state(c: &mut Client) -> serde_json::Value {
     c.request(&Request::Hello {}).unwrap()["rig_state"].clone()
 }
 
-/// Start a long move (20 mm at 10 mm/s, about two seconds) on its own connection; return once
+/// Start a long move (20 mm: two seconds at the default speed) on its own connection; return once
 /// `position` sees the axis on its way.
 fn long_move(d: &Daemon, c: &mut Client) -> std::thread::JoinHandle<MoveReply> {
     move_to(c, Some(1_000.0), None).unwrap();
@@ -361,7 +372,8 @@ fn queued_move(
 
 #[test]
 fn moves_sent_while_one_runs_wait_their_turn_in_order() {
-    let d = start();
+    // 20 mm at 4 mm/s: five seconds for the two others to be seen waiting.
+    let d = start_at(4_000.0);
     let mut c = d.client();
     let first = long_move(&d, &mut c);
     let second = queued_move(&d, &mut c, 100.0, 1);
@@ -397,7 +409,8 @@ fn moves_sent_while_one_runs_wait_their_turn_in_order() {
 
 #[test]
 fn a_stop_stops_the_running_move_and_the_waiting_ones_never_start() {
-    let d = start();
+    // 20 mm at 1 mm/s: twenty seconds for the stop to arrive while it runs.
+    let d = start_at(1_000.0);
     let mut c = d.client();
     let first = long_move(&d, &mut c);
     let waiting = queued_move(&d, &mut c, 5_000.0, 1);
