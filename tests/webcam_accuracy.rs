@@ -218,6 +218,7 @@ fn calibrate(frames: &FrameRenderer, sequence: &mut u64) -> Arc<Calibration> {
     } else {
         Calibration::fit_twice(measure, &fit).unwrap()
     };
+    println!("{}", rigd::cli::calibrate::summary(&cal));
     if std::env::var("RIGD_TRUE_MAP").is_ok() {
         true_maps(frames, &mut cal);
     }

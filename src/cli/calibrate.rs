@@ -178,8 +178,33 @@ pub fn summary(cal: &Calibration) -> String {
         );
     }
     s += &ink_line(cal);
+    s += &ink_margin_line(cal);
     s += &lateral_line(cal);
     s
+}
+
+/// How close to the edges the ink was read, and the bands against the interior it was
+/// chosen from.
+fn ink_margin_line(cal: &Calibration) -> String {
+    let Some(m) = &cal.ink_margin else {
+        return String::new();
+    };
+    let bands: Vec<String> = (m.bands.iter())
+        .map(|b| {
+            format!(
+                "{:.2}–{:.2}: {:+.2} ± {:.2} %",
+                b.from_s,
+                b.to_s,
+                100.0 * b.density_diff,
+                100.0 * b.u_density_diff
+            )
+        })
+        .collect();
+    format!(
+        "  ink read from {:.2} blur widths inside the edges (bands against the interior, in blur widths: {})\n",
+        m.margin_s,
+        bands.join("; ")
+    )
 }
 
 /// The lens's lateral colour as the scan measured it: each registered channel's

@@ -13,7 +13,8 @@
 //! blurred one: a Gaussian blur of width s (the fit's, lens and pixel) and the cells' 1 px
 //! boxes widen ℓ² by 2s² + 1/6 and keep σ²ℓ², which is undone to give the print's own.
 
-use crate::pipeline::{DensitySample, InkPrior, InkShape};
+use super::ink_margin::band_from_s;
+use crate::pipeline::{DensitySample, InkPrior, InkShape, DENSITY_EDGE_MARGIN_S};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -26,7 +27,7 @@ pub struct InkMap {
     pub blur_px_sum: f64,
     pub fits: u32,
     #[serde(skip)]
-    index: HashMap<(bool, [i32; 2]), usize>,
+    index: HashMap<CellKey, usize>,
 }
 
 /// One cell: whether inside the inner shape (else the outer), where, and its samples' sums.
@@ -37,6 +38,20 @@ pub struct InkCell {
     pub n: u32,
     pub sum: f64,
     pub sum2: f64,
+    /// Its samples lay from this many blur widths inside the nearest edge (to the next band;
+    /// [`DENSITY_EDGE_MARGIN_S`] and deeper: the interior, one cell). Maps read before the
+    /// bands were kept were read from the interior alone.
+    #[serde(default = "default_margin_s")]
+    pub from_s: f64,
+}
+
+/// A cell's key in a map's index: which shape, where, which band (hundredths of a blur width).
+type CellKey = (bool, [i32; 2], i32);
+
+impl InkCell {
+    fn key(&self) -> CellKey {
+        (self.inner, self.at, (100.0 * self.from_s).round() as i32)
+    }
 }
 
 impl InkMap {
@@ -45,22 +60,20 @@ impl InkMap {
         if self.index.len() != self.cells.len() {
             // A map read back (the index is not serialised): index its cells first.
             self.index = (self.cells.iter().enumerate())
-                .map(|(i, c)| ((c.inner, c.at), i))
+                .map(|(i, c)| (c.key(), i))
                 .collect();
         }
         for s in samples.iter().filter(|s| s.density.is_finite()) {
-            let key = (
-                s.shape == InkShape::Inner,
-                s.from_centre_px.map(|v| v.round() as i32),
-            );
-            let i = *self.index.entry(key).or_insert_with(|| {
-                self.cells.push(InkCell {
-                    inner: key.0,
-                    at: key.1,
-                    n: 0,
-                    sum: 0.0,
-                    sum2: 0.0,
-                });
+            let cell = InkCell {
+                inner: s.shape == InkShape::Inner,
+                at: s.from_centre_px.map(|v| v.round() as i32),
+                n: 0,
+                sum: 0.0,
+                sum2: 0.0,
+                from_s: band_from_s(s.edge_s),
+            };
+            let i = *self.index.entry(cell.key()).or_insert_with(|| {
+                self.cells.push(cell);
                 self.cells.len() - 1
             });
             let c = &mut self.cells[i];
@@ -70,6 +83,31 @@ impl InkMap {
         }
         self.blur_px_sum += blur_px;
         self.fits += 1;
+    }
+
+    /// The map of its samples at least `margin_s` blur widths inside the edges, a cell per
+    /// place (the bands merged).
+    pub fn within(&self, margin_s: f64) -> InkMap {
+        let mut out = InkMap {
+            blur_px_sum: self.blur_px_sum,
+            fits: self.fits,
+            ..InkMap::default()
+        };
+        let mut at: HashMap<(bool, [i32; 2]), usize> = HashMap::new();
+        for c in self.cells.iter().filter(|c| c.from_s >= margin_s - 1e-9) {
+            match at.get(&(c.inner, c.at)) {
+                Some(&i) => {
+                    let m = &mut out.cells[i];
+                    (m.n, m.sum, m.sum2) = (m.n + c.n, m.sum + c.sum, m.sum2 + c.sum2);
+                    m.from_s = m.from_s.min(c.from_s);
+                }
+                None => {
+                    at.insert((c.inner, c.at), out.cells.len());
+                    out.cells.push(*c);
+                }
+            }
+        }
+        out
     }
 }
 
@@ -87,9 +125,17 @@ pub struct InkStatistics {
     pub observed_corr_px: f64,
     /// The fits' mean blur width, px.
     pub blur_px: f64,
+    /// How far inside the shapes' edges the cells lie, in blur widths (records made before
+    /// it was chosen: the default).
+    #[serde(default = "default_margin_s")]
+    pub margin_s: f64,
     /// Shapes and cells the fit read.
     pub shapes: usize,
     pub cells: usize,
+}
+
+fn default_margin_s() -> f64 {
+    DENSITY_EDGE_MARGIN_S
 }
 
 /// Fewest frames behind a cell (its noise is its own scatter).
@@ -107,9 +153,11 @@ const SIGNIFICANT_U: f64 = 3.0;
 const MIN_UNEVEN_RMS: f64 = 0.005;
 
 impl InkStatistics {
-    /// The statistics from every target's map, `None` when too few cells were read or the
-    /// fit does not resolve them (a correlation length under the blur's).
-    pub fn estimate(maps: &[InkMap], scale_um_per_px: f64) -> Option<InkStatistics> {
+    /// The statistics from every target's map, its cells at least `margin_s` blur widths
+    /// inside the edges; `None` when too few cells were read or the fit does not resolve
+    /// them (a correlation length under the blur's).
+    pub fn estimate(maps: &[InkMap], scale_um_per_px: f64, margin_s: f64) -> Option<InkStatistics> {
+        let maps: Vec<InkMap> = maps.iter().map(|m| m.within(margin_s)).collect();
         let fits: u32 = maps.iter().map(|m| m.fits).sum();
         let blur_px = maps.iter().map(|m| m.blur_px_sum).sum::<f64>() / fits.max(1) as f64;
         let shapes: Vec<ShapeCells> = maps.iter().filter_map(ShapeCells::of).collect();
@@ -134,6 +182,7 @@ impl InkStatistics {
             observed_rms: (0.5 * fit.at[0]).exp(),
             observed_corr_px: fit.at[1].exp(),
             blur_px,
+            margin_s,
             shapes: shapes.iter().map(|s| s.shapes).sum(),
             cells: shapes.iter().map(|s| s.at.len()).sum(),
         })
@@ -429,6 +478,7 @@ mod tests {
                                 from_centre_px: p,
                                 shape,
                                 density: field(q) + noise * normal(&mut rng),
+                                edge_s: 3.0,
                             });
                         }
                     }
@@ -462,7 +512,7 @@ mod tests {
         let truth_um = 3.9 * 774.0;
         let (mut rms, mut corr) = (0.0, 0.0);
         for seed in 0..6 {
-            let s = InkStatistics::estimate(&maps(0.04, 3.9, 0.9, 0.02, seed), 774.0)
+            let s = InkStatistics::estimate(&maps(0.04, 3.9, 0.9, 0.02, seed), 774.0, 2.0)
                 .expect("resolved");
             assert!((s.density_rms / 0.04 - 1.0).abs() < 0.15, "{s:?}");
             assert!((s.corr_um / truth_um - 1.0).abs() < 0.1, "{s:?}");
@@ -487,6 +537,7 @@ mod tests {
             from_centre_px: [x, 0.0],
             shape: InkShape::Inner,
             density,
+            edge_s: 3.0,
         };
         let mut map = InkMap::default();
         map.add(&[sample(1.0, 0.01), sample(2.0, 0.02)], 0.7);
@@ -507,7 +558,7 @@ mod tests {
     #[test]
     fn an_even_print_takes_no_prior() {
         for seed in 0..3 {
-            let s = InkStatistics::estimate(&maps(0.0, 3.9, 0.9, 0.02, seed), 774.0);
+            let s = InkStatistics::estimate(&maps(0.0, 3.9, 0.9, 0.02, seed), 774.0, 2.0);
             if let Some(s) = &s {
                 assert!(s.density_rms < 0.0025, "{s:?}");
             }

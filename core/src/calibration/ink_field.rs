@@ -12,7 +12,7 @@
 
 use super::ink::{cells_read, shape_constants, InkMap, InkStatistics};
 use super::scan::TargetTrack;
-use crate::pipeline::{bumps_at, InkMean, DENSITY_EDGE_MARGIN_S};
+use crate::pipeline::{bumps_at, InkMean};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
@@ -45,13 +45,14 @@ impl InkField {
         stats: &InkStatistics,
         scale_um_per_px: f64,
     ) -> Option<InkField> {
-        let cells = Cells::of(map)?;
+        let map = map.within(stats.margin_s);
+        let cells = Cells::of(&map)?;
         let corr_px = stats.corr_um / scale_um_per_px;
         let w2 = stats.blur_px * stats.blur_px + 1.0 / 12.0;
         let krige = Kriging::new(&cells, stats.density_rms, corr_px, w2)?;
         // The density samples lie this far inside the shapes' edges: the edges are that
         // far beyond the last cells.
-        let margin = DENSITY_EDGE_MARGIN_S * stats.blur_px + 0.5;
+        let margin = stats.margin_s * stats.blur_px + 0.5;
         let residual = krige.variance_at(&cells.edge_band(margin)?);
         let ends = track_ends(track)?;
         let weight = krige.bump_weight();
@@ -307,6 +308,7 @@ mod tests {
                     from_centre_px: p,
                     shape,
                     density,
+                    edge_s: 3.0,
                 });
             }
             for shape in [InkShape::Inner, InkShape::Outer] {
@@ -331,6 +333,7 @@ mod tests {
             observed_rms: 0.04,
             observed_corr_px: 4.0,
             blur_px: 0.0,
+            margin_s: 2.0,
             shapes: 2,
             cells: 0,
         }

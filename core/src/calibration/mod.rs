@@ -27,11 +27,13 @@
 //! | `lm` | Levenberg–Marquardt with the parameters' covariance |
 //! | `fit` | each target's line, the field model's parameterisation and start |
 //! | `outliers` | centres off their target's line, targets off the model: left out, recorded |
+//! | `ink`, `ink_field`, `ink_margin` | the print's ink: its statistics, each target's map, how near the edges they read |
 //! | `record` | the [`Calibration`] record, its fit, its check and [`Calibration::convert`] |
 
 mod fit;
 pub mod ink;
 pub mod ink_field;
+pub mod ink_margin;
 mod lm;
 pub mod model;
 mod outliers;
@@ -42,6 +44,7 @@ mod tests;
 
 pub use ink::{InkMap, InkStatistics};
 pub use ink_field::InkField;
+pub use ink_margin::{EdgeBand, InkMargin};
 pub use model::FieldModel;
 pub use outliers::Rejected;
 pub use record::{

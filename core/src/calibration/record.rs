@@ -4,6 +4,7 @@
 use super::fit::{line_fit, FieldProblem, Layout, LineFit};
 use super::ink::InkStatistics;
 use super::ink_field::InkField;
+use super::ink_margin::InkMargin;
 use super::lm::LmResult;
 use super::model::{FieldModel, PARAM_NAMES};
 use super::outliers::{self, Rejected};
@@ -144,6 +145,10 @@ pub struct Calibration {
     /// job's prior is centred on its target's map ([`InkField`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub ink_fields: Vec<InkField>,
+    /// How close to the shapes' edges the ink was read, and the bands it was chosen from
+    /// ([`InkMargin`]). Absent in records made before it was chosen (read at 2 blur widths).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ink_margin: Option<InkMargin>,
     /// The lens's lateral colour, measured by the scan at its targets: jobs register the
     /// red and blue channels onto green with it before mixing them (docs/calibration.md).
     /// Absent in records made before it was measured, or when no channel was measured
@@ -255,10 +260,17 @@ impl Calibration {
             targets,
             field,
             rejected,
-            ink: InkStatistics::estimate(&scan.ink_maps, scan.scale_um_per_px),
+            ink: None,
             ink_fields: Vec::new(),
+            ink_margin: None,
             lateral_colour: scan.lateral_colour,
         };
+        if !scan.ink_maps.is_empty() {
+            let margin = InkMargin::choose(&scan.ink_maps);
+            cal.ink =
+                InkStatistics::estimate(&scan.ink_maps, scan.scale_um_per_px, margin.margin_s);
+            cal.ink_margin = Some(margin);
+        }
         if let Some(stats) = &cal.ink {
             cal.ink_fields = (scan.ink_maps.iter().zip(&scan.targets))
                 .filter_map(|(m, t)| InkField::learn(m, t, stats, scan.scale_um_per_px))

@@ -27,6 +27,7 @@ pub mod stats;
 
 pub use estimate::{
     bumps_at, ink_density, DensitySample, InkMean, InkShape, DENSITY_EDGE_MARGIN_S,
+    DENSITY_READ_MARGIN_S,
 };
 pub use options::{InkPrior, OptionError, ProcessOptions, ValidOptions, K_RANGE, MAX_K};
 pub use response::Response;

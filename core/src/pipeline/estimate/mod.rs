@@ -11,7 +11,8 @@ mod fit;
 mod paper;
 
 pub use fit::{
-    bumps_at, DensitySample, InkMean, InkShape, PlaneInk, DENSITY_EDGE_MARGIN_S, PRIOR_PEAK_BYTES,
+    bumps_at, DensitySample, InkMean, InkShape, PlaneInk, DENSITY_EDGE_MARGIN_S,
+    DENSITY_READ_MARGIN_S, PRIOR_PEAK_BYTES,
 };
 
 use super::accumulate::Lattice;

@@ -22,6 +22,10 @@ pub struct DensitySample {
     pub from_centre_px: [f64; 2],
     pub shape: InkShape,
     pub density: f64,
+    /// How far inside its shape's nearest edge, in blur widths (less half a pixel): at least
+    /// [`READ_MARGIN_S`]. The calibration keeps the samples from where the density reads
+    /// the same as deeper inside (`calibration::ink_margin`).
+    pub edge_s: f64,
 }
 
 /// How far inside a shape's edges a sample must lie, in blur widths (plus half a pixel).
@@ -46,6 +50,11 @@ pub struct DensitySample {
 /// earlier fit, in sRGB and green alone, read 12 % high at 1.5 s through the halos.)
 pub const EDGE_MARGIN_S: f64 = 2.0;
 
+/// How far inside a shape's edges the fit reads samples, in blur widths (plus half a
+/// pixel): the calibration then chooses, from the samples themselves, how close to the
+/// edges its maps may come ([`EDGE_MARGIN_S`] at most).
+pub const READ_MARGIN_S: f64 = 1.0;
+
 /// Every sample of the fit inside a shape, with the density the residual says there
 /// against each shape's contrast at its centre: a fit with contrast planes has its planes
 /// added back (they are the density's slope, which a map of the density needs).
@@ -54,23 +63,27 @@ pub(super) fn read(prob: &Problem, p: &[f64; MAXP]) -> Vec<DensitySample> {
     for i in GRADIENTS {
         flat[i] = 0.0;
     }
-    let margin = EDGE_MARGIN_S * p[S] + 0.5 * prob.step as f64;
+    let half_step = 0.5 * prob.step as f64;
     let inner_hole = if prob.np == MAXP {
         p[RIH]
     } else {
         f64::NEG_INFINITY
     };
-    let inside = |rho: f64, lo: f64, hi: f64| rho > lo + margin && rho < hi - margin;
+    // Blur widths inside (lo, hi), less half a pixel; at least the read margin.
+    let inside = |rho: f64, lo: f64, hi: f64| {
+        let edge_s = ((rho - lo).min(hi - rho) - half_step) / p[S];
+        (edge_s > READ_MARGIN_S).then_some(edge_s)
+    };
     samples(prob, 1)
         .into_iter()
         .filter_map(|s| {
             let (ox, oy) = (s.at[0] - p[CXO], s.at[1] - p[CYO]);
             let rho_o = prob.rho(ox, oy).0;
             let rho_i = prob.rho(s.at[0] - p[CXI], s.at[1] - p[CYI]).0;
-            let shape = if inside(rho_o, p[HOLE], p[RIM]) {
-                InkShape::Outer
-            } else if inside(rho_i, inner_hole, p[RI]) {
-                InkShape::Inner
+            let (shape, edge_s) = if let Some(e) = inside(rho_o, p[HOLE], p[RIM]) {
+                (InkShape::Outer, e)
+            } else if let Some(e) = inside(rho_i, inner_hole, p[RI]) {
+                (InkShape::Inner, e)
             } else {
                 return None;
             };
@@ -80,6 +93,7 @@ pub(super) fn read(prob: &Problem, p: &[f64; MAXP]) -> Vec<DensitySample> {
                 from_centre_px: [ox, oy],
                 shape,
                 density: (row.l * row.shade - s.v) / ink,
+                edge_s,
             })
         })
         .collect()

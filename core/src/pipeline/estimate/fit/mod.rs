@@ -29,7 +29,10 @@ mod edge;
 mod normal;
 mod prior;
 
-pub use density::{DensitySample, InkShape, EDGE_MARGIN_S as DENSITY_EDGE_MARGIN_S};
+pub use density::{
+    DensitySample, InkShape, EDGE_MARGIN_S as DENSITY_EDGE_MARGIN_S,
+    READ_MARGIN_S as DENSITY_READ_MARGIN_S,
+};
 pub use prior::{bumps_at, InkMean, PlaneInk, PEAK_BYTES as PRIOR_PEAK_BYTES};
 
 use normal::Normal;
