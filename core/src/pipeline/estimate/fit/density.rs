@@ -28,11 +28,13 @@ pub struct DensitySample {
     pub edge_s: f64,
 }
 
-/// How far inside a shape's edges a sample must lie, in blur widths (plus half a pixel).
-/// The closer the readings come to the edges, the less a target's map extrapolates to
-/// where the offsets are read. Layout 11 of the webcam study, 3 repeats (the calibrated
-/// bias against the printed circles, 1 frame / 10 × 100 µm / 20 × 50 µm, µm; the scan's
-/// statistics of the print's 4 % over 3000 µm):
+/// The deepest margin the calibration's maps keep to, in blur widths inside a shape's
+/// edges (plus half a pixel): where the bands cannot say, and the interior the bands are
+/// compared with (`calibration::ink_margin`). The closer the readings come to the edges,
+/// the less a target's map extrapolates to where the offsets are read, unless a
+/// sharpening's halos come in with them. Layout 11 of the webcam study, 3 repeats, fixed
+/// margins (the calibrated bias against the printed circles, 1 frame / 10 × 100 µm /
+/// 20 × 50 µm, µm; the scan's statistics of the print's 4 % over 3000 µm):
 ///
 /// | margin | webcam (MJPEG, sharpened) | the same as config/rigd.toml has it (YUYV, unsharpened) |
 /// |---|---|---|
@@ -40,14 +42,10 @@ pub struct DensitySample {
 /// | 1.5 s | 11.7 / 6.8 / 6.8; 4.31 % over 2868 µm | 8.0 / 4.8 / 4.9; 4.35 % over 2847 µm |
 /// | 1.0 s | 10.6 / 6.7 / 6.0; 4.37 % over 3016 µm | 8.1 / 3.8 / 3.9; 4.68 % over 3058 µm |
 ///
-/// Over the full study (3 layouts, 20 repeats), 1.0 s cut the bias on every layout
-/// through the camera as configured (against the print 5.1–7.0 → 4.0–5.7 µm, the scatter
-/// 1.20–1.54 → 1.18–1.47x the bound), but through the sharpened MJPEG webcam it raised
-/// layout 13's (8.6 / 7.4 / 7.3 → 8.5 / 7.9 / 8.0 µm) and left 92 % of its errors within
-/// 2u: the halos the sharpening puts just inside the edges enter its maps. So 2.0 s stays
-/// until a calibration can tell a sharpened camera from its frames; at 2.0 s the
-/// unsharpened camera's thin rings leave few cells for the correlation (1727 µm). (An
-/// earlier fit, in sRGB and green alone, read 12 % high at 1.5 s through the halos.)
+/// Over the full study a fixed 1.0 s cut the bias on every layout through the camera as
+/// configured but raised layout 13's through the sharpened MJPEG webcam (8.6 / 7.4 / 7.3
+/// → 8.5 / 7.9 / 8.0 µm, 92 % within 2u): the halos the sharpening puts just inside the
+/// edges enter its maps. The scan now tells the two apart by the bands' ink.
 pub const EDGE_MARGIN_S: f64 = 2.0;
 
 /// How far inside a shape's edges the fit reads samples, in blur widths (plus half a
