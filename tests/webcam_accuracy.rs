@@ -1013,6 +1013,12 @@ fn the_calibration_maps_each_targets_ink() {
             .all(|b| b.density_diff > 0.004 && b.shapes == 24),
         "{m:?}"
     );
+    // The calibration's summary tells the user what to change.
+    let text = rigd::cli::calibrate::summary(&cal);
+    assert!(
+        text.contains("halos just inside the edges") && text.contains("sharpness = 0"),
+        "{text}"
+    );
 }
 
 /// The calibration scan measures the lens's lateral colour at its targets (each target's
@@ -1059,7 +1065,8 @@ fn the_calibration_measures_the_lenss_lateral_colour() {
     assert_eq!(cal.ink.as_ref().unwrap().margin_s, DENSITY_READ_MARGIN_S);
     let text = rigd::cli::calibrate::summary(&cal);
     assert!(
-        text.contains("ink read from 1.00 blur widths inside the edges (bands against the interior, in blur widths: 1.00–1.25: "),
+        text.contains("ink read from 1.00 blur widths inside the edges (bands against the interior, in blur widths: 1.00–1.25: ")
+            && !text.contains("halos"),
         "{text}"
     );
 }

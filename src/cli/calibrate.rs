@@ -200,11 +200,16 @@ fn ink_margin_line(cal: &Calibration) -> String {
             )
         })
         .collect();
-    format!(
+    let mut s = format!(
         "  ink read from {:.2} blur widths inside the edges (bands against the interior, in blur widths: {})\n",
         m.margin_s,
         bands.join("; ")
-    )
+    );
+    if m.halos() {
+        s += "  the frames show halos just inside the edges (most often the camera sharpening its frames): \
+              set `[camera] sharpness = 0` (docs/camera.md) and calibrate again to read the ink nearer the edges\n";
+    }
+    s
 }
 
 /// The lens's lateral colour as the scan measured it: each registered channel's

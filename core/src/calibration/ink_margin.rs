@@ -82,6 +82,17 @@ pub(super) fn band_from_s(edge_s: f64) -> f64 {
     DENSITY_READ_MARGIN_S + BAND_S * i
 }
 
+impl InkMargin {
+    /// Whether a band reads ink the interior does not, beyond its noise (3 standard
+    /// uncertainties) and the tolerance: halos, most often a camera that sharpens its
+    /// frames (the sharpened webcam's bands read 2.3–4.9 u out).
+    pub fn halos(&self) -> bool {
+        self.bands.iter().any(|b| {
+            b.density_diff.abs() > TOLERANCE && b.density_diff.abs() > 3.0 * b.u_density_diff
+        })
+    }
+}
+
 /// The bands from the read margin to the default one.
 fn band_edges() -> impl DoubleEndedIterator<Item = (f64, f64)> {
     let n = ((DENSITY_EDGE_MARGIN_S - DENSITY_READ_MARGIN_S) / BAND_S).round() as usize;
@@ -222,6 +233,7 @@ mod tests {
             // The bands read +1.1, +0.66, +0.37 (± 0.03), +0.2 % against the interior: the
             // third is the nearest within the tolerance with twice its uncertainty added.
             assert_eq!(haloed.margin_s, 1.5, "{haloed:?}");
+            assert!(haloed.halos() && !clean.halos());
             let first = &haloed.bands[0];
             assert!(
                 (first.density_diff - 0.011).abs() < 0.003,
