@@ -424,6 +424,26 @@ fn reml(shapes: &[ShapeCells]) -> Option<Reml> {
     })
 }
 
+/// Each shape's mean taken out of a frame's synthetic samples, as the fit's contrast takes
+/// it (the tests' scans).
+#[cfg(test)]
+pub(super) fn remove_shape_means(samples: &mut [DensitySample]) {
+    for shape in [InkShape::Inner, InkShape::Outer] {
+        let of = |s: &&mut DensitySample| s.shape == shape;
+        let n = samples.iter_mut().filter(of).count() as f64;
+        let mean = samples
+            .iter_mut()
+            .filter(of)
+            .map(|s| s.density)
+            .sum::<f64>()
+            / n;
+        samples
+            .iter_mut()
+            .filter(of)
+            .for_each(|s| s.density -= mean);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -482,20 +502,7 @@ mod tests {
                             });
                         }
                     }
-                    for shape in [InkShape::Inner, InkShape::Outer] {
-                        let of = |s: &&mut DensitySample| s.shape == shape;
-                        let n = samples.iter_mut().filter(of).count() as f64;
-                        let mean = samples
-                            .iter_mut()
-                            .filter(of)
-                            .map(|s| s.density)
-                            .sum::<f64>()
-                            / n;
-                        samples
-                            .iter_mut()
-                            .filter(of)
-                            .for_each(|s| s.density -= mean);
-                    }
+                    remove_shape_means(&mut samples);
                     map.add(&samples, blur_px);
                 }
                 map

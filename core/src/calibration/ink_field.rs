@@ -311,14 +311,7 @@ mod tests {
                     edge_s: 3.0,
                 });
             }
-            for shape in [InkShape::Inner, InkShape::Outer] {
-                let of = |s: &&DensitySample| s.shape == shape;
-                let n = samples.iter().filter(of).count() as f64;
-                let mean = samples.iter().filter(of).map(|s| s.density).sum::<f64>() / n;
-                (samples.iter_mut())
-                    .filter(|s| s.shape == shape)
-                    .for_each(|s| s.density -= mean);
-            }
+            super::super::ink::remove_shape_means(&mut samples);
             map.add(&samples, 0.0);
         }
         (map, field)
