@@ -1051,8 +1051,16 @@ fn the_calibration_measures_the_lenss_lateral_colour() {
     assert_eq!(back.lateral_colour, cal.lateral_colour);
     let mut old = json;
     old.as_object_mut().unwrap().remove("lateral_colour");
+    // A record from before the scan chose its ink margin: read at 2 blur widths.
+    old.as_object_mut()
+        .unwrap()
+        .remove("ink_margin")
+        .expect("kept");
+    old["ink"].as_object_mut().unwrap().remove("margin_s");
     let old: Calibration = serde_json::from_value(old).unwrap();
     assert!(old.lateral_colour.is_none());
+    assert!(old.ink_margin.is_none());
+    assert_eq!(old.ink.as_ref().unwrap().margin_s, DENSITY_EDGE_MARGIN_S);
     // Unsharpened, every band reads the interior's ink (+0.14, +0.07, −0.01, 0.00 %,
     // ± 0.15): the maps read from 1 blur width inside the edges.
     let m = cal.ink_margin.as_ref().expect("the margin chosen");
