@@ -229,14 +229,15 @@ fn rig_requests_are_refused_while_a_job_runs() {
 fn a_cancel_during_the_last_settle_ends_cancelled_without_its_frame() {
     let d = start(vec![]);
     let mut c = d.subscribed();
-    let id = submit(&mut c, capture_job(10.0, 2, 1_500));
+    // A 4 s settle: the cancel sent 0.3 s into it lands inside it on a busy machine too.
+    let id = submit(&mut c, capture_job(10.0, 2, 4_000));
     let mut steps = 0;
     while steps < 1 {
         if let EventBody::Step { .. } = c.next_event().unwrap().body {
             steps += 1;
         }
     }
-    // Now in the last step's 1.5 s settle.
+    // Now in the last step's settle.
     std::thread::sleep(Duration::from_millis(300));
     let r = c.request(&Request::Cancel { job_id: id }).unwrap();
     assert_eq!(r["state"], "cancelling");
@@ -268,7 +269,8 @@ fn sigterm_during_a_settle_records_no_frame_for_that_step() {
     let mut reaper = RigdProcess::spawn_sim(&socket, &data);
     let mut c = Client::connect(&socket).unwrap();
     c.request(&Request::Subscribe { job_id: None }).unwrap();
-    let id = submit(&mut c, capture_job(10.0, 3, 2_000));
+    // A 4 s settle: the signal sent 0.4 s into it lands inside it on a busy machine too.
+    let id = submit(&mut c, capture_job(10.0, 3, 4_000));
     let mut name = None;
     loop {
         match c.next_event().unwrap().body {
@@ -277,7 +279,7 @@ fn sigterm_during_a_settle_records_no_frame_for_that_step() {
             _ => {}
         }
     }
-    std::thread::sleep(Duration::from_millis(400)); // in step 1's 2 s settle
+    std::thread::sleep(Duration::from_millis(400)); // in step 1's settle
     let child = reaper.take();
     // SAFETY: signalling our own child process.
     unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
