@@ -207,6 +207,13 @@ pub fn fit_session(
     };
     let mut cal = fit_folder(dir, &fit)?;
     cal.scan.session = Some(session.to_string());
+    if let Some(m) = cal.ink_margin.as_ref().filter(|m| m.halos()) {
+        tracing::warn!(
+            margin_s = m.margin_s,
+            "the calibration's frames show halos just inside the edges (most often the camera \
+             sharpening its frames): set `[camera] sharpness = 0` and calibrate again"
+        );
+    }
     let path = crate::calibration_store::save_current(data_root, &cal)?;
     Ok(made(&cal, &path, session))
 }
