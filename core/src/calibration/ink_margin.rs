@@ -70,6 +70,15 @@ impl InkMargin {
         }
         InkMargin { margin_s, bands }
     }
+
+    /// Whether a band reads ink the interior does not, beyond its noise (3 standard
+    /// uncertainties) and the tolerance: halos, most often a camera that sharpens its
+    /// frames (the sharpened webcam's bands read 2.3–4.9 u out).
+    pub fn halos(&self) -> bool {
+        self.bands.iter().any(|b| {
+            b.density_diff.abs() > TOLERANCE && b.density_diff.abs() > 3.0 * b.u_density_diff
+        })
+    }
 }
 
 /// The band a sample `edge_s` blur widths inside the edges falls in: its lower bound
@@ -80,17 +89,6 @@ pub(super) fn band_from_s(edge_s: f64) -> f64 {
     }
     let i = ((edge_s - DENSITY_READ_MARGIN_S) / BAND_S).floor().max(0.0);
     DENSITY_READ_MARGIN_S + BAND_S * i
-}
-
-impl InkMargin {
-    /// Whether a band reads ink the interior does not, beyond its noise (3 standard
-    /// uncertainties) and the tolerance: halos, most often a camera that sharpens its
-    /// frames (the sharpened webcam's bands read 2.3–4.9 u out).
-    pub fn halos(&self) -> bool {
-        self.bands.iter().any(|b| {
-            b.density_diff.abs() > TOLERANCE && b.density_diff.abs() > 3.0 * b.u_density_diff
-        })
-    }
 }
 
 /// The bands from the read margin to the default one.
