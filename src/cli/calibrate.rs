@@ -206,11 +206,15 @@ fn ink_margin_line(cal: &Calibration) -> String {
         bands.join("; ")
     );
     if m.halos() {
-        s += "  the frames show halos just inside the edges (most often the camera sharpening its frames): \
-              set `[camera] sharpness = 0` (docs/camera.md) and calibrate again to read the ink nearer the edges\n";
+        s += &format!("  {HALO_ADVICE}\n");
     }
     s
 }
+
+/// What a calibration whose bands show halos tells the user (`InkMargin::halos`).
+pub const HALO_ADVICE: &str = "the frames show halos just inside the edges (most often the camera \
+    sharpening its frames): set `[camera] sharpness = 0` (docs/camera.md) and calibrate again to \
+    read the ink nearer the edges";
 
 /// The lens's lateral colour as the scan measured it: each registered channel's
 /// magnification against green and what it comes to at the frame's corner.

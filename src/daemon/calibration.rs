@@ -210,8 +210,8 @@ pub fn fit_session(
     if let Some(m) = cal.ink_margin.as_ref().filter(|m| m.halos()) {
         tracing::warn!(
             margin_s = m.margin_s,
-            "the calibration's frames show halos just inside the edges (most often the camera \
-             sharpening its frames): set `[camera] sharpness = 0` and calibrate again"
+            "{}",
+            crate::cli::calibrate::HALO_ADVICE
         );
     }
     let path = crate::calibration_store::save_current(data_root, &cal)?;

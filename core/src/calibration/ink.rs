@@ -125,10 +125,6 @@ pub struct InkStatistics {
     pub observed_corr_px: f64,
     /// The fits' mean blur width, px.
     pub blur_px: f64,
-    /// How far inside the shapes' edges the cells lie, in blur widths (records made before
-    /// it was chosen: the default).
-    #[serde(default = "default_margin_s")]
-    pub margin_s: f64,
     /// Shapes and cells the fit read.
     pub shapes: usize,
     pub cells: usize,
@@ -182,7 +178,6 @@ impl InkStatistics {
             observed_rms: (0.5 * fit.at[0]).exp(),
             observed_corr_px: fit.at[1].exp(),
             blur_px,
-            margin_s,
             shapes: shapes.iter().map(|s| s.shapes).sum(),
             cells: shapes.iter().map(|s| s.at.len()).sum(),
         })

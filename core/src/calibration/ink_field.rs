@@ -44,15 +44,16 @@ impl InkField {
         track: &TargetTrack,
         stats: &InkStatistics,
         scale_um_per_px: f64,
+        margin_s: f64,
     ) -> Option<InkField> {
-        let map = map.within(stats.margin_s);
+        let map = map.within(margin_s);
         let cells = Cells::of(&map)?;
         let corr_px = stats.corr_um / scale_um_per_px;
         let w2 = stats.blur_px * stats.blur_px + 1.0 / 12.0;
         let krige = Kriging::new(&cells, stats.density_rms, corr_px, w2)?;
         // The density samples lie this far inside the shapes' edges: the edges are that
         // far beyond the last cells.
-        let margin = stats.margin_s * stats.blur_px + 0.5;
+        let margin = margin_s * stats.blur_px + 0.5;
         let residual = krige.variance_at(&cells.edge_band(margin)?);
         let ends = track_ends(track)?;
         let weight = krige.bump_weight();
@@ -326,7 +327,6 @@ mod tests {
             observed_rms: 0.04,
             observed_corr_px: 4.0,
             blur_px: 0.0,
-            margin_s: 2.0,
             shapes: 2,
             cells: 0,
         }
@@ -350,7 +350,7 @@ mod tests {
         let mut stated = 0.0;
         for seed in 0..6 {
             let (map, field) = scanned(seed);
-            let f = InkField::learn(&map, &track, &stats(), 1.0).expect("learnt");
+            let f = InkField::learn(&map, &track, &stats(), 1.0, 2.0).expect("learnt");
             assert_eq!(f.track_px, [[100.0, 50.0], [130.0, 50.0]]);
             stated += f.residual_rms.powi(2) / 0.04f64.powi(2) / 6.0;
             for (i, r) in [3.0, 17.5].into_iter().enumerate() {
@@ -387,7 +387,7 @@ mod tests {
             outer_radius_px: 17.0,
             inner_radius_px: 5.0,
         };
-        let f = InkField::learn(&map, &track(50.0), &stats(), 1.0).unwrap();
+        let f = InkField::learn(&map, &track(50.0), &stats(), 1.0, 2.0).unwrap();
         assert_eq!(f.distance_px([115.0, 53.0]), 3.0);
         assert_eq!(f.distance_px([96.0, 47.0]), 5.0);
         let cal = super::super::tests::some_calibration(vec![
@@ -415,7 +415,7 @@ mod tests {
             outer_radius_px: 17.0,
             inner_radius_px: 5.0,
         };
-        let good = InkField::learn(&map, &track, &stats(), 1.0).unwrap();
+        let good = InkField::learn(&map, &track, &stats(), 1.0, 2.0).unwrap();
         let mut nan = good.clone();
         nan.bumps_um[3][2] = f64::NAN;
         let zero = InkField {

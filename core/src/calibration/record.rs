@@ -272,12 +272,19 @@ impl Calibration {
             cal.ink_margin = Some(margin);
         }
         if let Some(stats) = &cal.ink {
+            let margin_s = cal.ink_margin_s();
             cal.ink_fields = (scan.ink_maps.iter().zip(&scan.targets))
-                .filter_map(|(m, t)| InkField::learn(m, t, stats, scan.scale_um_per_px))
+                .filter_map(|(m, t)| InkField::learn(m, t, stats, scan.scale_um_per_px, margin_s))
                 .collect();
         }
         cal.id = cal.content_id();
         Ok(cal)
+    }
+
+    /// How far inside the shapes' edges the ink statistics and maps were read, blur widths
+    /// (a record from before the scan chose it: 2, as they were read then).
+    pub fn ink_margin_s(&self) -> f64 {
+        (self.ink_margin.as_ref()).map_or(crate::pipeline::DENSITY_EDGE_MARGIN_S, |m| m.margin_s)
     }
 
     /// `cal-` and 8 hex digits of an FNV-1a hash of the date and the field model.
