@@ -24,6 +24,7 @@ use support::daemon::{
 /// after the controller accepted move number `hold_on`.
 struct HoldOnMove {
     inner: GrblStage,
+    faults: rigd_sim::serve::Faults,
     hold_on: u32,
     moves: u32,
 }
@@ -42,9 +43,8 @@ impl Stage for HoldOnMove {
             // Well into the move: the driver's feed is the axis' 50 mm/s, so the 40 mm move
             // lasts 0.8 s and this lands ~4-5 mm in...
             std::thread::sleep(Duration::from_millis(100));
-            // ...feed hold: `!` is a realtime byte, the controller holds whatever line it
-            // comes in.
-            self.inner.send_line("!")?;
+            // ...feed hold, pressed on the controller.
+            self.faults.update(|f| f.feed_hold = true);
         }
         Ok(())
     }
@@ -91,6 +91,7 @@ fn held_daemon(
     let mut rig = rig_from_toml(dir.path(), SIM_RIG_SMALL);
     rig.axis = Box::new(HoldOnMove {
         inner: grbl_stage,
+        faults: grbl.faults().clone(),
         hold_on: 3,
         moves: 0,
     });

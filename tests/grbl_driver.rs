@@ -46,9 +46,9 @@ fn connect_waits_for_the_banner_and_reports_idle() {
 }
 
 #[test]
-fn a_board_that_does_not_reset_on_open_gets_a_soft_reset() {
-    // No DTR reset: opening is silent, so the first banner wait times out, the driver sends
-    // 0x18, and the reset's banner arrives.
+fn a_board_that_does_not_reset_on_open_is_asked_not_reset() {
+    // No DTR reset: opening is silent, so the banner wait times out and the driver asks for
+    // a status report. It sends no soft reset: the board may be mid-move.
     let r = rig_with(GrblSimOptions {
         reset_on_open: false,
         ..GrblSimOptions::default()
@@ -56,7 +56,7 @@ fn a_board_that_does_not_reset_on_open_gets_a_soft_reset() {
     let t = Instant::now();
     let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
     assert!(t.elapsed() >= Duration::from_millis(r.opts.banner_timeout_ms));
-    assert_eq!(s.banners_seen(), 1);
+    assert_eq!(s.banners_seen(), 0);
     assert_eq!(s.status().unwrap().state, MotionState::Idle);
     assert_eq!(step(&mut s, 50.0, SETTLE).unwrap(), 50.0);
 }
@@ -70,7 +70,12 @@ fn a_board_that_never_answers_times_out_naming_the_banner() {
     let mut opts = r.opts.clone();
     opts.banner_timeout_ms = 100;
     match GrblStage::connect("axis", opts).unwrap_err() {
-        HwError::Timeout { waiting_for, .. } => assert!(waiting_for.contains("banner")),
+        HwError::Timeout { waiting_for, .. } => {
+            assert!(
+                waiting_for.contains("banner or status report"),
+                "{waiting_for}"
+            )
+        }
         e => panic!("expected a timeout, got {e}"),
     }
 }
@@ -140,7 +145,8 @@ fn resume_after_a_feed_hold_goes_on_to_the_held_target() {
         polls().any(|_| s.status().unwrap().position_um > 200.0),
         "never under way"
     );
-    s.send_line("!").unwrap();
+    // Someone presses the controller's feed-hold button.
+    r.sim.faults().update(|f| f.feed_hold = true);
     let held = polls()
         .find_map(|_| {
             let st = s.status().unwrap();

@@ -37,6 +37,11 @@ pub struct GrblSimOptions {
     /// Opening the port resets the board (DTR wired to reset, as on an Arduino). When
     /// false, opening is silent: no reset, no banner.
     pub reset_on_open: bool,
+    /// `$100`: motor steps per mm. Targets are whole steps, rounded as the firmware rounds
+    /// them (its parser and planner work in 32-bit floats). Default 1000: a 200-step motor
+    /// at 16 microsteps on a 3.2 mm leadscrew, so every whole-µm step is whole motor steps
+    /// (GRBL's own default, 250, makes a 4 µm step).
+    pub steps_per_mm: f64,
 }
 
 impl Default for GrblSimOptions {
@@ -47,6 +52,7 @@ impl Default for GrblSimOptions {
             alarm_on_boot: false,
             home_position_um: 0.0,
             reset_on_open: true,
+            steps_per_mm: 1000.0,
         }
     }
 }
@@ -86,7 +92,10 @@ enum State {
     Idle,
     Run,
     Jog,
-    Hold,
+    /// A feed hold: braking (`Hold:1`) until `complete` (`Hold:0`).
+    Hold {
+        complete: bool,
+    },
     Home,
     Alarm,
 }
@@ -97,10 +106,15 @@ impl State {
             State::Idle => "Idle",
             State::Run => "Run",
             State::Jog => "Jog",
-            State::Hold => "Hold:0",
+            State::Hold { complete: true } => "Hold:0",
+            State::Hold { complete: false } => "Hold:1",
             State::Home => "Home",
             State::Alarm => "Alarm",
         }
+    }
+
+    fn held(self) -> bool {
+        matches!(self, State::Hold { .. })
     }
 }
 
@@ -133,8 +147,11 @@ struct Grbl {
     absolute: bool,
     feed_mm_min: Option<f64>,
     rapid: bool,
-    /// Where the last planned move ends (the parser's position), µm.
-    plan_end_um: f64,
+    /// Where the last planned move ends (the parser's position), mm, in the firmware's
+    /// 32-bit float.
+    plan_end_mm: f32,
+    /// A feed hold (or jog cancel) brakes until then.
+    braking_until: Option<Instant>,
     queue: VecDeque<Planned>,
     current: Option<(Planned, Instant)>,
     block: Option<Block>,
@@ -157,7 +174,8 @@ impl Grbl {
             absolute: true,
             feed_mm_min: None,
             rapid: true,
-            plan_end_um: here,
+            plan_end_mm: (here / 1000.0) as f32,
+            braking_until: None,
             queue: VecDeque::new(),
             current: None,
             block: None,
@@ -183,7 +201,8 @@ impl Grbl {
         self.absolute = true;
         self.rapid = true;
         self.feed_mm_min = None;
-        self.plan_end_um = self.axis.reported_um(now);
+        self.braking_until = None;
+        self.plan_end_mm = (self.axis.reported_um(now) / 1000.0) as f32;
     }
 
     fn banner(&mut self, out: &mut Outbox) {
@@ -194,7 +213,11 @@ impl Grbl {
     }
 
     fn soft_reset(&mut self, now: Instant, out: &mut Outbox) {
-        let was_moving = self.moving() && self.state != State::Hold;
+        // As GRBL's mc_reset: in motion, homing, or braking into a hold, the steps are lost.
+        let was_moving = matches!(
+            self.state,
+            State::Run | State::Jog | State::Home | State::Hold { complete: false }
+        ) || (self.state == State::Idle && self.moving());
         self.reset(now);
         if was_moving {
             out.push("ALARM:3\r\n");
@@ -210,7 +233,9 @@ impl Grbl {
     }
 
     fn status(&self, now: Instant) -> String {
-        let x_mm = self.axis.reported_um(now) / 1000.0;
+        // The controller counts whole steps.
+        let spm = self.opts.steps_per_mm;
+        let x_mm = (self.axis.reported_um(now) / 1000.0 * spm).round() / spm;
         let feed = match (&self.current, self.state) {
             (Some((p, _)), State::Run | State::Jog) => p.feed_mm_min,
             _ => 0.0,
@@ -228,16 +253,69 @@ impl Grbl {
         self.block = None;
         self.pending.clear();
         self.alarm_at = None;
-        self.plan_end_um = self.axis.reported_um(now);
+        self.braking_until = None;
+        self.plan_end_mm = (self.axis.reported_um(now) / 1000.0) as f32;
         self.state = State::Alarm;
         self.critical = true;
         out.push(format!("ALARM:{code}\r\n"));
         out.push("[MSG:Reset to continue]\r\n");
     }
 
+    /// `!` (or jog cancel 0x85 while jogging): brake at the axis' acceleration. A move's rest
+    /// waits for `~` in `Hold`; a jog is cancelled, its queue flushed, back to `Idle` once at
+    /// rest. Idle, GRBL still enters a (complete) hold.
+    fn feed_hold(&mut self, now: Instant) {
+        match self.state {
+            State::Run | State::Jog => {
+                let jog = self.state == State::Jog;
+                let brake = self.axis.brake();
+                match self.current.take() {
+                    Some((p, _)) if !jog => self.queue.push_front(p),
+                    _ => {}
+                }
+                if jog {
+                    self.queue.clear();
+                    self.plan_end_mm = (self.axis.commanded_um() / 1000.0) as f32;
+                } else {
+                    self.state = State::Hold { complete: false };
+                }
+                self.alarm_at = None;
+                self.braking_until = Some(now + brake);
+            }
+            State::Idle => self.state = State::Hold { complete: true },
+            _ => {}
+        }
+    }
+
+    /// `$$`: GRBL 1.1h's settings at their defaults, with X's from this emulator's axis.
+    fn settings(&self) -> String {
+        let p = self.axis.params();
+        let x = [
+            self.opts.steps_per_mm,
+            p.max_speed_um_s * 60.0 / 1000.0,
+            p.accel_um_s2 / 1000.0,
+            (p.hard_max_um - p.hard_min_um) / 1000.0,
+        ];
+        let homing = u8::from(self.opts.homing_enabled);
+        let mut s = format!(
+            "$0=10\r\n$1=25\r\n$2=0\r\n$3=0\r\n$4=0\r\n$5=0\r\n$6=0\r\n$10=1\r\n\
+             $11=0.010\r\n$12=0.002\r\n$13=0\r\n$20=0\r\n$21=0\r\n$22={homing}\r\n$23=0\r\n\
+             $24=25.000\r\n$25=500.000\r\n$26=250\r\n$27=1.000\r\n$30=1000\r\n$31=0\r\n\
+             $32=0\r\n"
+        );
+        // $100.. steps/mm, $110.. max rate, $120.. acceleration, $130.. travel: X from the
+        // axis, Y and Z at GRBL's defaults.
+        let yz = [250.0, 500.0, 10.0, 200.0];
+        for (i, (xv, d)) in x.iter().zip(yz).enumerate() {
+            let n = 100 + 10 * i;
+            s += &format!("${n}={xv:.3}\r\n${}={d:.3}\r\n${}={d:.3}\r\n", n + 1, n + 2);
+        }
+        s
+    }
+
     /// Start the next planned move if the axis is free.
     fn start_next(&mut self, now: Instant) {
-        if self.current.is_some() || self.state == State::Hold {
+        if self.current.is_some() || self.state.held() {
             return;
         }
         let Some(p) = self.queue.pop_front() else {
@@ -274,7 +352,7 @@ impl Grbl {
             self.system(sys, now, out)
         } else if text.is_empty() {
             Ok(Reply::Ok)
-        } else if self.state == State::Alarm {
+        } else if matches!(self.state, State::Alarm | State::Jog) {
             Err(9)
         } else {
             self.gcode(&text, false)
@@ -318,7 +396,7 @@ impl Grbl {
                 Ok(Reply::Later)
             }
             "I" => {
-                out.reply("[VER:1.1h.20190825:]\r\n[OPT:V,15,128]\r\n");
+                out.reply("[VER:1.1h.20190830:]\r\n[OPT:V,15,128]\r\n");
                 Ok(Reply::Ok)
             }
             "G" => {
@@ -331,14 +409,11 @@ impl Grbl {
                 Ok(Reply::Ok)
             }
             "$" => {
-                let p = self.axis.params();
-                out.reply(format!(
-                    "$22={}\r\n$110={:.3}\r\n$120={:.3}\r\n$130={:.3}\r\n",
-                    u8::from(self.opts.homing_enabled),
-                    p.max_speed_um_s * 60.0 / 1000.0,
-                    p.accel_um_s2 / 1000.0,
-                    (p.hard_max_um - p.hard_min_um) / 1000.0
-                ));
+                // Too long to print while moving or held, as GRBL says.
+                if matches!(self.state, State::Run | State::Hold { .. }) {
+                    return Err(8);
+                }
+                out.reply(self.settings());
                 Ok(Reply::Ok)
             }
             _ => {
@@ -392,12 +467,7 @@ impl Grbl {
             if dwell || motion.is_some() {
                 return Err(16);
             }
-            let target = if absolute {
-                x * 1000.0
-            } else {
-                self.plan_end_um + x * 1000.0
-            };
-            self.plan(target, f, true);
+            self.plan(x, absolute, f, true);
             return Ok(Reply::Ok);
         }
         self.absolute = absolute;
@@ -424,12 +494,7 @@ impl Grbl {
             } else {
                 self.feed_mm_min.filter(|f| *f > 0.0).ok_or(22u32)?
             };
-            let target = if self.absolute {
-                x * 1000.0
-            } else {
-                self.plan_end_um + x * 1000.0
-            };
-            self.plan(target, feed, false);
+            self.plan(x, self.absolute, feed, false);
         }
         Ok(Reply::Ok)
     }
@@ -439,7 +504,18 @@ impl Grbl {
         self.axis.params().max_speed_um_s * 60.0 / 1000.0
     }
 
-    fn plan(&mut self, target_um: f64, feed_mm_min: f64, jog: bool) {
+    /// Queue a move to X word `x_mm` (absolute, or relative to the parser's position), to
+    /// the nearest whole motor step as GRBL's planner rounds it: `lround` of the 32-bit
+    /// product of mm and steps/mm.
+    fn plan(&mut self, x_mm: f64, absolute: bool, feed_mm_min: f64, jog: bool) {
+        let target_mm = if absolute {
+            x_mm as f32
+        } else {
+            self.plan_end_mm + x_mm as f32
+        };
+        let spm = self.opts.steps_per_mm;
+        let steps = f64::from(target_mm * spm as f32).round();
+        let target_um = steps / spm * 1000.0;
         // GRBL's planner caps every rate at the axis' max rate.
         let feed_mm_min = feed_mm_min.min(self.max_rate_mm_min());
         self.queue.push_back(Planned {
@@ -447,7 +523,7 @@ impl Grbl {
             feed_mm_min,
             jog,
         });
-        self.plan_end_um = target_um;
+        self.plan_end_mm = target_mm;
         if self.state == State::Idle {
             self.state = if jog { State::Jog } else { State::Run };
         }
@@ -478,13 +554,56 @@ fn parse_words(text: &str) -> Result<Vec<(char, f64)>, u32> {
                 break;
             }
         }
-        let v: f64 = num.parse().map_err(|_| 2u32)?;
-        if !v.is_finite() {
-            return Err(2);
-        }
-        words.push((c, v));
+        let v = read_float(&num).ok_or(2u32)?;
+        words.push((c, f64::from(v)));
     }
     Ok(words)
+}
+
+/// A number as GRBL 1.1h's `read_float` reads it: sign, up to 8 significant digits into an
+/// integer, then scaled by 32-bit float multiplications (by 0.01, 0.1 or 10, each done in
+/// double on the PC build and stored back to float). None: no digits, or more than one sign
+/// or point.
+fn read_float(text: &str) -> Option<f32> {
+    let (neg, digits) = match text.as_bytes().first() {
+        Some(b'-') => (true, &text[1..]),
+        Some(b'+') => (false, &text[1..]),
+        _ => (false, text),
+    };
+    let (mut int, mut exp, mut ndigit, mut decimal) = (0u32, 0i32, 0u32, false);
+    for c in digits.bytes() {
+        match c {
+            b'0'..=b'9' => {
+                ndigit += 1;
+                if ndigit <= 8 {
+                    exp -= i32::from(decimal);
+                    int = int * 10 + u32::from(c - b'0');
+                } else if !decimal {
+                    exp += 1;
+                }
+            }
+            b'.' if !decimal => decimal = true,
+            _ => return None,
+        }
+    }
+    if ndigit == 0 {
+        return None;
+    }
+    let mut v = int as f32;
+    if v != 0.0 {
+        while exp <= -2 {
+            v = (f64::from(v) * 0.01) as f32;
+            exp += 2;
+        }
+        if exp < 0 {
+            v = (f64::from(v) * 0.1) as f32;
+        }
+        while exp > 0 {
+            v = (f64::from(v) * 10.0) as f32;
+            exp -= 1;
+        }
+    }
+    Some(if neg { -v } else { v })
 }
 
 impl Controller for Grbl {
@@ -514,19 +633,11 @@ impl Controller for Grbl {
         for &b in bytes {
             match b {
                 b'?' => out.reply(self.status(now)),
-                b'!' => {
-                    if matches!(self.state, State::Run | State::Jog) {
-                        // Hold: stop where we are; the rest of the move waits for `~`.
-                        self.axis.stop();
-                        if let Some((p, _)) = self.current.take() {
-                            self.queue.push_front(p);
-                        }
-                        self.alarm_at = None;
-                        self.state = State::Hold;
-                    }
-                }
+                b'!' => self.feed_hold(now),
+                0x85 if self.state == State::Jog => self.feed_hold(now),
                 b'~' => {
-                    if self.state == State::Hold {
+                    // Cycle start resumes only a hold that has completed.
+                    if self.state == (State::Hold { complete: true }) {
                         self.state = State::Run;
                         self.start_next(now);
                         if self.current.is_none() {
@@ -560,6 +671,17 @@ impl Controller for Grbl {
             self.booting_until = None;
             self.banner(out);
         }
+        if self.faults.take_feed_hold() {
+            self.feed_hold(now);
+        }
+        if self.braking_until.is_some_and(|t| now >= t) {
+            self.braking_until = None;
+            self.state = match self.state {
+                State::Hold { .. } => State::Hold { complete: true },
+                State::Jog => State::Idle,
+                s => s,
+            };
+        }
         if let Some((t, code)) = self.alarm_at {
             if now >= t {
                 self.raise_alarm(code, now, out);
@@ -575,12 +697,12 @@ impl Controller for Grbl {
         self.start_next(now);
         if self.current.is_none()
             && self.queue.is_empty()
+            && self.braking_until.is_none()
             && matches!(self.state, State::Run | State::Jog)
         {
             self.state = State::Idle;
         }
-        let planner_empty =
-            self.current.is_none() && self.queue.is_empty() && self.state != State::Hold;
+        let planner_empty = self.current.is_none() && self.queue.is_empty() && !self.state.held();
         match self.block {
             // The dwell starts once the planner has run dry; its `ok` comes after it.
             Some(Block::Dwell { secs, since }) if planner_empty => {
@@ -598,7 +720,7 @@ impl Controller for Grbl {
             Some(Block::Homing { ends }) if now >= ends => {
                 self.block = None;
                 self.axis.set_position(self.opts.home_position_um);
-                self.plan_end_um = self.opts.home_position_um;
+                self.plan_end_mm = (self.opts.home_position_um / 1000.0) as f32;
                 self.state = State::Idle;
                 out.reply("ok\r\n");
             }
@@ -614,6 +736,7 @@ impl Controller for Grbl {
         }
         // Tick soon while anything is in flight.
         let busy = self.current.is_some()
+            || self.braking_until.is_some()
             || !self.queue.is_empty()
             || self.block.is_some()
             || self.alarm_at.is_some();

@@ -158,6 +158,20 @@ impl Profile {
         self.v_peak
     }
 
+    /// Speed `s` seconds after the move began (0 before and after it).
+    pub fn speed_after(&self, s: f64) -> f64 {
+        let (ta, tf, v, a) = (self.t_acc, self.t_flat, self.v_peak, self.accel);
+        if s <= 0.0 || s >= 2.0 * ta + tf {
+            0.0
+        } else if s <= ta {
+            a * s
+        } else if s <= ta + tf {
+            v
+        } else {
+            v - a * (s - ta - tf)
+        }
+    }
+
     /// Position `s` seconds after the move began (clamped to the ends).
     pub fn position_after(&self, s: f64) -> f64 {
         let s = s.max(0.0);
@@ -306,6 +320,48 @@ impl Axis {
         st.segment = None;
         st.rest_um = here;
         st.commanded_um = here;
+    }
+
+    /// Brake to rest at the axis' acceleration (a feed hold): the rest of the move is
+    /// dropped. Returns how long the braking takes.
+    pub fn brake(&self) -> Duration {
+        let now = Instant::now();
+        let mut st = self.lock();
+        let Some(seg) = st.segment else {
+            return Duration::ZERO;
+        };
+        let s = now.saturating_duration_since(seg.start).as_secs_f64();
+        let (v, a) = (seg.profile.speed_after(s), self.params.accel_um_s2);
+        if v <= 0.0 || a <= 0.0 {
+            drop(st);
+            self.stop();
+            return Duration::ZERO;
+        }
+        // The second half of a triangle peaking at `v` now: it ends `v/a` later, `v²/2a` on.
+        let x = seg.position_at(now);
+        let dir = (seg.profile.to_um - seg.profile.from_um).signum();
+        let (t, half) = (v / a, v * v / (2.0 * a));
+        let profile = Profile {
+            from_um: x - dir * half,
+            to_um: x + dir * half,
+            t_acc: t,
+            t_flat: 0.0,
+            v_peak: v,
+            accel: a,
+        };
+        let dt = Duration::from_secs_f64(t);
+        st.segment = Some(Segment {
+            start: now.checked_sub(dt).unwrap_or(now),
+            profile,
+        });
+        st.rest_um = profile.to_um;
+        st.commanded_um = profile.to_um;
+        dt
+    }
+
+    /// Where the controller believes the axis ends up: the last commanded target.
+    pub fn commanded_um(&self) -> f64 {
+        self.lock().commanded_um
     }
 
     /// Set the position without moving (homing sets the origin).

@@ -73,6 +73,9 @@ pub struct FaultPlan {
     pub drop_every: u32,
     /// Garbage before every Nth reply (0 = never).
     pub garbage_every: u32,
+    /// The controller's feed-hold button, pressed (GRBL: taken as `!` on the emulator's next
+    /// turn; a person at the machine, not the client).
+    pub feed_hold: bool,
 }
 
 #[derive(Debug, Default)]
@@ -113,6 +116,10 @@ impl Faults {
     /// Bring the port back (on a new pty; the stable link points at it).
     pub fn restore(&self) {
         self.lock().restore = true;
+    }
+    /// Consumed by the GRBL emulator on its next turn.
+    pub fn take_feed_hold(&self) -> bool {
+        std::mem::take(&mut self.lock().plan.feed_hold)
     }
     /// Consumed by a controller when a move starts.
     pub fn take_alarm_mid_move(&self) -> bool {

@@ -149,6 +149,7 @@ mod tests {
             response: Default::default(),
             ink_prior: None,
             interferometer: false,
+            axis_machine: None,
             board: Some(crate::board::Board::paper()),
             config: serde_json::Value::Null,
             job_defaults: Default::default(),

@@ -298,7 +298,11 @@ impl Engine<'_> {
             commanded_um,
             axis_um,
             interferometer_um: None,
-            registration_um: commanded_um,
+            // Where the motor really went, when its steps are coarser than the command.
+            registration_um: dev
+                .stage
+                .machine()
+                .map_or(commanded_um, |m| m.reached_um(commanded_um, axis_um)),
             piezo_commanded_um,
             piezo_um,
             samples: Vec::new(),
@@ -354,7 +358,9 @@ impl Engine<'_> {
         target_um: f64,
         index: u32,
     ) -> Result<f64, StepEnd> {
-        let mut deadline = Instant::now() + self.settings.move_timeout;
+        // A long move at the controller's own rate gets its planned time on top.
+        let budget = self.settings.move_timeout + stage.planned_move().unwrap_or_default();
+        let mut deadline = Instant::now() + budget;
         loop {
             if self.stop.cause() == Some(StopCause::Client) {
                 return Err(StepEnd::Stopped(Stop {
@@ -373,7 +379,7 @@ impl Engine<'_> {
                 MotionState::Holding => {
                     self.pause_on_hold(stage, st.position_um, target_um, index)?;
                     // The pause does not count against the move's deadline.
-                    deadline = Instant::now() + self.settings.move_timeout;
+                    deadline = Instant::now() + budget;
                     continue;
                 }
                 MotionState::Alarm => return Err(alarm(stage, st.position_um, target_um)),
@@ -381,7 +387,7 @@ impl Engine<'_> {
             if Instant::now() >= deadline {
                 return Err(StepEnd::Hw(HwError::NotSettled {
                     device: stage.name().into(),
-                    timeout_ms: self.settings.move_timeout.as_millis() as u64,
+                    timeout_ms: budget.as_millis() as u64,
                     state: format!("still {} at {:.1} µm", st.state, st.position_um),
                 }));
             }

@@ -20,6 +20,7 @@ pub mod engine;
 pub mod fake;
 pub mod interferometer;
 pub mod job;
+pub mod motor_steps;
 pub mod outcome;
 pub mod pause;
 pub mod plan;

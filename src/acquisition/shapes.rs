@@ -321,6 +321,7 @@ mod tests {
             response: Default::default(),
             ink_prior: None,
             interferometer: false,
+            axis_machine: None,
             board: None,
             config: serde_json::Value::Null,
             job_defaults: Processing::default(),

@@ -139,6 +139,9 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
         "job {id} queued ({total} frames, {} ahead)",
         r["queue_position"].as_u64().unwrap_or_default()
     );
+    for w in r["warnings"].as_array().into_iter().flatten() {
+        eprintln!("warning: {}", w.as_str().unwrap_or_default());
+    }
     if detach {
         println!("{id}");
         return Ok(id);

@@ -118,6 +118,7 @@ fn hello(shared: &Shared) -> HelloReply {
             scale_um_per_px: i.scale_um_per_px,
             frame_size: i.frame_size,
             job_defaults: i.job_defaults,
+            axis_machine: i.axis_machine.clone(),
         },
         data_root: shared.settings.data_root.clone(),
         rig_state: shared.rig_state(),
@@ -143,7 +144,17 @@ fn submit(shared: &Shared, job: JobSpec) -> Result<SubmitReply, ProtoError> {
         &shared.rig_info,
         JobSource::Live,
     )?;
-    Ok(announce(shared, queued, job, &plan))
+    let warnings = match &shared.rig_info.axis_machine {
+        Some(m) => crate::acquisition::motor_steps::warnings(&job, &plan, m),
+        None => Vec::new(),
+    };
+    for w in &warnings {
+        tracing::warn!(job = queued.id, "{w}");
+    }
+    Ok(SubmitReply {
+        warnings,
+        ..announce(shared, queued, job, &plan)
+    })
 }
 
 /// Where a job was queued and the memory its processing was estimated to hold.
@@ -234,6 +245,7 @@ fn announce(shared: &Shared, queued: Queued, job: JobSpec, plan: &Plan) -> Submi
         job,
         memory_mb: memory_bytes.div_ceil(1 << 20),
         resumed_from: None,
+        warnings: Vec::new(),
     }
 }
 

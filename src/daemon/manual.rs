@@ -415,7 +415,7 @@ pub fn run_move(
             from + d
         }
     };
-    let deadline = Instant::now() + MOVE_TIMEOUT;
+    let deadline = Instant::now() + MOVE_TIMEOUT + stage.planned_move().unwrap_or_default();
     let result = loop {
         let st = stage.status()?;
         let reading = StageReading::of(Ok(st.clone()));

@@ -13,7 +13,7 @@ use crate::daemon::live_view::wire::{PreviewReply, PreviewStopReply, SnapReply, 
 use crate::daemon::rig_state::{RigAction, RigState};
 use crate::daemon::session::SessionState;
 use crate::daemon::strict_json;
-use crate::hw::MotionState;
+use crate::hw::{MotionState, StageMachine};
 use crate::rig::RigMode;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -562,6 +562,10 @@ pub struct RigSummary {
     pub scale_um_per_px: f64,
     pub frame_size: (u32, u32),
     pub job_defaults: Processing,
+    /// The axis controller's own motion settings (GRBL: `$100`, `$110`, `$120`, read at
+    /// connect), when it tells them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub axis_machine: Option<StageMachine>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
@@ -616,6 +620,10 @@ pub struct SubmitReply {
     /// frames before it are that session's; `total_frames` counts the whole plan).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub resumed_from: Option<crate::daemon::session::ResumedFrom>,
+    /// What the job will do other than asked, though it runs (a step the axis' motor
+    /// cannot make exactly, and the moves it makes instead).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 /// `status` without a job id: the daemon's.

@@ -16,6 +16,7 @@ use crate::acquisition::processor::{Prior, PriorFrame};
 use crate::acquisition::JobSpec;
 use crate::daemon::session::{frame_name, ResumedFrom, Session, SessionState, StepRow, MANIFEST};
 use crate::nofollow::{self, Access};
+use crate::rig::devices::StageMachine;
 use crate::rig::{RigInfo, RigMode};
 use std::path::{Path, PathBuf};
 
@@ -104,7 +105,7 @@ pub fn resume_job(
             Some((end, d)) if *d == dir => *end = row.index + 1,
             _ => folders.push((row.index + 1, dir)),
         }
-        frames.push(prior_frame(&row, registration));
+        frames.push(prior_frame(&row, registration, rig.axis_machine.as_ref()));
     }
     let link = ResumedFrom {
         session: name,
@@ -318,13 +319,17 @@ pub fn read_frame(dir: &Path, index: u32) -> Result<image::RgbImage, String> {
 }
 
 /// A kept frame as processing takes it: registered as the live job would have.
-fn prior_frame(row: &StepRow, registration: JobRegistration) -> PriorFrame {
+fn prior_frame(
+    row: &StepRow,
+    registration: JobRegistration,
+    machine: Option<&StageMachine>,
+) -> PriorFrame {
     PriorFrame {
         index: row.index,
         run: row.run,
         registration_um: match registration {
             JobRegistration::Interferometer => row.interferometer_um,
-            _ => Some(row.position_um),
+            _ => Some(row.commanded_registration_um(machine)),
         },
         piezo_commanded_um: row.piezo_commanded_um,
     }

@@ -22,6 +22,7 @@ use crate::daemon::frame_png;
 use crate::daemon::protocol::PROTOCOL_VERSION;
 use crate::nofollow::{self, Access};
 use crate::results_csv;
+use crate::rig::devices::StageMachine;
 use crate::rig::{LogSample, LogSource, RigInfo};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
@@ -159,6 +160,17 @@ pub struct StepRow {
     pub piezo_commanded_um: Option<f64>,
     #[serde(default)]
     pub piezo_um: Option<f64>,
+}
+
+impl StepRow {
+    /// The position this frame registers by without an interferometer: the commanded one,
+    /// or where a stepper axis really went when its motor step is coarser than the command
+    /// (`StageMachine::reached_um`, `machine` being the session's `rig.axis_machine`).
+    pub fn commanded_registration_um(&self, machine: Option<&StageMachine>) -> f64 {
+        machine.map_or(self.position_um, |m| {
+            m.reached_um(self.position_um, self.axis_um)
+        })
+    }
 }
 
 pub fn unix_s(t: SystemTime) -> f64 {

@@ -1,29 +1,40 @@
 //! GRBL 1.1 axis driver (G-code over serial), in µm; GRBL speaks mm.
 //!
-//! The protocol rules it follows (GRBL's interface docs):
-//! - Opening the port resets most boards: wait for the `Grbl 1.1…` banner (with a deadline;
-//!   a board that does not reset on open gets a soft reset 0x18 and a second wait).
+//! The protocol rules it follows (GRBL's interface docs, and GRBL 1.1h's own firmware in
+//! `tests/grbl_firmware.rs`):
+//! - Opening the port resets most boards: wait for the `Grbl 1.1…` banner. A board that
+//!   does not reset on open may be mid-move, so it is asked for a status report, never reset.
+//!   `$$` then gives the motor step (`$100`), top speed (`$110`) and acceleration (`$120`):
+//!   [`Stage::machine`].
 //! - One line at a time, each answered `ok` or `error:N`. `ok` only means "accepted into the
-//!   planner", so `wait_settled` syncs with `G4 P0` (answered once the planner is empty) and
-//!   then confirms `<Idle|…>` with a `?` status report.
+//!   planner": a move is followed by `G4 P0`, whose `ok` comes once the planner is empty —
+//!   that `ok` is the move's end. Any other line waits for it first.
+//! - `?` at most every [`POLL`] (5 Hz, as GRBL asks: each report costs the main loop that
+//!   feeds the stepper); `status()` answers from the last report in between.
 //! - Push messages (`[MSG:…]`, `ALARM:N`, `<…>` reports, a banner after a reset) are not
 //!   replies: they update what the driver knows and the wait goes on.
-//! - Abort is feed hold `!`, wait for the hold to complete, soft reset 0x18, unlock.
+//! - Stop is a feed hold `!` (or jog cancel 0x85 for a jog), polled at 10 Hz until the hold
+//!   completes (`Hold:0`), then a soft reset, which clears the planner without an alarm. A
+//!   controller still moving after braking twice over (or homing) is reset anyway as the last
+//!   resort: `ALARM:3`, the position lost, a fault for the user to clear.
 //! - A timeout leaves a reply possibly in flight: the next command first drains the line.
 //! - A vanished port drops the connection; the next call reopens it (or `reconnect()`).
 //! - Limits are checked against the last target: GRBL's G91 moves are relative to the end of
 //!   what is planned. When the driver does not know it (after connecting, an alarm, a
 //!   reset), the position of an `Idle` report is the target; a stage that is not idle then
 //!   is refused a move, since where it will end is unknown.
+//! - Waits scale with the move's planned time at the controller's rate and acceleration.
 //! - `unlock()` is `$X` (after a soft reset if GRBL requires one), confirmed by a report that
 //!   is no longer `Alarm`; `home()` is `$H` within `home_timeout_ms`.
 
 use super::grbl_codes::{GrblAlarm, GrblErrorCode};
+use super::grbl_lines::{classify, Line};
+pub use super::grbl_lines::{GrblReport, GrblState};
 use super::limits::TravelLimits;
 use super::serial::{Deadline, OverSerial, SerialLink};
-use super::{HwError, MotionState, Stage, StageStatus};
+use super::{HwError, MotionState, Stage, StageMachine, StageStatus};
 use serde::{Deserialize, Serialize};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// What to do when the controller is in alarm (at connect, or after a fault) and a move is
 /// asked for.
@@ -114,135 +125,6 @@ impl GrblOptions {
     }
 }
 
-/// GRBL's machine states as reported in `<State|…>`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum GrblState {
-    Idle,
-    Run,
-    /// `Hold:0` complete, `Hold:1` still decelerating.
-    Hold {
-        complete: bool,
-    },
-    Jog,
-    Alarm,
-    Door,
-    Check,
-    Home,
-    Sleep,
-}
-
-impl std::fmt::Display for GrblState {
-    /// As GRBL itself spells it in `<State|…>`.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            GrblState::Idle => "Idle",
-            GrblState::Run => "Run",
-            GrblState::Hold { complete: true } => "Hold:0",
-            GrblState::Hold { complete: false } => "Hold:1",
-            GrblState::Jog => "Jog",
-            GrblState::Alarm => "Alarm",
-            GrblState::Door => "Door",
-            GrblState::Check => "Check",
-            GrblState::Home => "Home",
-            GrblState::Sleep => "Sleep",
-        })
-    }
-}
-
-/// One `?` status report.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct GrblReport {
-    pub state: GrblState,
-    /// Machine X position, µm.
-    pub position_um: f64,
-}
-
-/// One line from GRBL, classified.
-#[derive(Debug, Clone, PartialEq)]
-enum Line {
-    Ok,
-    Error(u32),
-    Alarm(u32),
-    Status(GrblReport),
-    Banner(String),
-    Msg(String),
-    Blank,
-    Garbage(String),
-}
-
-fn classify(raw: &[u8]) -> Line {
-    let Ok(text) = std::str::from_utf8(raw) else {
-        return Line::Garbage(String::from_utf8_lossy(raw).into_owned());
-    };
-    let t = text.trim();
-    if t.is_empty() {
-        return Line::Blank;
-    }
-    if t == "ok" {
-        return Line::Ok;
-    }
-    if let Some(n) = t.strip_prefix("error:") {
-        return n.parse().map_or(Line::Garbage(t.into()), Line::Error);
-    }
-    if let Some(n) = t.strip_prefix("ALARM:") {
-        return n.parse().map_or(Line::Garbage(t.into()), Line::Alarm);
-    }
-    if t.starts_with("Grbl ") {
-        return Line::Banner(t.into());
-    }
-    if t.starts_with('<') {
-        return parse_report(t).map_or(Line::Garbage(t.into()), Line::Status);
-    }
-    if t.starts_with('[') && t.ends_with(']') {
-        return Line::Msg(t.into());
-    }
-    Line::Garbage(t.into())
-}
-
-/// `<Idle|MPos:1.000,0.000,0.000|FS:0,0>` (or `WPos` with `WCO`).
-fn parse_report(t: &str) -> Option<GrblReport> {
-    let body = t.strip_prefix('<')?.strip_suffix('>')?;
-    let mut fields = body.split('|');
-    let state_field = fields.next()?;
-    let (name, sub) = match state_field.split_once(':') {
-        Some((n, s)) => (n, Some(s)),
-        None => (state_field, None),
-    };
-    let state = match name {
-        "Idle" => GrblState::Idle,
-        "Run" => GrblState::Run,
-        "Hold" => GrblState::Hold {
-            complete: matches!(sub, None | Some("0")),
-        },
-        "Jog" => GrblState::Jog,
-        "Alarm" => GrblState::Alarm,
-        "Door" => GrblState::Door,
-        "Check" => GrblState::Check,
-        "Home" => GrblState::Home,
-        "Sleep" => GrblState::Sleep,
-        _ => return None,
-    };
-    let first_mm = |v: &str| -> Option<f64> {
-        let x: f64 = v.split(',').next()?.trim().parse().ok()?;
-        x.is_finite().then_some(x)
-    };
-    let (mut mpos, mut wpos, mut wco) = (None, None, None);
-    for f in fields {
-        if let Some(v) = f.strip_prefix("MPos:") {
-            mpos = Some(first_mm(v)?);
-        } else if let Some(v) = f.strip_prefix("WPos:") {
-            wpos = Some(first_mm(v)?);
-        } else if let Some(v) = f.strip_prefix("WCO:") {
-            wco = Some(first_mm(v)?);
-        }
-    }
-    let mm = mpos.or_else(|| wpos.map(|w| w + wco.unwrap_or(0.0)))?;
-    Some(GrblReport {
-        state,
-        position_um: mm * 1000.0,
-    })
-}
-
 /// Controller-side lock the driver knows about.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Lock {
@@ -261,14 +143,29 @@ pub struct GrblStage {
     /// Where the last accepted move ends, µm (None: ask the controller).
     target_um: Option<f64>,
     lock: Option<Lock>,
+    /// A move the controller accepted whose end is not yet known: the `ok` to the `G4 P0`
+    /// sent behind it comes once the planner has run dry.
+    in_flight: bool,
+    /// The last status report and when it came: `status()` answers from it between polls.
+    last: Option<(Instant, GrblReport)>,
+    /// `$100`/`$110`/`$120`, read at connect.
+    machine: Option<StageMachine>,
+    /// How long the last move sent takes at the controller's rate.
+    planned: Option<Duration>,
+    polls: u64,
     garbage_lines: u64,
     banners_seen: u64,
 }
 
 /// How long a line must stay quiet to count as drained.
 const DRAIN_QUIET: Duration = Duration::from_millis(30);
-/// Status polling interval while waiting for Idle or a completed hold.
-const POLL: Duration = Duration::from_millis(2);
+/// Between `?` polls: GRBL's interface document asks for at most 5 Hz, since every report
+/// costs the main loop that also feeds the stepper segments.
+pub const POLL: Duration = Duration::from_millis(200);
+/// Between `?` polls while a stop waits for the feed hold to complete (10 Hz, GRBL's most).
+const STOP_POLL: Duration = Duration::from_millis(100);
+/// A read that takes only what has already arrived.
+const NO_WAIT: Duration = Duration::from_millis(1);
 
 impl GrblStage {
     /// A driver that connects on first use (lazy open). Fails only on bad options.
@@ -284,12 +181,17 @@ impl GrblStage {
             opts,
             target_um: None,
             lock: None,
+            in_flight: false,
+            last: None,
+            machine: None,
+            planned: None,
+            polls: 0,
             garbage_lines: 0,
             banners_seen: 0,
         })
     }
 
-    /// A driver connected now (banner received, alarm policy applied).
+    /// A driver connected now (banner or status report received, alarm policy applied).
     pub fn connect(name: impl Into<String>, opts: GrblOptions) -> Result<GrblStage, HwError> {
         let mut s = GrblStage::new(name, opts)?;
         s.reconnect()?;
@@ -315,6 +217,11 @@ impl GrblStage {
         self.banners_seen
     }
 
+    /// Status reports asked for (`?` sent), so far.
+    pub fn polls(&self) -> u64 {
+        self.polls
+    }
+
     /// The alarm the controller is locked in, if the driver knows of one.
     pub fn alarm(&self) -> Option<GrblAlarm> {
         self.lock.and_then(|l| l.alarm).map(GrblAlarm::from_code)
@@ -329,7 +236,7 @@ impl GrblStage {
         })
     }
 
-    /// One status report.
+    /// One status report, asked for now.
     pub fn report(&mut self) -> Result<GrblReport, HwError> {
         let dl = self.reply_deadline();
         self.guard(|s| {
@@ -342,30 +249,83 @@ impl GrblStage {
         Deadline::after(Duration::from_millis(self.opts.reply_timeout_ms))
     }
 
-    /// After (re)opening: wait for the banner, learn the lock state, home if configured.
-    fn greet(&mut self) -> Result<(), HwError> {
+    /// Everything known of the controller's state, forgotten (a new connection).
+    fn forget(&mut self) {
         self.lock = None;
         self.target_um = None;
+        self.in_flight = false;
+        self.last = None;
+    }
+
+    /// After (re)opening: wait for the banner (or ask for a report: a board that does not
+    /// reset on open may be mid-move, and is never reset for it), learn the lock state and
+    /// the machine settings, home if configured.
+    fn greet(&mut self) -> Result<(), HwError> {
+        self.forget();
         let banner = Duration::from_millis(self.opts.banner_timeout_ms);
         match self.wait_banner(Deadline::after(banner)) {
             Ok(()) => {}
             Err(HwError::Timeout { .. }) => {
-                // No reset on open (DTR not wired, or a board already booted): ask for one.
-                tracing::info!(device = %self.name, "no banner on open; sending a soft reset");
-                self.link.write(&[0x18])?;
-                self.wait_banner(Deadline::after(banner))?;
+                tracing::info!(device = %self.name, "no banner on open; asking for a status report");
             }
             Err(e) => return Err(e),
         }
-        // The report tells us whether GRBL booted locked.
-        let dl = self.reply_deadline();
-        let report = self.query(dl)?;
-        self.target_um = Some(report.position_um);
+        let report = self
+            .query(self.reply_deadline())
+            .map_err(|e| self.silent(e))?;
+        if matches!(report.state, GrblState::Idle | GrblState::Alarm) {
+            self.target_um = Some(report.position_um);
+            self.read_machine();
+        } else {
+            tracing::warn!(device = %self.name, state = %report.state, at_um = report.position_um,
+                "connected to a controller that is busy: no move until it is idle");
+        }
         if self.opts.home_on_connect {
             self.home_cycle()?;
         }
         tracing::info!(device = %self.name, port = %self.opts.port, "grbl connected");
         Ok(())
+    }
+
+    /// A connect that heard neither a banner nor a report: say what was tried.
+    fn silent(&self, e: HwError) -> HwError {
+        match e {
+            HwError::Timeout { timeout_ms, .. } => HwError::Timeout {
+                device: self.name.clone(),
+                timeout_ms,
+                waiting_for: format!(
+                    "a Grbl banner or status report on {} at {} baud: is a GRBL controller \
+                     there, at that baud?",
+                    self.opts.port, self.opts.baud
+                ),
+            },
+            e => e,
+        }
+    }
+
+    /// `$$`: the motor step, top speed and acceleration of X. A controller that refuses
+    /// leaves them unknown (moves still work; their deadlines do not scale, and steps are
+    /// not checked against the motor's).
+    fn read_machine(&mut self) {
+        let dl = self.reply_deadline();
+        match self.command_collect("$$", dl) {
+            Ok(settings) => {
+                let get = |n| settings.iter().find(|(k, _)| *k == n).map(|(_, v)| *v);
+                self.machine = match (get(100), get(110), get(120)) {
+                    (Some(spm), Some(rate), Some(acc)) if spm > 0.0 && rate > 0.0 && acc > 0.0 => {
+                        Some(StageMachine {
+                            controller: "grbl".into(),
+                            motor_step_um: 1000.0 / spm,
+                            max_rate_um_s: rate * 1000.0 / 60.0,
+                            accel_um_s2: acc * 1000.0,
+                        })
+                    }
+                    _ => None,
+                };
+                tracing::info!(device = %self.name, machine = ?self.machine, "grbl settings read");
+            }
+            Err(e) => tracing::warn!(device = %self.name, "cannot read $$: {e}"),
+        }
     }
 
     /// Read until the banner; everything before it is boot noise.
@@ -382,7 +342,8 @@ impl GrblStage {
         }
     }
 
-    /// Update what we know from a push message (or count line noise).
+    /// Update what we know from a line that is not the reply awaited (a push message, the
+    /// `ok` that ends a move in flight), or count line noise.
     fn note(&mut self, line: &Line) {
         match line {
             Line::Alarm(code) => {
@@ -393,6 +354,8 @@ impl GrblStage {
                     needs_reset: alarm.needs_reset(),
                 });
                 self.target_um = None;
+                self.in_flight = false;
+                self.last = None;
             }
             Line::Msg(m) => {
                 if m.contains("Reset to continue") {
@@ -409,44 +372,68 @@ impl GrblStage {
                 }
                 tracing::debug!(device = %self.name, msg = %m, "grbl message");
             }
-            Line::Status(r) => match r.state {
-                GrblState::Alarm if self.lock.is_none() => {
-                    self.lock = Some(Lock {
-                        alarm: None,
-                        needs_reset: false,
-                    })
+            Line::Status(r) => {
+                self.last = Some((Instant::now(), *r));
+                match r.state {
+                    GrblState::Alarm if self.lock.is_none() => {
+                        self.lock = Some(Lock {
+                            alarm: None,
+                            needs_reset: false,
+                        })
+                    }
+                    GrblState::Alarm => {}
+                    _ => self.lock = None,
                 }
-                GrblState::Alarm => {}
-                _ => self.lock = None,
-            },
+            }
             Line::Banner(b) => {
                 self.banners_seen += 1;
                 self.target_um = None;
+                self.in_flight = false;
+                self.last = None;
                 // A reset clears the reset requirement; an alarm lock may survive it.
                 if let Some(l) = &mut self.lock {
                     l.needs_reset = false;
                 }
                 tracing::debug!(device = %self.name, banner = %b, "grbl banner");
             }
+            Line::Ok if self.in_flight => {
+                // The `G4 P0` behind the move: the planner is empty, the move is over.
+                self.in_flight = false;
+                self.last = None;
+            }
+            Line::Error(code) if self.in_flight => {
+                tracing::warn!(device = %self.name, code, "the sync after a move was refused");
+                self.in_flight = false;
+                self.last = None;
+            }
             Line::Garbage(g) => {
                 self.garbage_lines += 1;
                 tracing::warn!(device = %self.name, line = %g, "ignoring line noise");
             }
-            Line::Ok | Line::Error(_) => {
+            Line::Ok | Line::Error(_) | Line::Setting(..) => {
                 tracing::warn!(device = %self.name, ?line, "stray reply ignored");
             }
             Line::Blank => {}
         }
     }
 
-    /// Send one line and wait for its `ok` / `error:N`.
+    /// Send one line and wait for its `ok` / `error:N` (after the move in flight ended: the
+    /// next `ok` is its sync's).
     fn command(&mut self, line: &str, dl: Deadline) -> Result<(), HwError> {
+        self.command_collect(line, dl).map(drop)
+    }
+
+    /// [`command`](Self::command), keeping the `$N=V` lines that come before the `ok`.
+    fn command_collect(&mut self, line: &str, dl: Deadline) -> Result<Vec<(u32, f64)>, HwError> {
+        self.finish_in_flight(dl)?;
         self.link.write_line(line)?;
         let waiting_for = format!("reply to {line:?}");
+        let mut settings = Vec::new();
         loop {
             let raw = self.link.read_line(dl, &waiting_for)?;
             match classify(&raw) {
-                Line::Ok => return Ok(()),
+                Line::Ok => return Ok(settings),
+                Line::Setting(n, v) => settings.push((n, v)),
                 Line::Error(code) => {
                     let e = GrblErrorCode::from_code(code);
                     return Err(HwError::Controller {
@@ -474,6 +461,7 @@ impl GrblStage {
     /// Ask for a `?` status report.
     fn query(&mut self, dl: Deadline) -> Result<GrblReport, HwError> {
         self.link.write(b"?")?;
+        self.polls += 1;
         loop {
             let raw = self.link.read_line(dl, "a status report")?;
             match classify(&raw) {
@@ -484,6 +472,72 @@ impl GrblStage {
                 other => self.note(&other),
             }
         }
+    }
+
+    /// The latest report: the last one while it is younger than a poll interval (with the
+    /// lines that came since taken in), else a new one.
+    fn current_report(&mut self) -> Result<GrblReport, HwError> {
+        if self.in_flight {
+            self.take_waiting_lines()?;
+        }
+        match self.last {
+            Some((at, r)) if at.elapsed() < POLL => Ok(r),
+            _ => self.query(self.reply_deadline()),
+        }
+    }
+
+    /// Take in the lines that have arrived, without waiting for more.
+    fn take_waiting_lines(&mut self) -> Result<(), HwError> {
+        loop {
+            match self
+                .link
+                .read_line(Deadline::after(NO_WAIT), "lines waiting")
+            {
+                Ok(raw) => self.note(&classify(&raw)),
+                Err(HwError::Timeout { .. }) => return Ok(()),
+                Err(e) => return Err(e),
+            }
+        }
+    }
+
+    /// Wait for the `ok` that ends the move in flight, polling `?` at [`POLL`] to follow it
+    /// (an alarm ends the wait). A wait that runs out forgets the move.
+    fn finish_in_flight(&mut self, dl: Deadline) -> Result<(), HwError> {
+        while self.in_flight {
+            let left = dl.at.saturating_duration_since(Instant::now());
+            let next_poll = self
+                .last
+                .map_or(Duration::ZERO, |(at, _)| POLL.saturating_sub(at.elapsed()));
+            let tick = Deadline::after(left.min(next_poll).max(NO_WAIT));
+            match self
+                .link
+                .read_line(tick, "the end of the move (the ok to G4 P0)")
+            {
+                Ok(raw) => match classify(&raw) {
+                    Line::Alarm(code) => {
+                        self.note(&Line::Alarm(code));
+                        return Err(self.alarm_error(Some(code)));
+                    }
+                    line => self.note(&line),
+                },
+                Err(HwError::Timeout { .. }) if dl.expired() => {
+                    self.in_flight = false;
+                    return Err(self.still_moving(dl));
+                }
+                Err(HwError::Timeout { .. }) => {
+                    let r = self.query(self.reply_deadline())?;
+                    if r.state == GrblState::Alarm {
+                        self.in_flight = false;
+                        return Err(self.alarm_error(self.lock.and_then(|l| l.alarm)));
+                    }
+                }
+                Err(e) => {
+                    self.in_flight = false;
+                    return Err(e);
+                }
+            }
+        }
+        Ok(())
     }
 
     fn alarm_error(&self, code: Option<u32>) -> HwError {
@@ -546,7 +600,7 @@ impl GrblStage {
             other => Err(HwError::Other {
                 device: self.name.clone(),
                 message: format!(
-                    "the controller is {other:?} at {:.1} µm and its target is unknown: \
+                    "the controller is {other} at {:.1} µm and its target is unknown: \
                      wait for the move to end (or stop it) before moving again",
                     r.position_um
                 ),
@@ -582,6 +636,9 @@ impl GrblStage {
         }
         self.lock = None;
         self.target_um = Some(r.position_um);
+        if self.machine.is_none() {
+            self.read_machine();
+        }
         tracing::info!(device = %self.name, at_um = r.position_um, "unlocked ($X)");
         Ok(())
     }
@@ -602,12 +659,143 @@ impl GrblStage {
         Ok(())
     }
 
-    fn move_to(&mut self, target_um: f64, gcode: String) -> Result<(), HwError> {
+    /// Send the move, then `G4 P0` behind it without waiting: its `ok` marks the move's end.
+    fn move_to(&mut self, from_um: f64, target_um: f64, gcode: String) -> Result<(), HwError> {
         self.ensure_unlocked()?;
         let dl = self.reply_deadline();
         self.command(&gcode, dl)?;
         self.target_um = Some(target_um);
+        let distance_um = target_um - from_um;
+        self.planned = Some(match &self.machine {
+            Some(m) => m.move_time(distance_um, self.opts.feed_um_s),
+            None => Duration::from_secs_f64(distance_um.abs() / self.opts.feed_um_s),
+        });
+        self.link.write_line("G4 P0")?;
+        self.in_flight = true;
+        // Until a report says otherwise, the axis is on its way.
+        let here = self.last.map_or(from_um, |(_, r)| r.position_um);
+        self.last = Some((
+            Instant::now(),
+            GrblReport {
+                state: GrblState::Run,
+                position_um: here,
+            },
+        ));
         Ok(())
+    }
+
+    /// How long a wait for the move in flight may take: `timeout`, or the move's planned
+    /// time and a reply's deadline if that is longer.
+    fn move_budget(&self, timeout: Duration) -> Duration {
+        let planned = self.planned.unwrap_or(Duration::ZERO);
+        timeout.max(planned * 2 + Duration::from_millis(self.opts.reply_timeout_ms))
+    }
+
+    /// How long a feed hold may take to complete: braking from the feed, twice over, and a
+    /// reply's deadline.
+    fn brake_budget(&self) -> Duration {
+        let brake = match &self.machine {
+            Some(m) => m.brake_time(self.opts.feed_um_s),
+            None => Duration::from_secs(1),
+        };
+        brake * 3 + Duration::from_millis(self.opts.reply_timeout_ms)
+    }
+}
+
+/// Stopping: a feed hold, braked out under control, then the planner cleared by a reset
+/// that raises no alarm (GRBL keeps its position after a completed hold). A reset of a
+/// moving controller is only the last resort: it raises `ALARM:3` (position lost).
+impl GrblStage {
+    fn stop_now(&mut self) -> Result<(), HwError> {
+        let r = self.query(self.reply_deadline())?;
+        let r = match r.state {
+            // Nothing moves in alarm; a hold that already completed needs no feed hold.
+            GrblState::Alarm => {
+                self.in_flight = false;
+                return Ok(());
+            }
+            GrblState::Idle | GrblState::Check | GrblState::Sleep => {
+                // A move may have just ended, its `ok` on the way: take it in.
+                let dl = self.reply_deadline();
+                self.finish_in_flight(dl)?;
+                self.target_um = Some(r.position_um);
+                return Ok(());
+            }
+            GrblState::Hold { complete: true } => r,
+            GrblState::Home => return self.last_resort(r, Duration::ZERO),
+            GrblState::Jog => {
+                self.link.write(&[0x85])?; // jog cancel: brakes and flushes, no alarm
+                self.brake()?
+            }
+            GrblState::Run | GrblState::Hold { complete: false } | GrblState::Door => {
+                self.link.write(b"!")?;
+                self.brake()?
+            }
+        };
+        match r.state {
+            GrblState::Idle => {}
+            GrblState::Hold { complete: true } | GrblState::Door => self.soft_reset()?,
+            _ => return self.last_resort(r, self.brake_budget()),
+        }
+        let r = self.query(self.reply_deadline())?;
+        if r.state == GrblState::Alarm {
+            return Err(self.alarm_error(self.lock.and_then(|l| l.alarm)));
+        }
+        self.target_um = Some(r.position_um);
+        Ok(())
+    }
+
+    /// Poll at [`STOP_POLL`] until the controller has braked to rest (a completed hold, or
+    /// idle after a jog cancel), within [`brake_budget`](Self::brake_budget). Returns the
+    /// last report either way.
+    fn brake(&mut self) -> Result<GrblReport, HwError> {
+        let dl = Deadline::after(self.brake_budget());
+        loop {
+            std::thread::sleep(STOP_POLL);
+            let r = self.query(self.reply_deadline())?;
+            let braking = matches!(
+                r.state,
+                GrblState::Run | GrblState::Jog | GrblState::Hold { complete: false }
+            );
+            if !braking || dl.expired() {
+                self.in_flight = false;
+                return Ok(r);
+            }
+        }
+    }
+
+    /// The controller did not come to rest under a feed hold (or is homing, which only a
+    /// reset ends): reset it anyway, and say what it answered and that its position is lost.
+    fn last_resort(&mut self, r: GrblReport, waited: Duration) -> Result<(), HwError> {
+        tracing::warn!(device = %self.name, state = %r.state, at_um = r.position_um,
+            "soft reset of a moving controller: the last resort of a stop");
+        self.soft_reset()?;
+        let after = self.query(self.reply_deadline())?;
+        let code = self.lock.and_then(|l| l.alarm);
+        let then = if after.state == GrblState::Alarm {
+            format!(
+                "it is in alarm{}: the position is lost until it is homed, or unlocked \
+                 once the machine is checked",
+                code.map_or(String::new(), |c| format!(" ({c})"))
+            )
+        } else {
+            format!("it reports {} at {:.1} µm", after.state, after.position_um)
+        };
+        Err(HwError::Alarm {
+            device: self.name.clone(),
+            code: code.unwrap_or(0),
+            message: format!(
+                "the controller answered {} at {:.1} µm {} after a feed hold; rigd \
+                 soft-reset it as the last resort of a stop, and {then}",
+                r.state,
+                r.position_um,
+                if waited.is_zero() {
+                    "(a homing cycle ends only by a reset)".to_string()
+                } else {
+                    format!("for {} ms", waited.as_millis())
+                },
+            ),
+        })
     }
 }
 
@@ -622,6 +810,8 @@ impl OverSerial for GrblStage {
 
     fn port_lost(&mut self) {
         self.target_um = None;
+        self.in_flight = false;
+        self.last = None;
     }
 }
 
@@ -646,7 +836,7 @@ impl Stage for GrblStage {
             let from = s.start_um()?;
             let target = s.opts.limits.check_rel(&s.name, from, delta_um)?;
             let g = format!("G91 G1 X{:.5} F{:.1}", delta_um / 1000.0, s.feed_mm_min());
-            s.move_to(target, g)
+            s.move_to(from, target, g)
         })
     }
 
@@ -657,24 +847,22 @@ impl Stage for GrblStage {
             let from = s.start_um()?;
             s.opts.limits.check_move(&s.name, from, target_um)?;
             let g = format!("G90 G1 X{:.5} F{:.1}", target_um / 1000.0, s.feed_mm_min());
-            s.move_to(target_um, g)
+            s.move_to(from, target_um, g)
         })
     }
 
     fn wait_settled(&mut self, timeout: Duration) -> Result<f64, HwError> {
-        let dl = Deadline::after(timeout);
+        let dl = Deadline::after(self.move_budget(timeout));
         self.guard(|s| {
             s.ensure_connected()?;
             if let Some(l) = s.lock {
                 return Err(s.alarm_error(l.alarm));
             }
-            // `ok` to G4 P0 comes once the planner has run dry; `?` confirms Idle.
-            match s.command("G4 P0", dl) {
-                Err(HwError::Timeout { .. }) => return Err(s.still_moving(dl)),
-                r => r?,
-            }
+            s.finish_in_flight(dl)?;
+            // The planner is empty: a report confirms Idle (a fresh one, unless the last
+            // came after the move's end).
             loop {
-                let r = s.query(dl)?;
+                let r = s.current_report()?;
                 match r.state {
                     GrblState::Idle => return Ok(r.position_um),
                     GrblState::Alarm => return Err(s.alarm_error(s.lock.and_then(|l| l.alarm))),
@@ -698,33 +886,7 @@ impl Stage for GrblStage {
     fn stop(&mut self) -> Result<(), HwError> {
         self.guard(|s| {
             s.ensure_connected()?;
-            let locked_before = s.lock.is_some();
-            // Feed hold first so the axis decelerates under control and keeps its position.
-            s.link.write(b"!")?;
-            let dl = s.reply_deadline();
-            loop {
-                let r = s.query(dl)?;
-                match r.state {
-                    GrblState::Hold { complete: false } | GrblState::Run | GrblState::Jog => {
-                        if dl.expired() {
-                            break;
-                        }
-                        std::thread::sleep(POLL);
-                    }
-                    _ => break,
-                }
-            }
-            // Then a reset flushes the planner; GRBL keeps the position after a completed hold.
-            s.soft_reset()?;
-            let dl = s.reply_deadline();
-            let r = s.query(dl)?;
-            if r.state == GrblState::Alarm && !locked_before {
-                // Our own abort locked it: the hold completed, so the position is sound.
-                s.command("$X", dl)?;
-                s.lock = None;
-            }
-            s.target_um = Some(r.position_um);
-            Ok(())
+            s.stop_now()
         })
     }
 
@@ -756,8 +918,8 @@ impl Stage for GrblStage {
                 GrblState::Hold { .. } | GrblState::Door => Err(HwError::Other {
                     device: s.name.clone(),
                     message: format!(
-                        "still holding at {:.1} µm after cycle start (a safety door open?)",
-                        r.position_um
+                        "still {} at {:.1} µm after cycle start (a safety door open?)",
+                        r.state, r.position_um
                     ),
                 }),
                 _ => Ok(()),
@@ -766,44 +928,28 @@ impl Stage for GrblStage {
     }
 
     fn status(&mut self) -> Result<StageStatus, HwError> {
-        let r = self.report()?;
+        let r = self.guard(|s| {
+            s.ensure_connected()?;
+            s.current_report()
+        })?;
         Ok(StageStatus {
             state: state_of(r.state),
             position_um: r.position_um,
         })
+    }
+
+    fn machine(&self) -> Option<StageMachine> {
+        self.machine.clone()
+    }
+
+    fn planned_move(&self) -> Option<Duration> {
+        self.planned
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn lines_are_classified_without_mistaking_pushes_for_replies() {
-        assert_eq!(classify(b"ok"), Line::Ok);
-        assert_eq!(classify(b"error:22"), Line::Error(22));
-        assert_eq!(classify(b"ALARM:1"), Line::Alarm(1));
-        assert!(matches!(
-            classify(b"Grbl 1.1h ['$' for help]"),
-            Line::Banner(_)
-        ));
-        assert!(matches!(classify(b"[MSG:Reset to continue]"), Line::Msg(_)));
-        assert!(matches!(classify(b"\xff\xfe#ok"), Line::Garbage(_)));
-        assert!(matches!(classify(b"okay"), Line::Garbage(_)));
-        assert!(matches!(classify(b"error:x"), Line::Garbage(_)));
-    }
-
-    #[test]
-    fn status_reports_give_state_and_position_in_um() {
-        let r = parse_report("<Hold:1|MPos:12.345,0.000,0.000|FS:600,0>").unwrap();
-        assert_eq!(r.state, GrblState::Hold { complete: false });
-        assert!((r.position_um - 12_345.0).abs() < 1e-6);
-        let r = parse_report("<Idle|WPos:1.000,0,0|FS:0,0|WCO:-0.500,0,0>").unwrap();
-        assert!((r.position_um - 500.0).abs() < 1e-9);
-        assert!(parse_report("<Idle|FS:0,0>").is_none());
-        assert!(parse_report("<Dancing|MPos:0,0,0>").is_none());
-        assert!(parse_report("<Idle|MPos:nan,0,0>").is_none());
-    }
 
     #[test]
     fn options_are_checked() {

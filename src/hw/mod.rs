@@ -7,6 +7,7 @@
 pub mod gcs;
 pub mod grbl;
 pub mod grbl_codes;
+mod grbl_lines;
 pub mod limits;
 pub mod pixfmt;
 pub mod serial;
@@ -14,5 +15,7 @@ pub mod serial;
 pub mod v4l2;
 pub mod v4l2_options;
 
-pub use crate::rig::devices::{Camera, Frame, HwError, MotionState, Stage, StageStatus};
+pub use crate::rig::devices::{
+    Camera, Frame, HwError, MotionState, Stage, StageMachine, StageStatus,
+};
 pub use image::RgbImage;

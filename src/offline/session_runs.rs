@@ -122,7 +122,7 @@ fn frame_in(s: &Session, row: &StepRow, reg: JobRegistration) -> Result<FrameIn,
                 row.index
             ))
         }
-        _ => row.position_um,
+        _ => row.commanded_registration_um(s.manifest.rig.axis_machine.as_ref()),
     };
     let (dir, rel) = s.frame_file(row.index).map_err(|e| e.to_string())?;
     Ok(FrameIn {

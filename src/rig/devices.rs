@@ -4,9 +4,10 @@
 //!
 //! The traits are synchronous on purpose: serial and V4L2 I/O are blocking calls with
 //! deadlines, and the daemon runs them on a dedicated blocking thread per job. This module
-//! depends on nothing else in rigd: the drivers in `hw` implement it (and re-export it), the
-//! rig builders assemble it.
+//! depends on nothing else in rigd but [`StageMachine`] (what a controller says of its own
+//! motion): the drivers in `hw` implement it (and re-export it), the rig builders assemble it.
 
+pub use super::stage_machine::StageMachine;
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use std::time::{Duration, SystemTime};
@@ -127,6 +128,16 @@ pub trait Stage: Send {
     /// Close the port and open it again, handshake included (after the port was lost).
     fn reconnect(&mut self) -> Result<(), HwError> {
         Err(unsupported(self.name(), "reconnect"))
+    }
+    /// The controller's own motion settings (motor step, top speed, acceleration), when it
+    /// tells them: None for a stage that does not.
+    fn machine(&self) -> Option<StageMachine> {
+        None
+    }
+    /// How long the last move sent takes at the controller's own rate and acceleration, when
+    /// the driver knows: the engine's move deadline grows by it.
+    fn planned_move(&self) -> Option<Duration> {
+        None
     }
 }
 

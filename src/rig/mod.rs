@@ -16,6 +16,7 @@ pub mod open;
 pub mod replay;
 #[cfg(feature = "sim")]
 pub mod sim;
+pub mod stage_machine;
 
 pub use devices::{
     Camera, Frame, HwError, LogSample, LogSource, MotionState, PositionLog, Stage, StageStatus,
@@ -102,6 +103,10 @@ pub struct RigInfo {
     /// Whether the rig has an interferometer log (`registration: interferometer` needs one).
     #[serde(default)]
     pub interferometer: bool,
+    /// The axis controller's own motion settings (GRBL's `$100`/`$110`/`$120`), when it
+    /// tells them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub axis_machine: Option<crate::rig::devices::StageMachine>,
     /// The board the camera looks at, to name targets.
     pub board: Option<Board>,
     /// A snapshot of the configuration this rig was built from (recorded in sessions).

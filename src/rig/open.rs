@@ -95,6 +95,7 @@ pub fn from_config(cfg: &Config) -> Result<Rig, HwError> {
         ink_prior: camera_ink_prior(cam_cfg),
         // An all-sim rig runs the sim's XL-80; otherwise `[xl80]` names the log.
         interferometer: devices.log.is_some(),
+        axis_machine: devices.axis.machine(),
         board,
         config: serde_json::to_value(cfg).unwrap_or_default(),
         job_defaults: job_defaults(&cfg.pipeline),

@@ -4,7 +4,8 @@
 //! processing settings: `daemon::replay`).
 
 use super::devices::{
-    Camera, Frame, HwError, LogSample, LogSource, MotionState, PositionLog, Stage, StageStatus,
+    Camera, Frame, HwError, LogSample, LogSource, MotionState, PositionLog, Stage, StageMachine,
+    StageStatus,
 };
 use super::{Rig, RigInfo, RigMode};
 use crate::daemon::session::{Session, SessionError, StepRow, INTERFEROMETER};
@@ -24,6 +25,10 @@ pub fn replay(session: &Session) -> Result<Rig, SessionError> {
             rows: session.steps.clone().into(),
             position_um: 0.0,
             follows,
+            // The axis registers as it did live: where its motor really went.
+            machine: (!follows)
+                .then(|| session.manifest.rig.axis_machine.clone())
+                .flatten(),
         })
     };
     // A plan that moved the piezo besides the axis moved it only when its target changed:
@@ -48,6 +53,8 @@ struct ReplayStage {
     position_um: f64,
     /// Goes where it is told instead (the piezo of a 2-D plan).
     follows: bool,
+    /// The recorded controller's motion settings.
+    machine: Option<StageMachine>,
 }
 
 impl Stage for ReplayStage {
@@ -86,6 +93,9 @@ impl Stage for ReplayStage {
             state: MotionState::Idle,
             position_um: self.position_um,
         })
+    }
+    fn machine(&self) -> Option<StageMachine> {
+        self.machine.clone()
     }
 }
 

@@ -6,6 +6,7 @@
 pub mod adversary;
 pub mod daemon;
 pub mod emulated;
+pub mod firmware;
 pub mod instances;
 pub mod skip;
 

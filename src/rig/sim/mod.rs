@@ -23,7 +23,7 @@ pub use from_config::{open_sim_rig, SimHardware};
 pub use stage::SimStage;
 pub use xl80::SimXl80;
 
-use super::devices::{HwError, Stage, StageStatus};
+use super::devices::{HwError, Stage, StageMachine, StageStatus};
 use super::{Rig, RigInfo, RigMode};
 use crate::hw::gcs::{GcsOptions, GcsStage};
 use crate::hw::grbl::{GrblOptions, GrblStage};
@@ -181,8 +181,10 @@ pub fn simulated_with_truth(s: &SimSettings) -> Result<(Rig, SimTruth), HwError>
         piezo: Arc::clone(&rig.piezo),
     };
     let cam = SimCamera::new(Arc::clone(&rig.camera));
+    let mut info = sim_info(s, &rc, board);
+    info.axis_machine = axis.machine();
     let rig = Rig {
-        info: sim_info(s, &rc, board),
+        info,
         axis: Box::new(axis),
         piezo: Some(Box::new(piezo)),
         camera: Box::new(SimRigCamera::new(rig, cam)),
@@ -274,6 +276,7 @@ fn sim_info(s: &SimSettings, rc: &SimRigConfig, board: crate::board::Board) -> R
         // Not the renderer's print statistics: the calibration scan learns them.
         ink_prior: None,
         interferometer: true,
+        axis_machine: None,
         config: serde_json::json!({
             "sim": true,
             "axis": s.axis,
@@ -374,6 +377,12 @@ impl Stage for EmulatedStage {
     }
     fn unlock(&mut self) -> Result<(), HwError> {
         self.stage.unlock()
+    }
+    fn machine(&self) -> Option<StageMachine> {
+        self.stage.machine()
+    }
+    fn planned_move(&self) -> Option<Duration> {
+        self.stage.planned_move()
     }
     fn reconnect(&mut self) -> Result<(), HwError> {
         if self.loss_at.is_some_and(|n| n <= self.moves) {
