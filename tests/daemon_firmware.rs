@@ -15,7 +15,8 @@ use support::firmware::Firmware;
 /// GRBL 1.1h's default motor step ($100=250).
 const STEP_UM: f64 = 4.0;
 
-/// A rig on the firmware's port, with a small sim camera.
+/// A rig on the firmware's port, with a small sim camera. Replies may take 3 s: the
+/// firmware's simulated clock runs slow on a loaded machine.
 fn daemon_on(fw: &Firmware) -> Daemon {
     let dir = tempfile::tempdir().unwrap();
     let text = format!(
@@ -27,6 +28,7 @@ soft_min_um = -50000.0
 soft_max_um = 50000.0
 max_step_um = 50000.0
 default_start_um = 0.0
+reply_timeout_ms = 3000
 [camera]
 driver = "sim"
 [camera.sim]
@@ -42,12 +44,18 @@ exposure_ms = 1.0
     Daemon::start_in(rig, dir)
 }
 
-/// Follow job `id` until a `step` event with `index`.
-fn until_step(c: &mut rigd::cli::client::Client, id: u64, index: u32) {
+/// Follow job `id` until a `step` event with `index`; its events so far.
+fn until_step(c: &mut rigd::cli::client::Client, id: u64, index: u32) -> Vec<EventBody> {
+    let mut seen = Vec::new();
     loop {
         let e = c.next_event().unwrap();
-        if e.job_id == id && matches!(e.body, EventBody::Step { index: i, .. } if i == index) {
-            return;
+        if e.job_id != id {
+            continue;
+        }
+        let done = matches!(e.body, EventBody::Step { index: i, .. } if i == index);
+        seen.push(e.body);
+        if done {
+            return seen;
         }
     }
 }
@@ -131,7 +139,7 @@ fn a_pause_and_a_resume_lose_no_frame() {
     let d = daemon_on(&fw);
     let mut c = d.subscribed();
     let id = submit(&mut c, capture_job(500.0, 6, 0));
-    until_step(&mut c, id, 1);
+    let mut events = until_step(&mut c, id, 1);
     c.request(&Request::Pause { job_id: id }).unwrap();
     loop {
         let e = c.next_event().unwrap();
@@ -140,7 +148,7 @@ fn a_pause_and_a_resume_lose_no_frame() {
         }
     }
     c.request(&Request::Resume { job_id: id }).unwrap();
-    let events = events_until_end(&mut c, id);
+    events.extend(events_until_end(&mut c, id));
     let s = d.session(&events);
     assert_eq!(s.manifest.state, SessionState::Finished, "{events:?}");
     let positions: Vec<f64> = s.steps.iter().map(|r| r.axis_um).collect();

@@ -25,6 +25,8 @@ enum Until {
     /// Status reports polled every 100 ms until one in this state; the distinct states seen
     /// on the way are the reply.
     Reaches(&'static str),
+    /// Whatever comes within a second (a held GRBL reads no line).
+    Nothing,
 }
 
 /// `(ms to wait first, bytes to send, what ends the reply)`, in order. The waits let a move
@@ -41,11 +43,13 @@ const SCRIPT: &[(u64, &[u8], Until)] = &[
     (0, b"G1 X1.0001 F300\n", Until::Reply),
     (0, b"G4 P0\n", Until::Reply),
     (0, b"?", Until::Report),
-    // A feed hold at full speed brakes (Hold:1) to a completed hold (Hold:0) ...
+    // `$$` is refused while moving; a feed hold at full speed brakes (Hold:1) to a completed
+    // hold (Hold:0), during which no line is read ...
     (0, b"G1 X9 F500\n", Until::Reply),
-    (1000, b"!", Until::Reaches("Hold:0")),
     (0, b"$$\n", Until::Reply),
-    // ... which a reset clears without an alarm.
+    (1000, b"!", Until::Reaches("Hold:0")),
+    (0, b"$$\n", Until::Nothing),
+    // ... and a reset clears it (the waiting line too) without an alarm.
     (0, b"\x18", Until::Banner),
     (0, b"?", Until::State),
     // A reset while moving is ALARM:3 and a lock until $X.
@@ -106,6 +110,9 @@ fn replies(c: &mut RawClient, until: Until) -> Vec<String> {
         Until::Banner => c.until(|l| l.starts_with("Grbl "), WITHIN),
         Until::Report | Until::State => c.until(is_report, WITHIN),
         Until::Reaches(state) => return reaches(c, state),
+        Until::Nothing => {
+            return std::iter::from_fn(|| c.line(Duration::from_secs(1))).collect();
+        }
     };
     lines
         .into_iter()

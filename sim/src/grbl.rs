@@ -409,8 +409,8 @@ impl Grbl {
                 Ok(Reply::Ok)
             }
             "$" => {
-                // Too long to print while moving or held, as GRBL says.
-                if matches!(self.state, State::Run | State::Hold { .. }) {
+                // Too long to print while moving, as GRBL says (held, no line is read).
+                if self.state == State::Run {
                     return Err(8);
                 }
                 out.reply(self.settings());
@@ -726,7 +726,8 @@ impl Controller for Grbl {
             }
             _ => {}
         }
-        while self.block.is_none() && !self.critical {
+        // A hold suspends GRBL's main loop: lines wait, unanswered, until `~` or a reset.
+        while self.block.is_none() && !self.critical && !self.state.held() {
             let Some(line) = self.pending.pop_front() else {
                 break;
             };
@@ -769,8 +770,14 @@ mod tests {
         let (axis, _sim, mut c) = booted();
         c.send(b"G91 G1 X4 F1200\n");
         assert_eq!(c.line(T).unwrap(), "ok");
+        std::thread::sleep(Duration::from_millis(60));
         assert!(axis.is_moving(Instant::now()));
+        // At 20 mm/s the hold brakes for 40 ms (Hold:1), then holds complete (Hold:0).
         c.send(b"!?");
+        let r = c.line(T).unwrap();
+        assert!(r.starts_with("<Hold:1|MPos:"), "{r}");
+        std::thread::sleep(Duration::from_millis(60));
+        c.send(b"?");
         let r = c.line(T).unwrap();
         assert!(r.starts_with("<Hold:0|MPos:"), "{r}");
         assert!(!axis.is_moving(Instant::now()));
@@ -926,6 +933,48 @@ mod tests {
         c.send(b"G1 X2\n");
         assert_eq!(c.line(T).unwrap(), "error:22");
         assert_eq!(axis.position_at(Instant::now()), 1_100.0);
+    }
+
+    #[test]
+    fn targets_are_whole_motor_steps_rounded_as_the_firmware_rounds_them() {
+        let axis = Arc::new(Axis::new(AxisParams {
+            position_error_rms_um: 0.0,
+            ..AxisParams::default()
+        }));
+        let opts = GrblSimOptions {
+            steps_per_mm: 250.0,
+            ..GrblSimOptions::default()
+        };
+        let sim = GrblSim::spawn(axis, opts, None).unwrap();
+        let mut c = TestClient::open(&sim.path());
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), BANNER);
+        // 12.5, 25, 37.5 steps: GRBL's 32-bit floats put each half step just above .5.
+        for want in ["0.052", "0.100", "0.152"] {
+            c.send(b"G91 G1 X0.05 F600\nG4 P0\n");
+            assert_eq!(c.line(T).unwrap(), "ok");
+            assert_eq!(c.line(T).unwrap(), "ok");
+            c.send(b"?");
+            let r = c.line(T).unwrap();
+            assert!(r.starts_with(&format!("<Idle|MPos:{want},")), "{r}");
+        }
+        assert_eq!(read_float("0.15"), Some(0.15f32));
+        assert_eq!(read_float("-1.0001"), Some(-1.0001f32));
+        assert_eq!(read_float("."), None);
+    }
+
+    #[test]
+    fn a_reset_after_a_completed_hold_raises_no_alarm() {
+        let (_axis, _sim, mut c) = booted();
+        c.send(b"G1 X4 F1200\n");
+        assert_eq!(c.line(T).unwrap(), "ok");
+        std::thread::sleep(Duration::from_millis(60));
+        c.send(b"!");
+        std::thread::sleep(Duration::from_millis(80));
+        c.send(&[0x18]);
+        assert_eq!(c.line_where(T, |l| !l.is_empty()).unwrap(), BANNER);
+        c.send(b"?");
+        let r = c.line(T).unwrap();
+        assert!(r.starts_with("<Idle|"), "{r}");
     }
 
     #[test]

@@ -104,6 +104,7 @@ impl Firmware {
     fn spawn(exe: &Path, work: tempfile::TempDir, guard: MutexGuard<'static, ()>) -> Firmware {
         use std::os::unix::process::CommandExt;
         let pathfile = work.path().join("port");
+        let _ = std::fs::remove_file(&pathfile);
         let bridge = Command::new("python3")
             .arg(peers().join("pty_bridge.py"))
             .arg(exe)
