@@ -164,6 +164,11 @@ fn a_controller_that_boots_locked_is_a_fault_until_unlock() {
     let d = daemon_on(&fw);
     let mut c = d.subscribed();
     let hello = wait_for_state(&mut c, "fault");
+    // `$$` is read in alarm too: hello gives the motor step.
+    assert_eq!(
+        hello["rig"]["axis_machine"]["motor_step_um"], 4.0,
+        "{hello}"
+    );
     assert!(
         hello["rig_state"]["reason"]
             .as_str()

@@ -836,6 +836,18 @@ mod tests {
         assert_eq!(c.line(T).unwrap(), "ok");
     }
 
+    /// Wait for a jog to end: GRBL refuses G-code (`G4 P0` too) while jogging.
+    fn jog_done(c: &mut TestClient) {
+        for _ in 0..1000 {
+            c.send(b"?");
+            if c.line(T).unwrap().starts_with("<Idle|") {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        panic!("the jog never ended");
+    }
+
     #[test]
     fn g1_cruises_at_the_modal_feed_and_g0_at_the_max_rate() {
         let (axis, _sim, mut c) = booted_exact();
@@ -929,7 +941,7 @@ mod tests {
         assert_eq!(c.line(T).unwrap(), "error:22");
         // A jog's feed is not modal either.
         let _ = start_move(&axis, &mut c, "$J=G91 X0.1 F600");
-        drain(&mut c);
+        jog_done(&mut c);
         c.send(b"G1 X2\n");
         assert_eq!(c.line(T).unwrap(), "error:22");
         assert_eq!(axis.position_at(Instant::now()), 1_100.0);
@@ -981,7 +993,12 @@ mod tests {
     fn words_are_split_and_bad_ones_get_grbl_codes() {
         assert_eq!(
             parse_words("G91G1X0.05F600").unwrap(),
-            vec![('G', 91.0), ('G', 1.0), ('X', 0.05), ('F', 600.0)]
+            vec![
+                ('G', 91.0),
+                ('G', 1.0),
+                ('X', f64::from(0.05f32)),
+                ('F', 600.0)
+            ]
         );
         assert_eq!(parse_words("91"), Err(1));
         assert_eq!(parse_words("X1.2.3"), Err(2));

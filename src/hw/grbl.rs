@@ -146,6 +146,8 @@ pub struct GrblStage {
     /// A move the controller accepted whose end is not yet known: the `ok` to the `G4 P0`
     /// sent behind it comes once the planner has run dry.
     in_flight: bool,
+    /// No line has been sent since the last `G4 P0` was answered: the planner is empty.
+    synced: bool,
     /// The last status report and when it came: `status()` answers from it between polls.
     last: Option<(Instant, GrblReport)>,
     /// `$100`/`$110`/`$120`, read at connect.
@@ -182,6 +184,7 @@ impl GrblStage {
             target_um: None,
             lock: None,
             in_flight: false,
+            synced: false,
             last: None,
             machine: None,
             planned: None,
@@ -254,6 +257,7 @@ impl GrblStage {
         self.lock = None;
         self.target_um = None;
         self.in_flight = false;
+        self.synced = false;
         self.last = None;
     }
 
@@ -399,6 +403,7 @@ impl GrblStage {
             Line::Ok if self.in_flight => {
                 // The `G4 P0` behind the move: the planner is empty, the move is over.
                 self.in_flight = false;
+                self.synced = true;
                 self.last = None;
             }
             Line::Error(code) if self.in_flight => {
@@ -425,7 +430,14 @@ impl GrblStage {
 
     /// [`command`](Self::command), keeping the `$N=V` lines that come before the `ok`.
     fn command_collect(&mut self, line: &str, dl: Deadline) -> Result<Vec<(u32, f64)>, HwError> {
-        self.finish_in_flight(dl)?;
+        let dl = if self.in_flight {
+            self.finish_in_flight(Deadline::after(self.move_budget(dl.budget)))?;
+            // The reply's own deadline starts once the move has ended.
+            Deadline::after(dl.budget)
+        } else {
+            dl
+        };
+        self.synced = false;
         self.link.write_line(line)?;
         let waiting_for = format!("reply to {line:?}");
         let mut settings = Vec::new();
@@ -670,8 +682,7 @@ impl GrblStage {
             Some(m) => m.move_time(distance_um, self.opts.feed_um_s),
             None => Duration::from_secs_f64(distance_um.abs() / self.opts.feed_um_s),
         });
-        self.link.write_line("G4 P0")?;
-        self.in_flight = true;
+        self.sync_now()?;
         // Until a report says otherwise, the axis is on its way.
         let here = self.last.map_or(from_um, |(_, r)| r.position_um);
         self.last = Some((
@@ -681,6 +692,14 @@ impl GrblStage {
                 position_um: here,
             },
         ));
+        Ok(())
+    }
+
+    /// Send `G4 P0` now: the next `ok` marks the end of whatever the planner holds.
+    fn sync_now(&mut self) -> Result<(), HwError> {
+        self.link.write_line("G4 P0")?;
+        self.in_flight = true;
+        self.last = None;
         Ok(())
     }
 
@@ -852,11 +871,15 @@ impl Stage for GrblStage {
     }
 
     fn wait_settled(&mut self, timeout: Duration) -> Result<f64, HwError> {
-        let dl = Deadline::after(self.move_budget(timeout));
+        let dl = Deadline::after(timeout);
         self.guard(|s| {
             s.ensure_connected()?;
             if let Some(l) = s.lock {
                 return Err(s.alarm_error(l.alarm));
+            }
+            if !s.in_flight && !s.synced {
+                // A line since the last sync may have moved the axis (`send_line`).
+                s.sync_now()?;
             }
             s.finish_in_flight(dl)?;
             // The planner is empty: a report confirms Idle (a fresh one, unless the last
