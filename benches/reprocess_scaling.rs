@@ -55,6 +55,7 @@ fn rig(board: &Board, cam: &CameraModel) -> RigInfo {
         response: Default::default(),
         ink_prior: None,
         interferometer: false,
+        axis_machine: None,
         board: Some(board.clone()),
         config: serde_json::Value::Null,
         job_defaults: Processing::default(),
