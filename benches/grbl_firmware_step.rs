@@ -10,13 +10,16 @@
 #[path = "../tests/support/firmware.rs"]
 #[allow(dead_code)]
 mod firmware;
+#[path = "support/job.rs"]
+#[allow(dead_code)]
+mod job;
 #[path = "../tests/support/skip.rs"]
 mod skip;
 
 use rigd::acquisition::JobSpec;
 use rigd::cli::client::Client;
 use rigd::config::{Config, DaemonSettings};
-use rigd::daemon::protocol::{EventBody, Request};
+use rigd::daemon::protocol::Request;
 use rigd::daemon::server::Background;
 use rigd::daemon::session::Session;
 use std::time::Instant;
@@ -68,14 +71,7 @@ fn main() {
     let id = c.request(&Request::Submit { job }).unwrap()["job_id"]
         .as_u64()
         .unwrap();
-    let session = loop {
-        let e = c.next_event().unwrap();
-        match e.body {
-            EventBody::Finished { session } if e.job_id == id => break session,
-            b if e.job_id == id && b.is_terminal() => panic!("job {id} ended: {b:?}"),
-            _ => {}
-        }
-    };
+    let session = job::finished(&mut c, id);
     let secs = t0.elapsed().as_secs_f64();
     let polls = fw.sent().iter().filter(|&&b| b == b'?').count() - polls_before;
     let s = Session::open(&data.join(session)).unwrap();

@@ -44,20 +44,36 @@ exposure_ms = 1.0
     Daemon::start_in(rig, dir)
 }
 
-/// Follow job `id` until a `step` event with `index`; its events so far.
-fn until_step(c: &mut rigd::cli::client::Client, id: u64, index: u32) -> Vec<EventBody> {
+/// Follow job `id` until an event `is` accepts; its events so far (panics if the job ends
+/// first).
+fn until(
+    c: &mut rigd::cli::client::Client,
+    id: u64,
+    is: impl Fn(&EventBody) -> bool,
+) -> Vec<EventBody> {
     let mut seen = Vec::new();
     loop {
         let e = c.next_event().unwrap();
         if e.job_id != id {
             continue;
         }
-        let done = matches!(e.body, EventBody::Step { index: i, .. } if i == index);
+        let done = is(&e.body);
+        let end = e.body.is_terminal();
         seen.push(e.body);
         if done {
             return seen;
         }
+        assert!(!end, "job {id} ended first: {seen:?}");
     }
+}
+
+/// [`until`] a `step` event with `index`.
+fn until_step(c: &mut rigd::cli::client::Client, id: u64, index: u32) -> Vec<EventBody> {
+    until(
+        c,
+        id,
+        |e| matches!(e, EventBody::Step { index: i, .. } if *i == index),
+    )
 }
 
 fn alarms(fw: &Firmware) -> String {
@@ -141,12 +157,7 @@ fn a_pause_and_a_resume_lose_no_frame() {
     let id = submit(&mut c, capture_job(500.0, 6, 0));
     let mut events = until_step(&mut c, id, 1);
     c.request(&Request::Pause { job_id: id }).unwrap();
-    loop {
-        let e = c.next_event().unwrap();
-        if e.job_id == id && matches!(e.body, EventBody::Paused { .. }) {
-            break;
-        }
-    }
+    events.extend(until(&mut c, id, |e| matches!(e, EventBody::Paused { .. })));
     c.request(&Request::Resume { job_id: id }).unwrap();
     events.extend(events_until_end(&mut c, id));
     let s = d.session(&events);

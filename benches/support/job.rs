@@ -8,6 +8,19 @@ use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::session::Session;
 use std::path::Path;
 
+/// Follow job `id` on the subscribed client `c` until it finishes; its session's name
+/// (panics if it ends otherwise).
+pub fn finished(c: &mut Client, id: u64) -> String {
+    loop {
+        let e = c.next_event().unwrap();
+        match e.body {
+            EventBody::Finished { session } if e.job_id == id => return session,
+            b if e.job_id == id && b.is_terminal() => panic!("job {id} ended: {b:?}"),
+            _ => {}
+        }
+    }
+}
+
 /// Run the job; its id, its session and the intervals between its frames' exposures, ms.
 pub fn forty_frames(c: &mut Client, data: &Path) -> (u64, Session, Vec<f64>) {
     let job = JobSpec {
@@ -19,15 +32,7 @@ pub fn forty_frames(c: &mut Client, data: &Path) -> (u64, Session, Vec<f64>) {
     };
     let r = c.request(&Request::Submit { job }).unwrap();
     let id = r["job_id"].as_u64().unwrap();
-    let session = loop {
-        let e = c.next_event().unwrap();
-        match e.body {
-            EventBody::Finished { session } if e.job_id == id => break session,
-            b if e.job_id == id && b.is_terminal() => panic!("job {id} ended: {b:?}"),
-            _ => {}
-        }
-    };
-    let s = Session::open(&data.join(session)).unwrap();
+    let s = Session::open(&data.join(finished(c, id))).unwrap();
     let intervals = s
         .steps
         .windows(2)
