@@ -269,6 +269,8 @@ pub struct GrblStage {
 const DRAIN_QUIET: Duration = Duration::from_millis(30);
 /// Status polling interval while waiting for Idle or a completed hold.
 const POLL: Duration = Duration::from_millis(2);
+/// How often a homing cycle looks for a `stop` while it waits for its `ok`.
+const HOME_POLL: Duration = Duration::from_millis(10);
 
 impl GrblStage {
     /// A driver that connects on first use (lazy open). Fails only on bad options.
@@ -602,6 +604,59 @@ impl GrblStage {
         Ok(())
     }
 
+    /// `$H`, its reply awaited in short reads so `stopped()` is polled between them. GRBL
+    /// takes no feed hold during homing: a stop is a soft reset, after which it is in alarm
+    /// (`Ok(true)`; `status` reports it, `unlock` or `home` clears it).
+    fn home_cycle_until(&mut self, stopped: &dyn Fn() -> bool) -> Result<bool, HwError> {
+        if self.lock.is_some_and(|l| l.needs_reset) {
+            self.soft_reset()?;
+        }
+        let dl = Deadline::after(Duration::from_millis(self.opts.home_timeout_ms));
+        self.link.write_line("$H")?;
+        let waiting_for = "reply to \"$H\"";
+        loop {
+            if stopped() {
+                tracing::warn!(device = %self.name, "homing stopped: soft reset");
+                self.soft_reset()?;
+                self.target_um = None;
+                return Ok(true);
+            }
+            let left = dl.at.saturating_duration_since(std::time::Instant::now());
+            let poll = Deadline::after(HOME_POLL.min(left));
+            let raw = match self.link.read_line(poll, waiting_for) {
+                Ok(raw) => raw,
+                Err(HwError::Timeout { .. }) if !dl.expired() => continue,
+                Err(HwError::Timeout { .. }) => {
+                    return Err(HwError::Timeout {
+                        device: self.name.clone(),
+                        timeout_ms: dl.budget.as_millis() as u64,
+                        waiting_for: waiting_for.to_string(),
+                    })
+                }
+                Err(e) => return Err(e),
+            };
+            match classify(&raw) {
+                Line::Ok => break,
+                Line::Error(code) => {
+                    return Err(HwError::Controller {
+                        device: self.name.clone(),
+                        code: code as i32,
+                        message: format!("{} (for \"$H\")", GrblErrorCode::from_code(code).text()),
+                    })
+                }
+                Line::Alarm(code) => {
+                    self.note(&Line::Alarm(code));
+                    return Err(self.alarm_error(Some(code)));
+                }
+                other => self.note(&other),
+            }
+        }
+        self.lock = None;
+        let dl = self.reply_deadline();
+        self.target_um = Some(self.query(dl)?.position_um);
+        Ok(false)
+    }
+
     fn move_to(&mut self, target_um: f64, gcode: String) -> Result<(), HwError> {
         self.ensure_unlocked()?;
         let dl = self.reply_deadline();
@@ -732,6 +787,13 @@ impl Stage for GrblStage {
         self.guard(|s| {
             s.ensure_connected()?;
             s.home_cycle()
+        })
+    }
+
+    fn home_stoppable(&mut self, stopped: &dyn Fn() -> bool) -> Result<bool, HwError> {
+        self.guard(|s| {
+            s.ensure_connected()?;
+            s.home_cycle_until(stopped)
         })
     }
 
