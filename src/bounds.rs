@@ -26,7 +26,18 @@ pub fn in_range(what: &str, value: f64, lo: f64, hi: f64) -> Result<f64, String>
     if (lo..=hi).contains(&value) {
         Ok(value)
     } else {
-        Err(format!("{what} {value} is outside {lo}..={hi}"))
+        let (v, lo, hi) = (short(value), short(lo), short(hi));
+        Err(format!("{what} {v} is outside {lo}..={hi}"))
+    }
+}
+
+/// A number as a message shows it: `1e300`, not its 301 digits.
+pub fn short(v: f64) -> String {
+    let a = v.abs();
+    if a != 0.0 && a.is_finite() && !(1e-4..1e15).contains(&a) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
     }
 }
 
@@ -123,8 +134,10 @@ mod tests {
             1.0000001,
         ] {
             let e = in_range("x_um", v, -1.0, 1.0).unwrap_err();
-            assert!(e.starts_with("x_um "), "{e}");
+            assert!(e.starts_with("x_um ") && e.len() < 60, "{e}");
         }
+        let e = in_range("t_unix_s", 1e300, 0.0, 1e10).unwrap_err();
+        assert_eq!(e, "t_unix_s 1e300 is outside 0..=1e10");
     }
 
     #[test]

@@ -284,7 +284,7 @@ pub enum EndKind {
     Interferometer,
     Processing,
     Setup,
-    /// A fault in the daemon itself (a panic): the daemon goes on.
+    // A fault in the daemon itself (a panic): the daemon goes on.
     Internal,
 }
 

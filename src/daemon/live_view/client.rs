@@ -9,7 +9,6 @@ use super::wire::{PreviewReply, PreviewStopReply, ViewOptions};
 use crate::daemon::outbox::{Line, Outbox};
 use crate::daemon::protocol::{ErrorCode, ProtoError, ReplyBody, Request};
 use crate::daemon::Shared;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};
 use tokio::sync::watch;
@@ -129,7 +128,7 @@ pub fn stop(sub: &mut Option<Subscription>) -> ReplyBody {
 /// not written within `stall` (the client reads nothing) ends the connection.
 async fn forward(
     mut rx: watch::Receiver<Option<Line>>,
-    taken: Arc<AtomicBool>,
+    taken: super::Taken,
     out: Arc<Outbox>,
     stall: Duration,
 ) {
@@ -153,7 +152,7 @@ async fn forward(
         let Some(line) = rx.borrow_and_update().clone() else {
             continue;
         };
-        taken.store(true, Ordering::SeqCst);
+        taken.set();
         // A copy of its own (the slot keeps the original): once the writer drops it, this
         // is its only holder.
         let line: Line = Arc::from(&line[..]);

@@ -120,6 +120,21 @@ impl Inner {
 }
 
 /// The live view's hub, one per daemon (in `Shared`).
+/// A preview subscriber's flag: its forwarder took the last line rendered for it. Until
+/// then no frame is grabbed or rendered for it; setting it wakes the worker's idle grabs.
+#[derive(Clone)]
+pub struct Taken {
+    flag: Arc<AtomicBool>,
+    inner: Arc<Inner>,
+}
+
+impl Taken {
+    pub fn set(&self) {
+        self.flag.store(true, Ordering::SeqCst);
+        self.inner.watchers_changed.notify_one();
+    }
+}
+
 pub struct LiveView {
     inner: Arc<Inner>,
     analyser: Mutex<Option<std::thread::JoinHandle<()>>>,
@@ -165,8 +180,11 @@ impl LiveView {
         &self,
         shown: Shown,
         max_fps: f64,
-    ) -> (u64, watch::Receiver<Option<Line>>, Arc<AtomicBool>) {
-        let taken = Arc::new(AtomicBool::new(true));
+    ) -> (u64, watch::Receiver<Option<Line>>, Taken) {
+        let taken = Taken {
+            flag: Arc::new(AtomicBool::new(true)),
+            inner: self.inner.clone(),
+        };
         let (tx, rx) = watch::channel(None);
         // `check_fps` bounds the rate; a rate outside it still gets a finite interval.
         let interval = Duration::try_from_secs_f64(1.0 / max_fps)
@@ -180,7 +198,7 @@ impl LiveView {
             interval,
             last: None,
             tx,
-            taken: taken.clone(),
+            taken: taken.flag.clone(),
         });
         self.inner.recount(&st);
         (id, rx, taken)
