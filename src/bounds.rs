@@ -107,7 +107,7 @@ pub fn decode_frame(bytes: &[u8], expected: Option<(u32, u32)>) -> Result<image:
     frame_size(w, h)?;
     if let Some((ew, eh)) = expected.filter(|&e| e != (w, h)) {
         return Err(format!(
-            "{w}x{h} px, not the {ew}x{eh} px of the run's frames"
+            "size {w}x{h} px differs from the run's frames', {ew}x{eh} px"
         ));
     }
     let mut r =
@@ -206,6 +206,6 @@ mod tests {
             (4, 3)
         );
         let e = decode_frame(&ok, Some((5, 3))).unwrap_err();
-        assert!(e.contains("4x3 px, not the 5x3 px"), "{e}");
+        assert!(e.contains("size 4x3 px differs"), "{e}");
     }
 }

@@ -478,7 +478,7 @@ impl FrameReader {
         // Checked before a pixel is allocated: a small file may declare a huge image.
         let sized = bounds::frame_size(w, h).and_then(|s| match self.expect {
             Some((ew, eh)) if (ew, eh) != s => Err(format!(
-                "{w}x{h} px, not the {ew}x{eh} px of the run's first frame"
+                "size {w}x{h} px differs from the run's first frame's, {ew}x{eh} px"
             )),
             _ => Ok(s),
         });

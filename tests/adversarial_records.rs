@@ -266,7 +266,7 @@ fn offline_readers_refuse_symlinked_fifo_and_huge_frames_quickly() {
     std::fs::write(frame(1), png(100, 50)).unwrap();
     let err = process("a frame of another size");
     assert!(
-        err.contains("0001.png: 100x50 px, not the 300x200 px"),
+        err.contains("0001.png: size 100x50 px differs from the run's first frame's, 300x200 px"),
         "{err}"
     );
     // `rigctl calibrate` reads the same way.

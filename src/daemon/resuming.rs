@@ -364,8 +364,7 @@ fn frame_intact(dir: &Path, index: usize, size: (u32, u32)) -> bool {
     let len = f.metadata().map(|m| m.len()).unwrap_or(0);
     let mut head = [0u8; 24];
     let mut tail = [0u8; 12];
-    let read = len <= bounds::MAX_FRAME_BYTES
-        && len >= 24 + 12
+    let read = (24 + 12..=bounds::MAX_FRAME_BYTES).contains(&len)
         && f.read_exact(&mut head).is_ok()
         && f.seek(SeekFrom::End(-12)).is_ok()
         && f.read_exact(&mut tail).is_ok();
