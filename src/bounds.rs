@@ -137,7 +137,7 @@ mod tests {
             assert!(e.starts_with("x_um ") && e.len() < 60, "{e}");
         }
         let e = in_range("t_unix_s", 1e300, 0.0, 1e10).unwrap_err();
-        assert_eq!(e, "t_unix_s 1e300 is outside 0..=1e10");
+        assert_eq!(e, "t_unix_s 1e300 is outside 0..=10000000000");
     }
 
     #[test]
