@@ -6,6 +6,7 @@
 //! result file last, so a failed run leaves nothing that looks complete.
 
 use crate::atomic_file;
+use crate::bounds;
 use crate::pipeline::run::NamedImage;
 use crate::pipeline::ProcessResult;
 use image::RgbImage;
@@ -20,6 +21,9 @@ pub enum FolderError {
     NoFrames { path: PathBuf },
     #[error("{path}: not a readable PNG: {message}")]
     BadPng { path: PathBuf, message: String },
+    /// A frame beyond the size limits, or not the size of its run's first frame.
+    #[error("{path}: {message}")]
+    FrameSize { path: PathBuf, message: String },
     #[error("{path}: must be 8-bit RGB, is {found}")]
     NotRgb8 { path: PathBuf, found: String },
     #[error("{path}: header must start with `index,position_um`, found `{found}`")]
@@ -96,6 +100,23 @@ pub fn open(dir: &Path, limit: Option<usize>) -> Result<Folder, FolderError> {
     })
 }
 
+/// `steps.csv`'s bytes: a regular file (no symlink at its name, no FIFO or device) of at
+/// most [`bounds::MAX_STEPS_BYTES`].
+fn steps_bytes(path: &Path) -> Result<std::io::Cursor<Vec<u8>>, FolderError> {
+    crate::nofollow::read_regular_max(path, bounds::MAX_STEPS_BYTES)
+        .map(std::io::Cursor::new)
+        .map_err(|e| FolderError::Io {
+            path: path.to_path_buf(),
+            message: format!("cannot open: {e}"),
+        })
+}
+
+/// A position read from `steps.csv`, within [`bounds::MAX_POSITION_UM`].
+fn position(v: &str) -> Option<f64> {
+    let um = bounds::MAX_POSITION_UM;
+    v.parse::<f64>().ok().filter(|v| (-um..=um).contains(v))
+}
+
 /// The cells of `steps.csv`'s column `name` with their line numbers, the first `rows` rows
 /// (all with `None`); `None` if the file has no such column.
 fn column(
@@ -109,8 +130,7 @@ fn column(
     };
     let mut rdr = csv::ReaderBuilder::new()
         .trim(csv::Trim::All)
-        .from_path(path)
-        .map_err(open_err)?;
+        .from_reader(steps_bytes(path)?);
     let headers = rdr.headers().map_err(open_err)?;
     let Some(col) = headers.iter().position(|h| h == name) else {
         return Ok(None);
@@ -139,14 +159,14 @@ pub fn read_piezo(path: &Path) -> Result<Option<Vec<f64>>, FolderError> {
     for (line, v) in cells {
         let x = match v.as_str() {
             "" => None,
-            _ => Some(
-                v.parse::<f64>()
-                    .ok()
-                    .filter(|v| v.is_finite())
-                    .ok_or_else(|| {
-                        row_err(line, format!("piezo_commanded_um `{v}` is not a number"))
-                    })?,
-            ),
+            _ => Some(position(&v).ok_or_else(|| {
+                row_err(
+                    line,
+                    format!(
+                        "piezo_commanded_um `{v}` is not a position (a number of µm within ±1e9)"
+                    ),
+                )
+            })?),
         };
         parsed.push((line, x));
     }
@@ -184,7 +204,7 @@ pub fn read_interferometer(path: &Path, frames: usize) -> Result<Vec<f64>, Folde
     cells
         .into_iter()
         .map(|(line, v)| {
-            let x = v.parse::<f64>().ok().filter(|v| v.is_finite());
+            let x = position(&v);
             x.ok_or_else(|| err(line, format!("interferometer_um `{v}` is not a reading")))
         })
         .collect()
@@ -196,11 +216,7 @@ pub fn read_steps(path: &Path) -> Result<Vec<f64>, FolderError> {
         .has_headers(true)
         .flexible(false)
         .trim(csv::Trim::All)
-        .from_path(path)
-        .map_err(|e| FolderError::Io {
-            path: path.to_path_buf(),
-            message: format!("cannot open: {e}"),
-        })?;
+        .from_reader(steps_bytes(path)?);
     let header = rdr.headers().map_err(|e| FolderError::StepsRow {
         path: path.to_path_buf(),
         line: 1,
@@ -236,11 +252,11 @@ pub fn read_steps(path: &Path) -> Result<Vec<f64>, FolderError> {
             )));
         }
         let pos_s = rec.get(1).unwrap_or("");
-        let pos: f64 = pos_s
-            .parse()
-            .ok()
-            .filter(|v: &f64| v.is_finite())
-            .ok_or_else(|| row_err(format!("position_um `{pos_s}` is not a number")))?;
+        let pos = position(pos_s).ok_or_else(|| {
+            row_err(format!(
+                "position_um `{pos_s}` is not a position (a number of µm within ±1e9)"
+            ))
+        })?;
         out.push(pos);
     }
     Ok(out)
@@ -264,15 +280,47 @@ impl FrameFile {
         }
     }
 
+    /// The file's bytes: a regular file (no symlink at its name, no FIFO or device), of at
+    /// most [`bounds::MAX_FRAME_BYTES`].
     fn read_into(&self, bytes: &mut Vec<u8>) -> std::io::Result<()> {
         use std::io::Read;
-        let mut f = match self {
-            FrameFile::Path(p) => std::fs::File::open(p)?,
+        let f = match self {
+            FrameFile::Path(p) => crate::nofollow::open_regular(p)?,
             FrameFile::Below { dir, rel } => {
                 crate::nofollow::open_in(dir, rel, crate::nofollow::Access::Read)?
             }
         };
-        f.read_to_end(bytes).map(|_| ())
+        let max = bounds::MAX_FRAME_BYTES;
+        let len = f.metadata()?.len();
+        if len > max {
+            return Err(std::io::Error::other(format!(
+                "{len} bytes, over the {max}-byte limit for a frame"
+            )));
+        }
+        f.take(max + 1).read_to_end(bytes)?;
+        if bytes.len() as u64 > max {
+            return Err(std::io::Error::other(format!(
+                "over the {max}-byte limit for a frame"
+            )));
+        }
+        Ok(())
+    }
+
+    /// The frame's size as its PNG header says (read bounded, nothing decoded).
+    pub fn size(&self) -> Result<(u32, u32), FolderError> {
+        let path = self.path();
+        let mut bytes = Vec::new();
+        self.read_into(&mut bytes).map_err(|e| FolderError::Io {
+            path: path.clone(),
+            message: format!("cannot read: {e}"),
+        })?;
+        let dec = png::Decoder::new(std::io::Cursor::new(&bytes[..]));
+        let info = dec.read_info().map_err(|e| FolderError::BadPng {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
+        let (w, h) = info.info().size();
+        bounds::frame_size(w, h).map_err(|message| FolderError::FrameSize { path, message })
     }
 }
 
@@ -326,9 +374,19 @@ impl RowGate {
 #[derive(Default)]
 pub struct FrameReader {
     bytes: Vec<u8>,
+    /// The size every frame must have (its run's first frame's), once known.
+    expect: Option<(u32, u32)>,
 }
 
 impl FrameReader {
+    /// A reader that refuses a frame not of `size` (its run's first frame's), when given.
+    pub fn expecting(size: Option<(u32, u32)>) -> FrameReader {
+        FrameReader {
+            bytes: Vec::new(),
+            expect: size,
+        }
+    }
+
     /// Read the frame at `path`, into `reuse`'s pixel buffer when given.
     pub fn read(&mut self, path: &Path, reuse: Option<RgbImage>) -> Result<RgbImage, FolderError> {
         self.read_rows(path, reuse, u32::MAX).map(|(img, _)| img)
@@ -388,7 +446,10 @@ impl FrameReader {
             path: path.to_path_buf(),
             message: e.to_string(),
         };
-        let mut dec = png::Decoder::new(std::io::Cursor::new(&self.bytes[..]));
+        let limits = png::Limits {
+            bytes: (bounds::MAX_FRAME_PIXELS * 8) as usize,
+        };
+        let mut dec = png::Decoder::new_with_limits(std::io::Cursor::new(&self.bytes[..]), limits);
         // As `image` decodes: palette and low bit depths expanded to 8 bits.
         dec.set_transformations(png::Transformations::EXPAND);
         let mut reader = dec.read_info().map_err(bad)?;
@@ -414,6 +475,17 @@ impl FrameReader {
             });
         }
         let (w, h) = reader.info().size();
+        // Checked before a pixel is allocated: a small file may declare a huge image.
+        let sized = bounds::frame_size(w, h).and_then(|s| match self.expect {
+            Some((ew, eh)) if (ew, eh) != s => Err(format!(
+                "size {w}x{h} px differs from the run's first frame's, {ew}x{eh} px"
+            )),
+            _ => Ok(s),
+        });
+        sized.map_err(|message| FolderError::FrameSize {
+            path: path.to_path_buf(),
+            message,
+        })?;
         let len = w as usize * h as usize * 3;
         let mut px = match reuse.map(RgbImage::into_raw) {
             // A reused buffer of the same size is not written here (its pages stay mapped).

@@ -9,6 +9,8 @@
 //!   daemon keeps in its data root (`calibrations/<id>.json`, `current`).
 //! - `atomic_file`: files written whole or not at all (temporary name, sync, rename).
 //! - `nofollow`: opening files below a folder without following a symlink.
+//! - `bounds`: the limits of what rigd reads: file sizes, frame dimensions, number ranges,
+//!   names that become file names.
 //! - `lock`: exclusive flock'd lock files that name their holder (one owner per resource).
 //! - `report`: the paper's tables from repeated runs; `results_csv`: the flat results table
 //!   beside every result.json; `plot` and `figures`: labelled charts (Figures 4, 5, residuals).
@@ -22,6 +24,7 @@
 
 pub mod acquisition;
 pub mod atomic_file;
+pub mod bounds;
 pub mod calibration_file;
 pub mod calibration_store;
 pub mod cli;

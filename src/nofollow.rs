@@ -91,6 +91,71 @@ pub fn read_in(dir: &Path, rel: impl AsRef<Path>) -> io::Result<Vec<u8>> {
     Ok(bytes)
 }
 
+/// [`read_in`] of a file of at most `max_bytes`: a larger one is refused, saying its size
+/// and the bound, before it is read (and a file growing meanwhile is cut at the bound + 1
+/// and refused too).
+pub fn read_in_max(dir: &Path, rel: impl AsRef<Path>, max_bytes: u64) -> io::Result<Vec<u8>> {
+    let rel = rel.as_ref();
+    let file = open_in(dir, rel, Access::Read)?;
+    read_max(file, &dir.join(rel), max_bytes)
+}
+
+/// The whole of an open file of at most `max_bytes` (`path` names it in the error).
+pub fn read_max(file: File, path: &Path, max_bytes: u64) -> io::Result<Vec<u8>> {
+    let too_big = |len: u64| {
+        io::Error::new(
+            io::ErrorKind::InvalidData,
+            format!(
+                "{}: {len} bytes, over the {max_bytes}-byte limit for this file",
+                path.display()
+            ),
+        )
+    };
+    let len = file.metadata()?.len();
+    if len > max_bytes {
+        return Err(too_big(len));
+    }
+    let mut bytes = Vec::with_capacity(len as usize);
+    file.take(max_bytes + 1).read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > max_bytes {
+        return Err(too_big(bytes.len() as u64));
+    }
+    Ok(bytes)
+}
+
+/// Open the file `path` for reading as [`open_in`] opens its last component: a symlink
+/// there is refused, and so are a FIFO and a device (a file named on a command line,
+/// whose folders are the user's to choose).
+pub fn open_regular(path: &Path) -> io::Result<File> {
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let name = path.file_name().ok_or_else(|| {
+        io::Error::new(
+            io::ErrorKind::InvalidInput,
+            format!("{}: not a file name", path.display()),
+        )
+    })?;
+    let flags = OFlag::O_RDONLY | OFlag::O_NOFOLLOW | OFlag::O_CLOEXEC | OFlag::O_NONBLOCK;
+    let fd = nix::fcntl::open(&dir.join(name), flags, Mode::empty()).map_err(|e| errno(path, e))?;
+    let file = File::from(fd);
+    if !file.metadata()?.is_file() {
+        return Err(io::Error::other(format!(
+            "{}: not a regular file",
+            path.display()
+        )));
+    }
+    nix::fcntl::fcntl(&file, nix::fcntl::FcntlArg::F_SETFL(OFlag::empty()))
+        .map_err(io::Error::from)?;
+    Ok(file)
+}
+
+/// The whole of the file `path`, opened as [`open_regular`] opens it, at most `max_bytes`.
+pub fn read_regular_max(path: &Path, max_bytes: u64) -> io::Result<Vec<u8>> {
+    read_max(open_regular(path)?, path, max_bytes)
+}
+
 /// Make the folder `path` if it is not there; an existing entry must be a real folder,
 /// not a symlink to one.
 pub fn create_dir(path: &Path) -> io::Result<()> {
@@ -117,6 +182,29 @@ pub fn create_dir(path: &Path) -> io::Result<()> {
 mod tests {
     use super::*;
     use std::os::unix::fs::symlink;
+
+    #[test]
+    fn bounded_reads_refuse_large_files_fifos_devices_and_symlinks() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::write(d.path().join("small"), b"12345").unwrap();
+        assert_eq!(read_in_max(d.path(), "small", 5).unwrap(), b"12345");
+        let e = read_in_max(d.path(), "small", 4).unwrap_err().to_string();
+        assert!(e.contains("5 bytes, over the 4-byte limit"), "{e}");
+        assert_eq!(
+            read_regular_max(&d.path().join("small"), 5).unwrap(),
+            b"12345"
+        );
+        nix::unistd::mkfifo(&d.path().join("fifo"), Mode::S_IRWXU).unwrap();
+        symlink("/dev/zero", d.path().join("zero")).unwrap();
+        let fifo = read_regular_max(&d.path().join("fifo"), 100).unwrap_err();
+        assert!(fifo.to_string().contains("not a regular file"), "{fifo}");
+        let link = read_regular_max(&d.path().join("zero"), 100).unwrap_err();
+        assert!(link.to_string().contains("symbolic link"), "{link}");
+        let dev = read_regular_max(Path::new("/dev/zero"), 100).unwrap_err();
+        assert!(dev.to_string().contains("not a regular file"), "{dev}");
+        let e = read_in_max(d.path(), "fifo", 100).unwrap_err();
+        assert!(e.to_string().contains("not a regular file"), "{e}");
+    }
 
     #[test]
     fn reads_below_the_folder_and_refuses_every_symlink_on_the_way() {

@@ -324,3 +324,174 @@ fn a_job_behind_a_calibration_job_counts_the_prior_it_may_learn() {
         c.request(&Request::Cancel { job_id: id }).unwrap();
     }
 }
+
+/// The reason a job that failed gives.
+fn failed_reason(events: &[EventBody]) -> String {
+    match events.last() {
+        Some(EventBody::Failed { reason, .. }) => reason.clone(),
+        other => panic!("not failed: {other:?}"),
+    }
+}
+
+/// One target of a record, `i`-th.
+fn target(i: usize) -> Value {
+    serde_json::json!({"name": format!("T{i}"), "centre_px": [10.0, 10.0], "steps": 3,
+        "px_per_um": [0.0013, 0.0], "scale_um_per_px": 774.0, "scale_u_um_per_px": 0.1,
+        "axis_angle_rad": 0.0, "axis_angle_u_rad": 0.0, "model_scale_um_per_px": 774.0,
+        "model_scale_rel_u": 1e-4, "model_angle_u_rad": 0.0, "residuals_um": [[0.0, 0.0]],
+        "residual_rms_um": 0.1, "residual_max_um": 0.2, "model_residual_rms_um": 0.1})
+}
+
+#[test]
+fn hostile_calibration_records_fail_the_job_naming_the_field_in_a_short_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let rig = simulated(&small_board_sim(dir.path())).unwrap();
+    let d = Daemon::start_in(rig, dir);
+    let mut c = d.subscribed();
+    let good = record("cal-ok", [300, 200], "2026-01-01T00:00:00Z", None);
+    let cases: Vec<(&str, Value, &str)> = vec![
+        (
+            "k1",
+            serde_json::json!(1e308),
+            "field.model.k1 1e308 is outside",
+        ),
+        (
+            "norm_radius_px",
+            serde_json::json!(0.0),
+            "field.model.norm_radius_px 0 is outside",
+        ),
+        (
+            "id",
+            serde_json::json!("q/../../x"),
+            "id \"q/../../x\" is not a plain file name",
+        ),
+        (
+            "targets",
+            (0..5000).map(target).collect(),
+            "5000 targets, over the 4096",
+        ),
+    ];
+    for (field, value, says) in cases {
+        let mut bad = good.clone();
+        match field {
+            "id" => bad["id"] = value,
+            "targets" => bad["targets"] = value,
+            f => bad["field"]["model"][f] = value,
+        }
+        install(&d.data, "cal-bad", &bad.to_string());
+        let (_, ev) = run_job(&mut c, measure());
+        let reason = failed_reason(&ev);
+        assert!(reason.contains(says), "{field}: {reason}");
+    }
+    // A 200 MB pointer (sparse) is neither read nor quoted: a short reason, short replies.
+    let pointer = calibration_store::dir(&d.data).join(calibration_store::CURRENT);
+    std::fs::File::create(&pointer)
+        .unwrap()
+        .set_len(200 << 20)
+        .unwrap();
+    let (id, ev) = run_job(&mut c, measure());
+    let reason = failed_reason(&ev);
+    assert!(
+        reason.len() < 1000,
+        "{} bytes: {}",
+        reason.len(),
+        &reason[..200]
+    );
+    assert!(reason.contains("over the 4096-byte limit"), "{reason}");
+    let status = c.request(&Request::Status { job_id: Some(id) }).unwrap();
+    assert!(status.to_string().len() < 4000, "{status}");
+    // Nothing was applied anywhere: the daemon serves on, a good record runs.
+    install(&d.data, "cal-ok", &good.to_string());
+    let (_, ev) = run_job(&mut c, measure());
+    assert_finished(&ev);
+}
+
+#[test]
+fn rigctl_refuses_a_calibration_whose_id_leaves_the_output_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let rig = simulated(&small_board_sim(dir.path())).unwrap();
+    let d = Daemon::start_in(rig, dir);
+    let mut c = d.subscribed();
+    let (_, ev) = run_job(&mut c, measure());
+    let s = session_of(&d.data, &ev);
+    let (_, ev) = run_job(&mut c, measure());
+    let victim = session_of(&d.data, &ev);
+    let victim_result = std::fs::read(victim.dir.join("result.json")).unwrap();
+    let out_dir = tempfile::tempdir().unwrap();
+    let evil = out_dir.path().join("evil.json");
+    let mut rec = record("x", [300, 200], "2026-01-01T00:00:00Z", None);
+    rec["id"] = format!("q/../../../{}", victim.manifest.name).into();
+    std::fs::write(&evil, rec.to_string()).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .arg("reprocess")
+        .arg(&s.dir)
+        .arg("--calibration")
+        .arg(&evil)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("evil.json") && err.contains("is not a plain file name"),
+        "{err}"
+    );
+    assert!(!s.dir.join("processed").exists());
+    assert_eq!(
+        std::fs::read(victim.dir.join("result.json")).unwrap(),
+        victim_result
+    );
+}
+
+mod extreme_numbers {
+    use super::record;
+    use proptest::prelude::*;
+    use std::path::Path;
+
+    /// ±0, denormals, the extremes, ordinary values, and numbers JSON cannot hold.
+    fn extreme() -> impl Strategy<Value = String> {
+        prop_oneof![
+            Just("0".to_string()),
+            Just("-0.0".to_string()),
+            Just("5e-324".to_string()),
+            Just("-2.2250738585072014e-309".to_string()),
+            Just("1e308".to_string()),
+            Just("-1e308".to_string()),
+            Just("1e-308".to_string()),
+            Just("1e400".to_string()),
+            Just("NaN".to_string()),
+            Just("Infinity".to_string()),
+            any::<f64>().prop_map(|v| format!("{v:e}")),
+            (-20.0f64..20.0).prop_map(|v| v.to_string()),
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+        /// Each number of the field model, as a record's text: parsed or refused naming the
+        /// field, never a panic; accepted only in its range.
+        #[test]
+        fn model_numbers_are_range_checked_at_parse(field in 0usize..6, v in extreme()) {
+            let names = ["k1", "k2", "norm_radius_px", "g_per_um", "centre_px", "scale"];
+            let rec = record("cal-p", [300, 200], "2026-01-01T00:00:00Z", None);
+            let marker = "98765.25";
+            let mut rec = rec;
+            match names[field] {
+                "g_per_um" => rec["field"]["model"]["g_per_um"][0] = marker.parse::<f64>().unwrap().into(),
+                "centre_px" => rec["field"]["model"]["centre_px"][1] = marker.parse::<f64>().unwrap().into(),
+                "scale" => rec["fingerprint"]["scale_um_per_px"] = marker.parse::<f64>().unwrap().into(),
+                f => rec["field"]["model"][f] = marker.parse::<f64>().unwrap().into(),
+            }
+            let text = rec.to_string().replace(marker, &v);
+            let parsed = rigd::calibration_file::parse(text.as_bytes(), Path::new("p.json"));
+            let value: Option<f64> = serde_json::from_str::<f64>(&v).ok();
+            let in_range = value.is_some_and(|x| match names[field] {
+                "k1" | "k2" => (-10.0..=10.0).contains(&x),
+                "norm_radius_px" => (1.0..=32768.0).contains(&x),
+                "g_per_um" => (-1e-2..=1e-2).contains(&x),
+                "centre_px" => (-16384.0..=32768.0).contains(&x),
+                _ => (1e-6..=1e6).contains(&x),
+            });
+            prop_assert_eq!(parsed.is_ok(), in_range, "{} = {}: {:?}", names[field], v, parsed.err());
+        }
+    }
+}

@@ -117,7 +117,19 @@ impl Engine<'_> {
     /// Run the plan; the sink is flushed (`finish`) whatever the outcome. On any fault or
     /// stop the stage is stopped before this returns.
     pub fn run(&self, dev: &mut Devices<'_>, sink: &mut dyn StepSink) -> Outcome {
-        let outcome = self.capture(dev, sink);
+        // A panic below (a device, a sink) fails the job, the stages stopped; the sinks are
+        // still flushed, so the session closes with what was recorded.
+        let caught =
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.capture(dev, sink)));
+        let outcome = caught.unwrap_or_else(|panic| {
+            let message = crate::acquisition::sink::panic_message(panic.as_ref());
+            tracing::error!(panic = %message, "the step engine panicked: the job fails");
+            let e = JobError::Internal {
+                message: format!("the step engine panicked: {message}"),
+                stopped: None,
+            };
+            self.failed(dev, e)
+        });
         match (outcome, sink.finish()) {
             (Outcome::Finished, Err(e)) => Outcome::Failed(sink_error(e)),
             (Outcome::Cancelled(s), Err(e)) => {
@@ -155,7 +167,7 @@ impl Engine<'_> {
                 if let Some(cause) = self.stop.cause() {
                     return self.stopped(dev, cause, None);
                 }
-                if let Err(cause) = self.pause_between_steps(index, last_um) {
+                if let Err(cause) = self.pause_between_steps(index, last_um, dev, sink) {
                     return self.stopped(dev, cause, None);
                 }
                 let piezo = run
@@ -190,7 +202,15 @@ impl Engine<'_> {
 
     /// A client's pause, taken here between steps: the stage is idle where the last frame
     /// was taken; the next step moves and settles as any step does.
-    fn pause_between_steps(&self, index: u32, last_um: Option<f64>) -> Result<(), StopCause> {
+    /// A client's pause, taken here between steps. Meanwhile the camera serves whoever
+    /// watches it (the live view, through the sink): a pause is when focus is checked.
+    fn pause_between_steps(
+        &self,
+        index: u32,
+        last_um: Option<f64>,
+        dev: &mut Devices<'_>,
+        sink: &mut dyn StepSink,
+    ) -> Result<(), StopCause> {
         if !self.stop.pause.take_request() {
             return Ok(());
         }
@@ -199,9 +219,17 @@ impl Engine<'_> {
             at_um: last_um,
             cause: PauseCause::Client,
         };
+        let timeout = self.settings.grab_timeout;
+        let serve = || {
+            if sink.wants_paused_frame() {
+                let frame = dev.camera.grab_fresh(SystemTime::now(), timeout);
+                let at = dev.stage.position_um().ok();
+                sink.paused_frame(frame, at);
+            }
+        };
         self.stop
             .pause
-            .hold_until_resumed(event, || self.stop.cause())
+            .hold_until_resumed_with(event, || self.stop.cause(), serve)
     }
 
     fn stopped(

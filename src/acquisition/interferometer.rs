@@ -65,4 +65,14 @@ impl<S: StepSink> StepSink for ReadLog<S> {
     fn finish(&mut self) -> Result<(), SinkError> {
         self.inner.finish()
     }
+    fn wants_paused_frame(&self) -> bool {
+        self.inner.wants_paused_frame()
+    }
+    fn paused_frame(
+        &mut self,
+        frame: Result<crate::hw::Frame, crate::hw::HwError>,
+        stage_um: Option<f64>,
+    ) {
+        self.inner.paused_frame(frame, stage_um)
+    }
 }

@@ -134,6 +134,12 @@ pub enum JobError {
     /// The job could not start (a replay's session unreadable, the session not created).
     #[error("{message}")]
     Setup { message: String },
+    /// A fault in the daemon itself (a panic, with its message), not of the rig or the disk.
+    #[error("internal error: {message}{}", at(stopped))]
+    Internal {
+        message: String,
+        stopped: Option<StoppedAt>,
+    },
 }
 
 impl JobError {
@@ -142,7 +148,8 @@ impl JobError {
             JobError::Hardware { stopped, .. }
             | JobError::Disk { stopped, .. }
             | JobError::NoInterferometerReading { stopped, .. }
-            | JobError::Processing { stopped, .. } => stopped.as_ref(),
+            | JobError::Processing { stopped, .. }
+            | JobError::Internal { stopped, .. } => stopped.as_ref(),
             JobError::Setup { .. } => None,
         }
     }
@@ -174,7 +181,8 @@ impl JobError {
             JobError::Hardware { stopped, .. }
             | JobError::Disk { stopped, .. }
             | JobError::NoInterferometerReading { stopped, .. }
-            | JobError::Processing { stopped, .. } => *stopped = at,
+            | JobError::Processing { stopped, .. }
+            | JobError::Internal { stopped, .. } => *stopped = at,
             JobError::Setup { .. } => {}
         }
         self
@@ -242,6 +250,7 @@ impl JobError {
             }
             JobError::Processing { .. } => d.kind = EndKind::Processing,
             JobError::Setup { .. } => d.kind = EndKind::Setup,
+            JobError::Internal { .. } => d.kind = EndKind::Internal,
         }
         d
     }
@@ -275,6 +284,8 @@ pub enum EndKind {
     Interferometer,
     Processing,
     Setup,
+    // A fault in the daemon itself (a panic): the daemon goes on.
+    Internal,
 }
 
 /// A stopped or failed job's reason as fields (events' and the manifest's `detail`).

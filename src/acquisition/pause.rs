@@ -157,6 +157,17 @@ impl Pause {
         event: PauseEvent,
         stop: impl Fn() -> Option<StopCause>,
     ) -> Result<(), StopCause> {
+        self.hold_until_resumed_with(event, stop, || {})
+    }
+
+    /// [`Pause::hold_until_resumed`], calling `meanwhile` at every poll while paused (the
+    /// engine serves the live view's frames there).
+    pub fn hold_until_resumed_with(
+        &self,
+        event: PauseEvent,
+        stop: impl Fn() -> Option<StopCause>,
+        mut meanwhile: impl FnMut(),
+    ) -> Result<(), StopCause> {
         let next_index = match &event {
             PauseEvent::Paused {
                 next_index,
@@ -181,6 +192,7 @@ impl Pause {
             if self.state() == PauseState::Running {
                 break;
             }
+            meanwhile();
             std::thread::sleep(POLL);
         }
         *self.at.lock().unwrap_or_else(|e| e.into_inner()) = None;

@@ -40,6 +40,18 @@ pub trait StepSink: Send {
     fn finish(&mut self) -> Result<(), SinkError> {
         Ok(())
     }
+    /// While the job is paused: whether someone wants a fresh frame now (the live view).
+    fn wants_paused_frame(&self) -> bool {
+        false
+    }
+    /// A frame grabbed while the job is paused (not one of its steps: nothing records it),
+    /// with where the job's stage is; or why the grab failed.
+    fn paused_frame(
+        &mut self,
+        _frame: Result<crate::hw::Frame, crate::hw::HwError>,
+        _stage_um: Option<f64>,
+    ) {
+    }
 }
 
 /// A sink that keeps every record (tests, tools).

@@ -26,7 +26,7 @@ struct Args {
     #[arg(long, value_name = "DIR")]
     data_root: Option<PathBuf>,
     /// Inject a fault into the simulated rig: alarm@N, serial-loss@N (N-th move),
-    /// camera-timeout@N (N-th grab). Repeatable.
+    /// camera-timeout@N (N-th grab), panic@N (the N-th move panics). Repeatable.
     #[cfg(feature = "sim")]
     #[arg(long = "fault", value_name = "KIND@N")]
     faults: Vec<rigd::rig::Fault>,

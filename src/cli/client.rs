@@ -151,7 +151,8 @@ pub struct Pace {
 impl Pace {
     /// A job that has run `elapsed_s` (its status' `elapsed_s`) as of `now`.
     pub fn running_for(elapsed_s: f64, now: Instant) -> Pace {
-        let back = Duration::from_secs_f64(elapsed_s.max(0.0));
+        // The daemon's number: one no Duration holds counts as none.
+        let back = Duration::try_from_secs_f64(elapsed_s.max(0.0)).unwrap_or_default();
         Pace {
             started: Some(now.checked_sub(back).unwrap_or(now)),
             before: 0,

@@ -106,6 +106,55 @@ pub enum Command {
 }
 
 /// Entry point of the `rigctl` binary.
+/// `rigctl`: run [`main`] and say how it ended. A reader of stdout that went away
+/// (`rigctl list | head`) ends it quietly and successfully: `println!`'s panic on the
+/// closed pipe, and an error that is stdout's EPIPE, are not rigctl's failures. (SIGPIPE
+/// stays ignored, as Rust sets it: the daemon's socket closing is an error to report.)
+pub fn run() -> std::process::ExitCode {
+    use std::process::ExitCode;
+    let hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        if !stdout_gone(info.payload()) {
+            hook(info)
+        }
+    }));
+    match std::panic::catch_unwind(main) {
+        Ok(Ok(())) => ExitCode::SUCCESS,
+        Ok(Err(e)) if is_broken_pipe(&e) && stdout_closed() => ExitCode::SUCCESS,
+        Ok(Err(e)) => {
+            eprintln!("rigctl: {e:#}");
+            ExitCode::FAILURE
+        }
+        Err(p) if stdout_gone(p.as_ref()) => ExitCode::SUCCESS,
+        Err(p) => std::panic::resume_unwind(p),
+    }
+}
+
+/// A panic of `print!`/`println!` on a closed stdout.
+fn stdout_gone(payload: &(dyn std::any::Any + Send)) -> bool {
+    let m = crate::acquisition::sink::panic_message(payload);
+    m.starts_with("failed printing to stdout") && m.contains("os error 32")
+}
+
+fn is_broken_pipe(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        c.downcast_ref::<std::io::Error>()
+            .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
+    })
+}
+
+/// Whether stdout is a pipe whose reader has gone (poll says POLLERR).
+fn stdout_closed() -> bool {
+    let mut p = libc::pollfd {
+        fd: libc::STDOUT_FILENO,
+        events: libc::POLLOUT,
+        revents: 0,
+    };
+    // SAFETY: one valid pollfd, no timeout.
+    let n = unsafe { libc::poll(&mut p, 1, 0) };
+    n == 1 && p.revents & libc::POLLERR != 0
+}
+
 pub fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {

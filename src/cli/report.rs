@@ -31,12 +31,13 @@ pub fn run(a: ReportArgs) -> anyhow::Result<()> {
 /// The session's `result.json`, read back; the error names the file.
 pub fn read_result(session: &Path) -> anyhow::Result<JobResult> {
     let path = session.join(RESULT);
-    let text = crate::nofollow::read_in(session, RESULT).with_context(|| {
-        format!(
-            "{}: cannot read the session's result (is it a processed session?)",
-            path.display()
-        )
-    })?;
+    let text = crate::nofollow::read_in_max(session, RESULT, crate::bounds::MAX_STEPS_BYTES)
+        .with_context(|| {
+            format!(
+                "{}: cannot read the session's result (is it a processed session?)",
+                path.display()
+            )
+        })?;
     serde_json::from_slice(&text)
         .with_context(|| format!("{}: not a session's result", path.display()))
 }

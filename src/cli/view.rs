@@ -6,7 +6,7 @@
 
 use crate::atomic_file;
 use crate::cli::client::SocketArg;
-use crate::daemon::live_view::wire::{SnapReply, ViewFrame, ViewTarget};
+use crate::daemon::live_view::wire::{SnapReply, ViewFrame, ViewTarget, MAX_FPS, MIN_FPS};
 use crate::daemon::protocol::{EventBody, Request};
 use anyhow::{bail, Context};
 use base64::Engine as _;
@@ -46,7 +46,7 @@ pub struct ViewArgs {
     #[command(flatten)]
     pub show: ShowArgs,
     /// Frames a second, at most (the daemon never sends more; a slow terminal gets fewer).
-    #[arg(long, value_name = "N", default_value_t = 5.0)]
+    #[arg(long, value_name = "N", default_value_t = 5.0, value_parser = parse_fps)]
     pub fps: f64,
     /// Where to keep the latest frame (PNG, replaced atomically).
     #[arg(long, value_name = "FILE.png", default_value = "rigd-preview.png")]
@@ -54,6 +54,16 @@ pub struct ViewArgs {
     /// Stop after this many frames (default: until interrupted).
     #[arg(long, value_name = "N")]
     pub frames: Option<u64>,
+}
+
+/// `--fps`: the daemon's range, checked before anything is sent.
+fn parse_fps(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|_| format!("`{s}` is not a number"))?;
+    if (MIN_FPS..=MAX_FPS).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("must be from {MIN_FPS} to {MAX_FPS}, got {s}"))
+    }
 }
 
 fn parse_crop(s: &str) -> Result<[u32; 4], String> {
@@ -232,6 +242,15 @@ fn target_lines(targets: &[ViewTarget], best: &mut HashMap<String, f64>) -> Vec<
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fps_outside_the_daemons_range_is_refused_before_sending() {
+        assert_eq!(parse_fps("5"), Ok(5.0));
+        assert_eq!(parse_fps("0.01"), Ok(0.01));
+        for bad in ["1e-300", "0", "-0", "61", "NaN", "inf", "x"] {
+            assert!(parse_fps(bad).is_err(), "{bad}");
+        }
+    }
 
     #[test]
     fn crops_parse_or_say_what_is_expected() {

@@ -4,7 +4,7 @@
 use crate::acquisition::budget;
 use crate::acquisition::plan::{check_disk, plan, Plan, PlanError};
 use crate::acquisition::JobSpec;
-use crate::daemon::jobs::{JobSource, JobState, JobStatus, QueueError};
+use crate::daemon::jobs::{CancelRefused, JobSource, JobState, JobStatus, QueueError};
 use crate::daemon::listing;
 use crate::daemon::pausing;
 use crate::daemon::protocol::{
@@ -278,10 +278,10 @@ fn list(shared: &Shared, limit: Option<u32>, before: Option<u64>) -> Result<List
 }
 
 fn cancel(shared: &Shared, job_id: u64) -> Result<CancelReply, ProtoError> {
-    let ended = shared
-        .jobs()
-        .cancel(job_id)
-        .map_err(|e| ProtoError::new(ErrorCode::NotFound, e))?;
+    let ended = shared.jobs().cancel(job_id).map_err(|e| match e {
+        CancelRefused::NotFound(m) => ProtoError::new(ErrorCode::NotFound, m),
+        CancelRefused::TooLate(m) => ProtoError::new(ErrorCode::Rejected, m),
+    })?;
     if ended {
         let body = EventBody::cancelled_in_queue("cancelled by a client before it started");
         shared.events.emit(job_id, body);
@@ -366,10 +366,10 @@ fn find_session(shared: &Shared, id: u64) -> Option<Session> {
 
 /// A session name from a client, confined to the data root.
 fn session_dir(shared: &Shared, name: &str) -> Result<std::path::PathBuf, ProtoError> {
-    if name.is_empty() || name.contains('/') || name.starts_with('.') {
+    if crate::bounds::one_component("session", name).is_err() {
         return Err(ProtoError::new(
             ErrorCode::Rejected,
-            format!("{name:?} is not a session name"),
+            format!("{name:?} is not a session name (one plain folder name in the data root)"),
         ));
     }
     let dir = shared.settings.data_root.join(name);

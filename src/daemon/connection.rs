@@ -8,11 +8,13 @@ use crate::daemon::commands;
 use crate::daemon::events::Published;
 use crate::daemon::outbox::{Line, Outbox};
 use crate::daemon::protocol::{
-    decode_request, encode, Envelope, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
+    decode_request, encode, ErrorCode, ProtoError, Reply, ReplyBody, Request, ServerLine,
     SubscribeReply, MAX_LINE_BYTES,
 };
 use crate::daemon::{live_view, manual, rig_commands, Shared};
 use futures_util::StreamExt;
+use std::future::Future;
+use std::panic::AssertUnwindSafe;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWriteExt};
@@ -68,6 +70,14 @@ async fn read_line<R: AsyncRead + Unpin>(
     }
 }
 
+/// `f`'s output, or `None` if `limit` passes first (no limit: it waits).
+async fn within<F: Future>(limit: Option<Duration>, f: F) -> Option<F::Output> {
+    match limit {
+        Some(d) => tokio::time::timeout(d, f).await.ok(),
+        None => Some(f.await),
+    }
+}
+
 /// Subscriptions one connection may hold at once (each is a task and a place on the bus).
 pub const MAX_SUBSCRIPTIONS: usize = 16;
 
@@ -112,53 +122,39 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>, _permit: Permit) {
         }
         subs.retain(|h| !h.is_finished());
         let read = read_line(&mut lines, &mut after_error);
-        let next = match idle.filter(|_| subs.is_empty() && preview.is_none()) {
-            Some(d) => match tokio::time::timeout(d, read).await {
-                Ok(r) => r,
-                Err(_) => {
-                    tracing::debug!("closing a connection idle for {} s", d.as_secs());
-                    break;
-                }
-            },
-            None => read.await,
+        let idle_now = idle.filter(|_| subs.is_empty() && preview.is_none());
+        let next = tokio::select! {
+            next = within(idle_now, read) => next,
+            () = outbox.given_up() => {
+                tracing::warn!(
+                    "disconnecting a client that reads none of its preview: its frame waited \
+                     over {} ms",
+                    stall.as_millis()
+                );
+                break;
+            }
         };
-        let reply = match next {
+        let Some(next) = next else {
+            tracing::debug!("closing an idle connection");
+            break;
+        };
+        let line = match next {
             LineRead::Eof => break,
-            LineRead::Refused(e) => Reply::err(None, e),
+            LineRead::Refused(e) => {
+                outbox.reply(encode(&ServerLine::Reply(Reply::err(None, e))).into());
+                continue;
+            }
             LineRead::Line(line) if line.trim().is_empty() => continue,
-            LineRead::Line(line) => match decode_request(line.as_bytes()) {
-                Err((id, e)) => Reply::err(id, e),
-                Ok(Envelope {
-                    id,
-                    request: Request::Subscribe { job_id },
-                }) => subscribe(&shared, id, job_id, &outbox, &mut subs),
-                Ok(env) if live_view::client::handles(&env.request) => {
-                    let r = live_view::client::handle(&shared, env.request, &outbox, &mut preview);
-                    match r.await {
-                        Ok(body) => Reply::with(env.id, &body),
-                        Err(e) => Reply::err(env.id, e),
-                    }
-                }
-                Ok(env) if manual::is_manual(&env.request) => {
-                    match manual::handle(&shared, env.request).await {
-                        Ok(body) => Reply::with(env.id, &body),
-                        Err(e) => Reply::err(env.id, e),
-                    }
-                }
-                Ok(env) if env.request.rig_action().is_some() => {
-                    let (action, stage) = env.request.rig_action().expect("a rig request");
-                    match rig_commands::request(&shared, action, stage).await {
-                        Ok(body) => Reply::with(env.id, &body),
-                        Err(e) => Reply::err(env.id, e),
-                    }
-                }
-                Ok(env) => match commands::handle(&shared, env.request) {
-                    Ok(body) => Reply::with(env.id, &body),
-                    Err(e) => Reply::err(env.id, e),
-                },
-            },
+            LineRead::Line(line) => line,
         };
-        outbox.reply(encode(&ServerLine::Reply(reply)).into());
+        let handling = answer(&shared, &line, &outbox, &mut subs, &mut preview);
+        match guarded(&line, handling).await {
+            Ok(reply) => outbox.reply(encode(&ServerLine::Reply(reply)).into()),
+            Err(reply) => {
+                outbox.reply(encode(&ServerLine::Reply(reply)).into());
+                break;
+            }
+        }
     }
     for f in subs {
         f.abort();
@@ -169,6 +165,67 @@ pub async fn serve(stream: UnixStream, shared: Arc<Shared>, _permit: Permit) {
     if tokio::time::timeout(stall, &mut writer).await.is_err() {
         writer.abort();
     }
+}
+
+/// The reply to one request line.
+async fn answer(
+    shared: &Arc<Shared>,
+    line: &str,
+    outbox: &Arc<Outbox>,
+    subs: &mut Vec<tokio::task::JoinHandle<()>>,
+    preview: &mut Option<live_view::client::Subscription>,
+) -> Reply {
+    let env = match decode_request(line.as_bytes()) {
+        Err((id, e)) => return Reply::err(id, e),
+        Ok(env) => env,
+    };
+    let id = env.id;
+    let done = match env.request {
+        Request::Subscribe { job_id } => return subscribe(shared, id, job_id, outbox, subs),
+        r if live_view::client::handles(&r) => {
+            live_view::client::handle(shared, r, outbox, preview).await
+        }
+        r if manual::is_manual(&r) => manual::handle(shared, r).await,
+        r if r.rig_action().is_some() => {
+            let (action, stage) = r.rig_action().expect("a rig request");
+            rig_commands::request(shared, action, stage).await
+        }
+        r => commands::handle(shared, r),
+    };
+    match done {
+        Ok(body) => Reply::with(id, &body),
+        Err(e) => Reply::err(id, e),
+    }
+}
+
+/// The reply `answer` gives, or, when it panics, an `internal` error naming the panic
+/// (logged too) as `Err`: the connection is closed after it, the daemon goes on.
+async fn guarded(line: &str, answer: impl Future<Output = Reply>) -> Result<Reply, Reply> {
+    let mut answer = Box::pin(answer);
+    // Each poll under catch_unwind: a panic anywhere in the handling is caught.
+    let polled = std::future::poll_fn(move |cx| {
+        match std::panic::catch_unwind(AssertUnwindSafe(|| answer.as_mut().poll(cx))) {
+            Ok(std::task::Poll::Pending) => std::task::Poll::Pending,
+            Ok(std::task::Poll::Ready(reply)) => std::task::Poll::Ready(Ok(reply)),
+            Err(panic) => std::task::Poll::Ready(Err(panic)),
+        }
+    });
+    polled.await.map_err(|panic| panicked(line, panic.as_ref()))
+}
+
+fn panicked(line: &str, panic: &(dyn std::any::Any + Send)) -> Reply {
+    let what = crate::acquisition::sink::panic_message(panic);
+    let id = serde_json::from_str::<serde_json::Value>(line)
+        .ok()
+        .and_then(|v| v.get("id").cloned());
+    tracing::error!(panic = %what, "a request panicked: its connection is closed");
+    Reply::err(
+        id,
+        ProtoError::new(
+            ErrorCode::Internal,
+            format!("the daemon failed on this request ({what}); the connection is closed"),
+        ),
+    )
 }
 
 /// Start a subscription (subscribed before the status is read: no event falls between).
@@ -275,6 +332,31 @@ mod tests {
         );
         // Exactly the limit is still a line.
         assert!(matches!(&got[3], LineRead::Line(l) if l.len() == MAX_LINE_BYTES));
+    }
+
+    #[tokio::test]
+    async fn a_request_that_panics_is_answered_internal_with_its_id() {
+        let line = r#"{"id": 7, "kind": "list"}"#;
+        let ok = guarded(line, async {
+            Reply::err(None, ProtoError::new(ErrorCode::Busy, "x"))
+        });
+        assert!(ok.await.is_ok());
+        let boom = async {
+            if line.len() > 1 {
+                panic!("injected failure");
+            }
+            Reply::err(None, ProtoError::new(ErrorCode::Busy, "x"))
+        };
+        let reply = guarded(line, boom).await.unwrap_err();
+        let v = serde_json::to_value(ServerLine::Reply(reply)).unwrap();
+        assert_eq!(v["id"], 7, "{v}");
+        assert_eq!(v["ok"], false, "{v}");
+        assert_eq!(v["error"]["code"], "internal", "{v}");
+        let msg = v["error"]["message"].as_str().unwrap();
+        assert!(
+            msg.contains("injected failure") && msg.contains("connection is closed"),
+            "{msg}"
+        );
     }
 
     #[tokio::test]

@@ -8,6 +8,8 @@ use std::path::{Path, PathBuf};
 
 /// The counter's file name in the data root (a dot file: not a session, never listed).
 pub const FILE: &str = ".next-job-id";
+/// The most of it read: a counter is a few digits.
+const MAX_BYTES: u64 = 64;
 
 #[derive(Debug, thiserror::Error)]
 pub enum JobIdError {
@@ -42,14 +44,21 @@ impl JobIds {
             path: path.display().to_string(),
             message,
         };
-        let stored = match std::fs::read_to_string(&path) {
-            Ok(text) => Some(text.trim().parse::<u64>().map_err(|_| {
-                bad(format!(
-                    "holds {:?}, not a job id (remove it only if no session is lost: ids \
-                     would then restart after the highest one recorded)",
-                    text.chars().take(40).collect::<String>()
-                ))
-            })?),
+        // Below the data root, not through a symlink, and never echoed: a counter is a few
+        // digits, anything else is not one.
+        let stored = match crate::nofollow::read_in_max(data_root, FILE, MAX_BYTES) {
+            Ok(bytes) => Some(
+                std::str::from_utf8(&bytes)
+                    .ok()
+                    .and_then(|t| t.trim().parse::<u64>().ok())
+                    .ok_or_else(|| {
+                        bad(
+                            "does not hold a job id (remove it only if no session is lost: \
+                             ids would then restart after the highest one recorded)"
+                                .into(),
+                        )
+                    })?,
+            ),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
             Err(e) => return Err(bad(e.to_string())),
         };
@@ -110,7 +119,26 @@ mod tests {
         std::fs::write(d.path().join(FILE), "forty\n").unwrap();
         let e = JobIds::load(d.path(), 0).unwrap_err().to_string();
         assert!(
-            e.contains(".next-job-id") && e.contains("\"forty\\n\""),
+            e.contains(".next-job-id") && e.contains("does not hold a job id"),
+            "{e}"
+        );
+        assert!(!e.contains("forty"), "the contents are not echoed: {e}");
+    }
+
+    #[test]
+    fn a_counter_symlinked_out_of_the_data_root_is_refused_and_not_echoed() {
+        let d = tempfile::tempdir().unwrap();
+        let outside = tempfile::tempdir().unwrap();
+        let secret = outside.path().join("secret");
+        std::fs::write(&secret, "hunter2\n").unwrap();
+        std::os::unix::fs::symlink(&secret, d.path().join(FILE)).unwrap();
+        let e = JobIds::load(d.path(), 0).unwrap_err().to_string();
+        assert!(e.contains("symbolic link") && !e.contains("hunter2"), "{e}");
+        std::fs::remove_file(d.path().join(FILE)).unwrap();
+        std::fs::write(d.path().join(FILE), "9".repeat(100)).unwrap();
+        let e = JobIds::load(d.path(), 0).unwrap_err().to_string();
+        assert!(
+            e.contains("over the 64-byte limit") && !e.contains("999"),
             "{e}"
         );
     }

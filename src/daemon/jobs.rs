@@ -73,6 +73,18 @@ pub struct JobRecord {
     pub disk_bytes: u64,
     /// When it started and ended, its step intervals (`daemon::timing`).
     pub clock: JobClock,
+    /// Its capture is over and its end decided: the worker closes its session. Too late
+    /// for a cancel.
+    pub closing: bool,
+}
+
+/// Why a cancel is refused.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum CancelRefused {
+    /// No such job, or it has ended.
+    NotFound(String),
+    /// It has captured everything it will and is closing its session.
+    TooLate(String),
 }
 
 /// The public view of a job (status and list replies).
@@ -188,6 +200,7 @@ impl Jobs {
                 stop: Arc::new(StopFlag::default()),
                 disk_bytes,
                 clock: JobClock::default(),
+                closing: false,
             },
         );
         let ahead = self.queue.len() + usize::from(self.running.is_some());
@@ -249,11 +262,11 @@ impl Jobs {
 
     /// Cancel: a queued job ends now (returns true); a running one is told to stop after
     /// its current step (returns false). Err if unknown or already done.
-    pub fn cancel(&mut self, id: u64) -> Result<bool, String> {
+    pub fn cancel(&mut self, id: u64) -> Result<bool, CancelRefused> {
         let rec = self
             .table
             .get_mut(&id)
-            .ok_or_else(|| format!("no job {id}"))?;
+            .ok_or_else(|| CancelRefused::NotFound(format!("no job {id}")))?;
         match rec.state {
             JobState::Queued => {
                 self.queue.retain(|&q| q != id);
@@ -262,11 +275,19 @@ impl Jobs {
                 self.retire(id);
                 Ok(true)
             }
+            JobState::Running | JobState::Paused if rec.closing => {
+                Err(CancelRefused::TooLate(format!(
+                    "job {id} has taken its last frame and is closing its session: too late \
+                     to cancel (it ends as its capture did)"
+                )))
+            }
             JobState::Running | JobState::Paused => {
                 rec.stop.cancel();
                 Ok(false)
             }
-            s => Err(format!("job {id} is already {s:?}").to_lowercase()),
+            s => Err(CancelRefused::NotFound(
+                format!("job {id} is already {s:?}").to_lowercase(),
+            )),
         }
     }
 

@@ -43,7 +43,8 @@ fn manifest_job_id(dir: &Path) -> Option<u64> {
     struct JobId {
         job_id: u64,
     }
-    let bytes = std::fs::read(dir.join(session::MANIFEST)).ok()?;
+    let max = crate::bounds::MAX_DOCUMENT_BYTES;
+    let bytes = crate::nofollow::read_in_max(dir, session::MANIFEST, max).ok()?;
     serde_json::from_slice::<JobId>(&bytes)
         .ok()
         .map(|j| j.job_id)

@@ -158,7 +158,7 @@ impl ManualState {
         self.stops.load(Ordering::SeqCst)
     }
     /// Whether a stop came after a move sent when `stops()` was `seen`.
-    fn stopped_since(&self, seen: u64) -> bool {
+    pub fn stopped_since(&self, seen: u64) -> bool {
         self.stops() != seen
     }
     pub fn move_queued(&self) {
@@ -335,7 +335,16 @@ fn stop(shared: &Shared) -> StopReply {
         };
     }
     shared.manual.stops.fetch_add(1, Ordering::SeqCst);
-    let running = shared.rig().request == Some(RigAction::Move);
+    let request = shared.rig().request;
+    if request == Some(RigAction::Home) {
+        return StopReply {
+            stopping: true,
+            message: "stopping the homing cycle: GRBL aborts it by a soft reset, which leaves \
+                      the axis in alarm (rigctl unlock, or home again)"
+                .into(),
+        };
+    }
+    let running = request == Some(RigAction::Move);
     let waiting = shared.manual.waiting.load(Ordering::SeqCst);
     let waiting_text = match waiting {
         0 => String::new(),

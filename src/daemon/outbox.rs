@@ -30,6 +30,8 @@ pub struct Outbox {
     taken: Notify,
     /// Wakes every live-view forwarder: the writer finished writing a line.
     written: Notify,
+    /// Wakes the connection: a line it must deliver stalled, the client is dropped.
+    abandoned: Notify,
 }
 
 #[derive(Default)]
@@ -39,6 +41,8 @@ struct State {
     /// Events dropped since the queue filled; a notice is owed once it drains.
     dropped_events: u64,
     closed: bool,
+    /// The client stalled on a line: the connection ends ([`Outbox::give_up`]).
+    given_up: bool,
 }
 
 /// The queue stayed full: the client reads nothing.
@@ -56,6 +60,26 @@ impl Outbox {
             queued: Notify::new(),
             taken: Notify::new(),
             written: Notify::new(),
+            abandoned: Notify::new(),
+        }
+    }
+
+    /// The client took nothing for too long (a live-view line waited past the stall time):
+    /// its connection ends ([`Outbox::given_up`]).
+    pub fn give_up(&self) {
+        self.state().given_up = true;
+        self.abandoned.notify_waiters();
+    }
+
+    /// Resolves once [`Outbox::give_up`] was called.
+    pub async fn given_up(&self) {
+        loop {
+            // Registered before the flag is read: a give_up in between still wakes it.
+            let wake = self.abandoned.notified();
+            if self.state().given_up {
+                return;
+            }
+            wake.await;
         }
     }
 

@@ -82,6 +82,12 @@ pub fn resume(shared: &Shared, id: u64) -> Result<PauseReply, ProtoError> {
         _ => return Err(not_running(id, rec, "resumed")),
     }
     let rec = rec.expect("checked above");
+    if rec.stop.cause().is_some() {
+        return Err(ProtoError::new(
+            ErrorCode::Rejected,
+            format!("job {id} is stopping (cancelled): it cannot be resumed"),
+        ));
+    }
     match rec.stop.pause.release() {
         PauseState::Running => Err(ProtoError::new(
             ErrorCode::Rejected,
@@ -103,6 +109,12 @@ pub fn listen(shared: &Arc<Shared>, job: &JobRecord) {
         if let Some(r) = sh.jobs().get_mut(id) {
             if !r.state.is_done() {
                 r.state = state;
+                // The estimate stands still while paused.
+                let now = std::time::Instant::now();
+                match state {
+                    JobState::Paused => r.clock.pause(now),
+                    _ => r.clock.resume(now),
+                }
             }
         }
         sh.events.emit(id, body);

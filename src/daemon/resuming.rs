@@ -7,18 +7,23 @@
 //! A frame is kept when it has its `steps.csv` row (a complete one), its PNG is a regular
 //! file in the session's `frames/` (and the last one decodes: a frame cut short counts as
 //! missing), and the rows so far are the plan's indices in order; the first frame that fails
-//! any of this is the first missing one. A resumed session can be resumed again: its frames
-//! before its own first one are its original's, found through `resumed_from`.
+//! any of this is the first missing one. Every kept PNG must also be of the rig's frame size
+//! and end whole (its header and trailer are read): one that is not is retaken. A resumed
+//! session can be resumed again: its frames before its own first one are its original's,
+//! found through `resumed_from`, the chain walked without recursion, at most 64 links, each
+//! session once, one session's steps in memory at a time.
 
 use crate::acquisition::job::JobRegistration;
 use crate::acquisition::plan::{expand, Plan, RunPlan};
 use crate::acquisition::processor::{Prior, PriorFrame};
 use crate::acquisition::JobSpec;
+use crate::bounds;
 use crate::daemon::session::{frame_name, ResumedFrom, Session, SessionState, StepRow, MANIFEST};
 use crate::nofollow::{self, Access};
 use crate::rig::devices::StageMachine;
 use crate::rig::{RigInfo, RigMode};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// How many `resumed_from` links a chain of resumed sessions may have.
 const MAX_CHAIN: usize = 64;
@@ -45,6 +50,8 @@ pub struct Origin {
     pub folders: Vec<(u32, PathBuf)>,
     /// Those frames, in plan order (index 0 up to `link.first_index`).
     pub frames: Vec<PriorFrame>,
+    /// Their size: the rig's (the recorded one, checked).
+    pub frame_size: (u32, u32),
 }
 
 impl Origin {
@@ -52,6 +59,7 @@ impl Origin {
     /// that holds each.
     pub fn prior(&self) -> Prior {
         let folders = self.folders.clone();
+        let size = self.frame_size;
         Prior {
             frames: self.frames.clone(),
             load: Box::new(move |index| {
@@ -60,7 +68,7 @@ impl Origin {
                     .find(|(end, _)| index < *end)
                     .map(|(_, d)| d)
                     .ok_or_else(|| format!("frame {index} is in no earlier session"))?;
-                read_frame(dir, index)
+                read_frame(dir, index, size)
             }),
         }
     }
@@ -83,27 +91,28 @@ pub fn resume_job(
     check_state(&s)?;
     check_rig(&s, rig)?;
     let spec = s.manifest.job.clone();
-    let kept = kept_frames(data_root, &s, 0)?;
-    let first_index = kept.len() as u32;
-    let recorded = &s.manifest.plan;
-    if first_index >= recorded.total_frames {
-        return Err(rejected(format!(
-            "session {name} holds every frame of its plan ({}): nothing to resume (replay it to \
-             process it again)",
-            recorded.total_frames
-        )));
-    }
+    // The plan as this rig expands it (bounded as any job's) before any frame is read.
     let mut plan = expand(&spec, rig)
         .map_err(|e| rejected(format!("session {name} cannot run on this rig: {e}")))?;
-    same_positions(&name, &recorded.runs, &plan.runs)?;
+    same_positions(&name, &s.manifest.plan.runs, &plan.runs)?;
+    let total_frames = s.manifest.plan.total_frames;
+    drop(s);
+    let kept = kept_frames(data_root, dir, rig.frame_size)?;
+    let first_index = kept.len() as u32;
+    if first_index >= total_frames {
+        return Err(rejected(format!(
+            "session {name} holds every frame of its plan ({total_frames}): nothing to resume \
+             (replay it to process it again)"
+        )));
+    }
     plan.first_index = first_index;
     let registration = spec.registration.unwrap_or_default();
     let mut folders: Vec<(u32, PathBuf)> = Vec::new();
     let mut frames = Vec::with_capacity(kept.len());
     for (dir, row) in kept {
         match folders.last_mut() {
-            Some((end, d)) if *d == dir => *end = row.index + 1,
-            _ => folders.push((row.index + 1, dir)),
+            Some((end, d)) if d.as_path() == &*dir => *end = row.index + 1,
+            _ => folders.push((row.index + 1, dir.to_path_buf())),
         }
         frames.push(prior_frame(&row, registration, rig.axis_machine.as_ref()));
     }
@@ -118,6 +127,7 @@ pub fn resume_job(
             link,
             folders,
             frames,
+            frame_size: rig.frame_size,
         },
     ))
 }
@@ -230,39 +240,74 @@ fn same_positions(name: &str, was: &[RunPlan], now: &[RunPlan]) -> Result<(), Re
     Ok(())
 }
 
-/// The frames of the plan that `s` (and the sessions it resumed) hold, from index 0 up to
-/// the first missing one: each with the folder holding it.
-fn kept_frames(
-    data_root: &Path,
-    s: &Session,
-    depth: usize,
-) -> Result<Vec<(PathBuf, StepRow)>, ResumeError> {
-    let first = s.manifest.plan.first_index;
-    let mut kept = match (&s.manifest.resumed_from, first) {
-        (_, 0) => Vec::new(),
-        (None, _) => {
-            return Err(rejected(format!(
-                "session {} starts at frame {first} and names no session it resumes",
-                s.manifest.name
-            )))
+/// A kept frame: the folder holding it (shared by its session's frames) and its row.
+type Kept = (Arc<Path>, StepRow);
+
+/// The frames of the plan that the session in `dir` (and the sessions it resumed) hold,
+/// from index 0 up to the first missing one: each with the folder holding it. The chain is
+/// walked back by manifests alone (at most [`MAX_CHAIN`] links, each folder once), then
+/// forward from its oldest session, one session's steps in memory at a time.
+fn kept_frames(data_root: &Path, dir: &Path, size: (u32, u32)) -> Result<Vec<Kept>, ResumeError> {
+    let chain = chain_of(data_root, dir)?;
+    let mut kept: Vec<Kept> = Vec::new();
+    for (dir, first) in chain.into_iter().rev() {
+        kept.truncate(first as usize);
+        if kept.len() < first as usize {
+            // The original lost frames since: this session does not continue what is there.
+            return Ok(kept);
         }
-        (Some(_), _) if depth >= MAX_CHAIN => {
+        let s = open(&dir)?;
+        keep_frames_of(&s, &mut kept, size);
+    }
+    Ok(kept)
+}
+
+/// The folders of the chain that ends at `dir`, newest first, each with its plan's first
+/// index (0 for the chain's original).
+fn chain_of(data_root: &Path, dir: &Path) -> Result<Vec<(PathBuf, u32)>, ResumeError> {
+    let mut chain: Vec<(PathBuf, u32)> = Vec::new();
+    let mut at = dir.to_path_buf();
+    loop {
+        let m = manifest(&at)?;
+        let first = m.plan.first_index;
+        chain.push((at.clone(), first));
+        let link = match (&m.resumed_from, first) {
+            (_, 0) => return Ok(chain),
+            (None, _) => {
+                return Err(rejected(format!(
+                    "session {} starts at frame {first} and names no session it resumes",
+                    m.name
+                )))
+            }
+            (Some(link), _) => link,
+        };
+        if chain.len() > MAX_CHAIN {
             return Err(rejected(format!(
                 "session {} resumes a chain of more than {MAX_CHAIN} sessions",
-                s.manifest.name
-            )))
+                m.name
+            )));
         }
-        (Some(link), _) => {
-            let dir = linked_dir(data_root, &s.manifest.name, &link.session)?;
-            let mut v = kept_frames(data_root, &open(&dir)?, depth + 1)?;
-            v.truncate(first as usize);
-            v
+        let next = linked_dir(data_root, &m.name, &link.session)?;
+        if chain.iter().any(|(d, _)| *d == next) {
+            return Err(rejected(format!(
+                "session {} resumes session {}, which is already in its chain of resumed \
+                 sessions: a cycle",
+                m.name, link.session
+            )));
         }
-    };
-    if kept.len() < first as usize {
-        // The original lost frames since: this session does not continue what is there.
-        return Ok(kept);
+        at = next;
     }
+}
+
+/// The manifest of the session in `dir` (its steps not read).
+fn manifest(dir: &Path) -> Result<crate::daemon::session::Manifest, ResumeError> {
+    let name = dir.file_name().unwrap_or_default().to_string_lossy();
+    Session::read_manifest(dir).map_err(|e| rejected(format!("session {name} cannot be read: {e}")))
+}
+
+/// Append to `kept` the frames of `s` that continue it in plan order, each with its row, an
+/// intact PNG of the rig's frame `size` in `s`'s `frames/`; the last one is decoded too.
+fn keep_frames_of(s: &Session, kept: &mut Vec<Kept>, size: (u32, u32)) {
     let plan: Vec<f64> = s
         .manifest
         .plan
@@ -270,30 +315,33 @@ fn kept_frames(
         .iter()
         .flat_map(|r| r.positions_um.iter().copied())
         .collect();
+    let here: Arc<Path> = Arc::from(s.dir.as_path());
     let before = kept.len();
     for row in &s.steps {
         let i = kept.len();
         let planned = plan.get(i).copied();
-        if row.index as usize != i || planned != Some(row.position_um) || !has_frame(&s.dir, i) {
+        if row.index as usize != i || planned != Some(row.position_um) {
             break;
         }
-        kept.push((s.dir.clone(), row.clone()));
+        if !frame_intact(&s.dir, i, size) {
+            break;
+        }
+        kept.push((here.clone(), row.clone()));
     }
-    // A frame cut short (written by other means than rigd's, which renames whole files
-    // into place) counts as missing: the last one is decoded.
+    // A frame cut short inside (written by other means than rigd's, which renames whole
+    // files into place) counts as missing: the last one is decoded whole.
     if kept.len() > before {
         let last = kept.len() as u32 - 1;
-        if read_frame(&s.dir, last).is_err() {
+        if read_frame(&s.dir, last, size).is_err() {
             kept.pop();
         }
     }
-    Ok(kept)
 }
 
 /// The folder of session `name` that `of` resumes, confined to the data root.
 fn linked_dir(data_root: &Path, of: &str, name: &str) -> Result<PathBuf, ResumeError> {
     let dir = data_root.join(name);
-    let bad = name.is_empty() || name.contains('/') || name.starts_with('.');
+    let bad = bounds::one_component("session", name).is_err();
     if bad || !dir.join(MANIFEST).is_file() {
         return Err(ResumeError::NotFound(format!(
             "session {of} resumes session {name:?}, which is not in the data root"
@@ -302,20 +350,40 @@ fn linked_dir(data_root: &Path, of: &str, name: &str) -> Result<PathBuf, ResumeE
     Ok(dir)
 }
 
-/// Frame `index`'s PNG is a regular file in `dir/frames` (not through a symlink).
-fn has_frame(dir: &Path, index: usize) -> bool {
+/// The PNG trailer every whole file ends with: the empty `IEND` chunk and its CRC.
+const IEND: [u8; 12] = [0, 0, 0, 0, b'I', b'E', b'N', b'D', 0xAE, 0x42, 0x60, 0x82];
+
+/// Frame `index`'s PNG is a regular file in `dir/frames` (not through a symlink) within the
+/// size bound, its header says the rig's frame `size`, and it ends whole (`IEND`): a frame
+/// of another size, or cut short, is retaken. Reads its first and last bytes only.
+fn frame_intact(dir: &Path, index: usize, size: (u32, u32)) -> bool {
+    use std::io::{Read, Seek, SeekFrom};
     let rel = Path::new("frames").join(frame_name(index as u32));
-    nofollow::open_in(dir, &rel, Access::Read).is_ok()
+    let Ok(mut f) = nofollow::open_in(dir, &rel, Access::Read) else {
+        return false;
+    };
+    let len = f.metadata().map(|m| m.len()).unwrap_or(0);
+    let mut head = [0u8; 24];
+    let mut tail = [0u8; 12];
+    let read = (24 + 12..=bounds::MAX_FRAME_BYTES).contains(&len)
+        && f.read_exact(&mut head).is_ok()
+        && f.seek(SeekFrom::End(-12)).is_ok()
+        && f.read_exact(&mut tail).is_ok();
+    // Signature (8), IHDR length and type (8), then width and height, big-endian.
+    let be = |b: &[u8]| u32::from_be_bytes([b[0], b[1], b[2], b[3]]);
+    read && &head[12..16] == b"IHDR"
+        && (be(&head[16..20]), be(&head[20..24])) == size
+        && tail == IEND
 }
 
-/// Frame `index` of the session in `dir`, read through `nofollow` and decoded.
-pub fn read_frame(dir: &Path, index: u32) -> Result<image::RgbImage, String> {
+/// Frame `index` of the session in `dir`, read through `nofollow` (bounded) and decoded;
+/// it must be `size` (the rig's frame size).
+pub fn read_frame(dir: &Path, index: u32, size: (u32, u32)) -> Result<image::RgbImage, String> {
     let rel = Path::new("frames").join(frame_name(index));
     let path = dir.join(&rel);
-    let bytes = nofollow::read_in(dir, &rel).map_err(|e| format!("{}: {e}", path.display()))?;
-    image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
-        .map(|i| i.into_rgb8())
-        .map_err(|e| format!("{}: {e}", path.display()))
+    let bytes = nofollow::read_in_max(dir, &rel, bounds::MAX_FRAME_BYTES)
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    bounds::decode_frame(&bytes, Some(size)).map_err(|e| format!("{}: {e}", path.display()))
 }
 
 /// A kept frame as processing takes it: registered as the live job would have.

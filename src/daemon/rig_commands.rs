@@ -14,6 +14,7 @@ use crate::daemon::protocol::{ErrorCode, ProtoError, ReplyBody, RigActionReply};
 use crate::daemon::rig_state::{probe, RigAction, RigFault, RigState};
 use crate::daemon::Shared;
 use crate::hw::{HwError, MotionState, StageStatus};
+use crate::rig::devices::panic_free;
 use crate::rig::Rig;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -152,9 +153,12 @@ pub async fn serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
     }
     let (action, stage) = (req.action, req.stage);
     tracing::info!(request = action.name(), %stage, "rig request");
+    let (sh, seen) = (shared.clone(), req.stops_seen);
     let handle = tokio::task::spawn_blocking(move || {
         let mut rig = rig;
-        let result = act(&mut rig, action, stage);
+        let stopped = || sh.manual.stopped_since(seen);
+        let device = stage.to_string();
+        let result = panic_free(&device, || act(&mut rig, action, stage, &stopped));
         // The controller's word on the stage, whatever the request did.
         let fault = match &result {
             Ok(_) => None,
@@ -198,12 +202,28 @@ pub async fn serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
     rig
 }
 
-/// The request on the stage, then its status: the controller's confirmation.
-fn act(rig: &mut Rig, action: RigAction, stage: StageKind) -> Result<StageStatus, HwError> {
+/// The request on the stage, then its status: the controller's confirmation. A homing
+/// cycle stops on a `stop` sent after the request (`stopped()`).
+fn act(
+    rig: &mut Rig,
+    action: RigAction,
+    stage: StageKind,
+    stopped: &dyn Fn() -> bool,
+) -> Result<StageStatus, HwError> {
     let s = rig.stage(stage)?;
     match action {
         RigAction::Unlock => s.unlock()?,
-        RigAction::Home => s.home()?,
+        RigAction::Home if stopped() => {
+            return Err(HwError::Other {
+                device: s.name().to_string(),
+                message: "not homed: a `stop` came before the homing cycle started".into(),
+            })
+        }
+        RigAction::Home => {
+            if s.home_stoppable(stopped)? {
+                return Err(homing_stopped(s));
+            }
+        }
         RigAction::Reconnect => s.reconnect()?,
         RigAction::Position | RigAction::Move => unreachable!("served by manual_serve"),
     }
@@ -222,6 +242,26 @@ fn act(rig: &mut Rig, action: RigAction, stage: StageKind) -> Result<StageStatus
     Ok(st)
 }
 
+/// What a homing cycle stopped by `stop` left: the stage as it reports now (GRBL: in alarm
+/// after the soft reset that aborts homing).
+fn homing_stopped(s: &mut dyn crate::hw::Stage) -> HwError {
+    let now = match s.status() {
+        Ok(st) => format!(
+            "{} at {:.1} µm",
+            crate::acquisition::outcome::state_name(st.state),
+            st.position_um
+        ),
+        Err(e) => format!("not reporting ({e})"),
+    };
+    HwError::Other {
+        device: s.name().to_string(),
+        message: format!(
+            "homing stopped by `stop` (aborted the controller's way: GRBL's soft reset leaves \
+             it in alarm); now {now}: unlock or home it again"
+        ),
+    }
+}
+
 /// `position` and `move` on the rig's blocking thread. A move that fails on the hardware
 /// leaves the fault the controller now says, as the other requests do.
 async fn manual_serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
@@ -233,7 +273,10 @@ async fn manual_serve(shared: &Arc<Shared>, rig: Rig, req: RigRequest) -> Rig {
             let p = manual::read_position(&mut rig);
             return (rig, Ok(ReplyBody::Position(p)), None);
         };
-        let r = manual::run_move(&sh.manual, &mut rig, stage, t, stops_seen);
+        let device = stage.to_string();
+        let r = panic_free(&device, || {
+            manual::run_move(&sh.manual, &mut rig, stage, t, stops_seen)
+        });
         sh.manual.clear_last();
         let fault = match &r {
             Err(e) if !matches!(e, HwError::Limit { .. }) => probe(&mut rig, stage),

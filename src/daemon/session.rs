@@ -17,6 +17,7 @@ use crate::acquisition::plan::Plan;
 use crate::acquisition::study::JobResult;
 use crate::acquisition::JobSpec;
 use crate::atomic_file::{self, AtomicWriteError};
+use crate::bounds;
 use crate::cli::text::wire_name;
 use crate::daemon::frame_png;
 use crate::daemon::protocol::PROTOCOL_VERSION;
@@ -162,7 +163,54 @@ pub struct StepRow {
     pub piezo_um: Option<f64>,
 }
 
+impl Manifest {
+    /// Its times in range ([`bounds`]): a manifest is a file, and may have been edited.
+    pub fn check(&self) -> Result<(), String> {
+        bounds::in_range(
+            "created_unix_s",
+            self.created_unix_s,
+            0.0,
+            bounds::MAX_UNIX_S,
+        )?;
+        bounds::in_range(
+            "updated_unix_s",
+            self.updated_unix_s,
+            0.0,
+            bounds::MAX_UNIX_S,
+        )?;
+        bounds::one_component("name", &self.name)?;
+        let (w, h) = self.rig.frame_size;
+        bounds::frame_size(w, h).map_err(|e| format!("rig.frame_size {e}"))?;
+        bounds::in_range("rig.scale_um_per_px", self.rig.scale_um_per_px, 1e-6, 1e6)?;
+        if let Some(m) = &self.rig.axis_machine {
+            bounds::in_range("rig.axis_machine.motor_step_um", m.motor_step_um, 1e-6, 1e6)?;
+            bounds::in_range("rig.axis_machine.max_rate_um_s", m.max_rate_um_s, 1e-6, 1e9)?;
+            bounds::in_range("rig.axis_machine.accel_um_s2", m.accel_um_s2, 1e-6, 1e12)?;
+        }
+        Ok(())
+    }
+}
+
 impl StepRow {
+    /// Its numbers in range ([`bounds`]), each named in the error.
+    pub fn check(&self) -> Result<(), String> {
+        use bounds::{in_range, MAX_PHASE_MS as MS, MAX_POSITION_UM as UM};
+        in_range("position_um", self.position_um, -UM, UM)?;
+        in_range("axis_um", self.axis_um, -UM, UM)?;
+        for (what, v) in [
+            ("interferometer_um", self.interferometer_um),
+            ("piezo_commanded_um", self.piezo_commanded_um),
+            ("piezo_um", self.piezo_um),
+        ] {
+            v.map(|v| in_range(what, v, -UM, UM)).transpose()?;
+        }
+        in_range("t_unix_s", self.t_unix_s, 0.0, bounds::MAX_UNIX_S)?;
+        in_range("move_ms", self.move_ms, 0.0, MS)?;
+        in_range("settle_ms", self.settle_ms, 0.0, MS)?;
+        in_range("grab_ms", self.grab_ms, 0.0, MS)?;
+        Ok(())
+    }
+
     /// The position this frame registers by without an interferometer: the commanded one,
     /// or where a stepper axis really went when its motor step is coarser than the command
     /// (`StageMachine::reached_um`, `machine` being the session's `rig.axis_machine`).
@@ -461,15 +509,10 @@ impl Session {
     /// Read the session in `dir`. Nothing is read through a symlink: not `dir` itself, nor
     /// any file in it ([`nofollow`]).
     pub fn open(dir: &Path) -> Result<Session, SessionError> {
-        let mpath = dir.join(MANIFEST);
-        let text = nofollow::read_in(dir, MANIFEST).map_err(io(&mpath))?;
-        let manifest: Manifest =
-            serde_json::from_slice(&text).map_err(|e| SessionError::Format {
-                path: mpath.display().to_string(),
-                message: e.to_string(),
-            })?;
+        let manifest = Session::read_manifest(dir)?;
         let spath = dir.join(STEPS);
-        let text = nofollow::read_in(dir, STEPS).map_err(io(&spath))?;
+        let text =
+            nofollow::read_in_max(dir, STEPS, bounds::MAX_STEPS_BYTES).map_err(io(&spath))?;
         // A crash mid-append can leave half a row: every complete row ends in a newline.
         let complete = match text.iter().rposition(|&b| b == b'\n') {
             Some(i) => &text[..=i],
@@ -478,16 +521,35 @@ impl Session {
         let mut rd = csv::Reader::from_reader(complete);
         let mut steps = Vec::new();
         for (i, row) in rd.deserialize::<StepRow>().enumerate() {
-            steps.push(row.map_err(|e| SessionError::Format {
+            let bad = |e: String| SessionError::Format {
                 path: spath.display().to_string(),
                 message: format!("row {}: {e}", i + 1),
-            })?);
+            };
+            let row = row.map_err(|e| bad(e.to_string()))?;
+            row.check().map_err(bad)?;
+            steps.push(row);
         }
         Ok(Session {
             dir: dir.to_path_buf(),
             manifest,
             steps,
         })
+    }
+
+    /// The manifest of the session in `dir` alone (bounded, its numbers checked), read as
+    /// [`Session::open`] reads it.
+    pub fn read_manifest(dir: &Path) -> Result<Manifest, SessionError> {
+        let mpath = dir.join(MANIFEST);
+        let text =
+            nofollow::read_in_max(dir, MANIFEST, bounds::MAX_DOCUMENT_BYTES).map_err(io(&mpath))?;
+        let format = |message: String| SessionError::Format {
+            path: mpath.display().to_string(),
+            message,
+        };
+        let manifest: Manifest =
+            serde_json::from_slice(&text).map_err(|e| format(bounds::cut(&e.to_string(), 300)))?;
+        manifest.check().map_err(format)?;
+        Ok(manifest)
     }
 
     /// Where frame `index` is: the folder to read it from (this session's, or for a replay
@@ -523,17 +585,18 @@ impl Session {
         }
     }
 
-    /// The bytes of frame `index`'s PNG, read without following a symlink ([`nofollow`]).
+    /// The bytes of frame `index`'s PNG, read without following a symlink ([`nofollow`]),
+    /// at most [`bounds::MAX_FRAME_BYTES`].
     pub fn read_frame(&self, index: u32) -> Result<Vec<u8>, SessionError> {
         let (dir, rel) = self.frame_file(index)?;
-        nofollow::read_in(&dir, &rel).map_err(io(&dir.join(&rel)))
+        nofollow::read_in_max(&dir, &rel, bounds::MAX_FRAME_BYTES).map_err(io(&dir.join(&rel)))
     }
 
     /// The interferometer samples recorded (`interferometer.csv`), oldest first; empty when
     /// the session has none. An unterminated last line (cut by a crash) is skipped.
     pub fn interferometer_samples(&self) -> Result<Vec<LogSample>, SessionError> {
         let path = self.dir.join(INTERFEROMETER);
-        let text = match nofollow::read_in(&self.dir, INTERFEROMETER) {
+        let text = match nofollow::read_in_max(&self.dir, INTERFEROMETER, bounds::MAX_LOG_BYTES) {
             Ok(t) => String::from_utf8_lossy(&t).into_owned(),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
             Err(e) => return Err(io(&path)(e)),
@@ -570,7 +633,7 @@ impl Session {
 
     /// The stored result, if the job got that far.
     pub fn result(&self) -> Option<serde_json::Value> {
-        let bytes = nofollow::read_in(&self.dir, RESULT).ok()?;
+        let bytes = nofollow::read_in_max(&self.dir, RESULT, bounds::MAX_STEPS_BYTES).ok()?;
         serde_json::from_slice(&bytes).ok()
     }
 }
@@ -651,6 +714,25 @@ pub fn recover(data_root: &Path) -> Result<(u64, Vec<String>), SessionError> {
     Ok((max_id, marked))
 }
 
+/// Mark the session in `dir`, if still `running`, failed with `reason` (a job whose thread
+/// panicked: nothing else will close it).
+pub fn mark_failed(dir: &Path, reason: &str) -> Result<(), SessionError> {
+    let s = Session::open(dir)?;
+    let mut m = s.manifest;
+    if m.state != SessionState::Running {
+        return Ok(());
+    }
+    m.state = SessionState::Failed;
+    m.reason = Some(reason.to_string());
+    m.frames_captured = s.steps.len() as u32;
+    m.updated_unix_s = unix_s(SystemTime::now());
+    let bytes = serde_json::to_vec_pretty(&m).map_err(|e| SessionError::Format {
+        path: dir.display().to_string(),
+        message: e.to_string(),
+    })?;
+    write_atomic(&dir.join(MANIFEST), &bytes)
+}
+
 /// Remove the temporaries (`.NAME.tmp`) a write cut short left in a session, its `frames/`
 /// and `images/`: regular files only, found without following a symlink (a symlinked
 /// folder or temporary is logged and left alone).
@@ -702,6 +784,67 @@ pub fn utc_stamp(secs: u64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn row() -> StepRow {
+        StepRow {
+            index: 0,
+            position_um: 10.0,
+            run: 0,
+            case: "c".into(),
+            repeat: 0,
+            axis_um: 10.0,
+            interferometer_um: Some(10.0),
+            t_unix_s: 1_795_000_000.0,
+            sequence: 1,
+            move_ms: 1.0,
+            settle_ms: 1.0,
+            grab_ms: 1.0,
+            piezo_commanded_um: None,
+            piezo_um: None,
+        }
+    }
+
+    /// ±0, denormals, the extremes, NaN, the infinities and ordinary numbers.
+    fn extreme() -> impl proptest::strategy::Strategy<Value = f64> {
+        use proptest::prelude::*;
+        prop_oneof![
+            Just(0.0),
+            Just(-0.0),
+            Just(5e-324),
+            Just(-2.2e-308),
+            Just(1e308),
+            Just(-1e308),
+            Just(f64::NAN),
+            Just(f64::INFINITY),
+            Just(f64::NEG_INFINITY),
+            any::<f64>(),
+            -1e4f64..1e4,
+        ]
+    }
+
+    proptest::proptest! {
+        /// Every number of a steps.csv row: accepted only in its range, refused naming it.
+        #[test]
+        fn step_row_numbers_are_range_checked(field in 0usize..7, v in extreme()) {
+            let mut r = row();
+            let (name, lo, hi) = match field {
+                0 => { r.position_um = v; ("position_um", -1e9, 1e9) }
+                1 => { r.axis_um = v; ("axis_um", -1e9, 1e9) }
+                2 => { r.interferometer_um = Some(v); ("interferometer_um", -1e9, 1e9) }
+                3 => { r.t_unix_s = v; ("t_unix_s", 0.0, 1e10) }
+                4 => { r.move_ms = v; ("move_ms", 0.0, 1e9) }
+                5 => { r.settle_ms = v; ("settle_ms", 0.0, 1e9) }
+                _ => { r.piezo_um = Some(v); ("piezo_um", -1e9, 1e9) }
+            };
+            match r.check() {
+                Ok(()) => proptest::prop_assert!((lo..=hi).contains(&v)),
+                Err(e) => {
+                    proptest::prop_assert!(!(lo..=hi).contains(&v));
+                    proptest::prop_assert!(e.starts_with(name), "{}", e);
+                }
+            }
+        }
+    }
 
     #[test]
     fn utc_stamps_match_known_dates() {

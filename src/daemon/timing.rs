@@ -64,18 +64,20 @@ pub struct JobTiming {
     pub eta_basis: Option<EtaBasis>,
 }
 
-/// A time as RFC 3339 UTC, to the second.
+/// A time as RFC 3339 UTC, to the second (the epoch for one before it).
 pub fn rfc3339(t: SystemTime) -> String {
-    let t = time::OffsetDateTime::from(t);
-    let t = t.replace_nanosecond(0).unwrap_or(t);
-    t.format(&time::format_description::well_known::Rfc3339)
-        .unwrap_or_default()
+    rfc3339_unix(crate::daemon::session::unix_s(t)).unwrap_or_else(|| "1970-01-01T00:00:00Z".into())
 }
 
-/// A time given in seconds since the epoch (as manifests record it).
+/// A time given in seconds since the epoch (as manifests record it); `None` outside
+/// `0 < unix_s <= MAX_UNIX_S` (a year the formatter cannot write is never formatted).
 pub fn rfc3339_unix(unix_s: f64) -> Option<String> {
-    (unix_s.is_finite() && unix_s > 0.0)
-        .then(|| rfc3339(SystemTime::UNIX_EPOCH + Duration::from_secs_f64(unix_s)))
+    if !(unix_s > 0.0 && unix_s <= crate::bounds::MAX_UNIX_S) {
+        return None;
+    }
+    let t = time::OffsetDateTime::from_unix_timestamp(unix_s.floor() as i64).ok()?;
+    t.format(&time::format_description::well_known::Rfc3339)
+        .ok()
 }
 
 /// The median of `v` (None when empty).
@@ -139,6 +141,8 @@ pub struct JobClock {
     /// When the current repeat started, by the engine's rule.
     repeat_started: Option<Instant>,
     intervals: VecDeque<f64>,
+    /// Since when the job is paused: its estimate stands still meanwhile.
+    paused_at: Option<Instant>,
 }
 
 impl JobClock {
@@ -150,6 +154,25 @@ impl JobClock {
 
     pub fn end(&mut self, wall: SystemTime) {
         self.ended.get_or_insert(wall);
+    }
+
+    /// The job paused at `now`: time stands still for its estimate until [`JobClock::resume`].
+    pub fn pause(&mut self, now: Instant) {
+        self.paused_at.get_or_insert(now);
+    }
+
+    /// The job goes on at `now`: the pause is left out of its step and repeat times.
+    pub fn resume(&mut self, now: Instant) {
+        if let Some(p) = self.paused_at.take() {
+            let d = now.saturating_duration_since(p);
+            self.last_step = self.last_step.map(|t| t + d);
+            self.repeat_started = self.repeat_started.map(|t| t + d);
+        }
+    }
+
+    /// `now`, or when the job paused if it is paused.
+    fn frozen(&self, now: Instant) -> Instant {
+        self.paused_at.unwrap_or(now)
     }
 
     /// The `frames_done`-th step was recorded at `now`: the interval since the one before
@@ -165,7 +188,8 @@ impl JobClock {
             let due = match (self.repeat_started, repeats.interval_s) {
                 (Some(s), Some(i)) => {
                     waited = true;
-                    (s + Duration::from_secs_f64(i)).max(ended)
+                    let i = Duration::try_from_secs_f64(i).unwrap_or_default();
+                    s.checked_add(i).unwrap_or(ended).max(ended)
                 }
                 _ => ended,
             };
@@ -189,12 +213,14 @@ impl JobClock {
 
     /// Seconds since the last step (or the start).
     fn since_last_step(&self, now: Instant) -> f64 {
+        let now = self.frozen(now);
         self.last_step
             .map_or(0.0, |t| now.saturating_duration_since(t).as_secs_f64())
     }
 
     /// Seconds since the current repeat started (or the job did).
     fn since_repeat_start(&self, now: Instant) -> f64 {
+        let now = self.frozen(now);
         self.repeat_started
             .map_or(0.0, |t| now.saturating_duration_since(t).as_secs_f64())
     }
@@ -314,7 +340,7 @@ pub fn estimate(
             let starts_in = t;
             t += duration_s(p.total_frames, &p.repeats, f);
             JobTiming {
-                expected_start_at: Some(rfc3339(wall + Duration::from_secs_f64(starts_in))),
+                expected_start_at: rfc3339_unix(crate::daemon::session::unix_s(wall) + starts_in),
                 starts_in_s: Some(starts_in),
                 eta_s: Some(t),
                 frame_s: Some(f),
@@ -389,6 +415,33 @@ mod tests {
         frames: 10,
         interval_s: Some(60.0),
     };
+
+    #[test]
+    fn the_eta_stands_still_while_the_job_is_paused() {
+        let t0 = Instant::now();
+        let wall = SystemTime::UNIX_EPOCH + Duration::from_secs(1_764_633_600);
+        let mut c = clock_with_repeats(t0, &[0.5; 4], &Repeats::one(10));
+        let eta = |c: &JobClock, at_s: f64| {
+            let now = t0 + Duration::from_secs_f64(at_s);
+            let p = pending(c, 4, 10, Repeats::one(10));
+            estimate(&RigPace::default(), Some(p), &[], now, wall)
+                .0
+                .unwrap()
+                .eta_s
+                .unwrap()
+        };
+        // 6 frames left at 0.5 s, the last one 0.2 s ago: 2.8 s.
+        assert!((eta(&c, 2.2) - 2.8).abs() < 1e-9);
+        c.pause(t0 + Duration::from_secs_f64(2.2));
+        assert!((eta(&c, 2.2) - 2.8).abs() < 1e-9);
+        assert!(
+            (eta(&c, 62.2) - 2.8).abs() < 1e-9,
+            "a minute paused: still 2.8 s"
+        );
+        // Resumed after that minute: it counts down from there.
+        c.resume(t0 + Duration::from_secs_f64(62.2));
+        assert!((eta(&c, 62.7) - 2.3).abs() < 1e-9, "{}", eta(&c, 62.7));
+    }
 
     #[test]
     fn the_eta_counts_the_waits_between_repeats() {
@@ -470,6 +523,11 @@ mod tests {
         let t = SystemTime::UNIX_EPOCH + Duration::from_millis(1_764_633_600_750);
         assert_eq!(rfc3339(t), "2025-12-02T00:00:00Z");
         assert_eq!(rfc3339_unix(0.0), None);
+        // Numbers from a manifest the formatter cannot write are no time, never a panic.
+        for v in [1e300, 1e11, f64::NAN, f64::INFINITY, -1e308, -0.0] {
+            assert_eq!(rfc3339_unix(v), None, "{v}");
+        }
+        assert_eq!(rfc3339_unix(1e10).as_deref(), Some("2286-11-20T17:46:40Z"));
     }
 
     #[test]

@@ -3,7 +3,9 @@
 //! processor as its sinks; then records how the job ended.
 
 use crate::acquisition::interferometer::ReadLog;
+use crate::acquisition::outcome::{Stop, StopCause};
 use crate::acquisition::processor::{Image16, Processor, ProcessorEvent};
+use crate::acquisition::sink::panic_message;
 use crate::acquisition::study::{summarize, JobResult, RunResult};
 use crate::acquisition::{
     Devices, Engine, EngineSettings, JobError, Outcome, StageKind, StepSink, Threaded,
@@ -20,6 +22,7 @@ use crate::daemon::session::{ReplayOf, Session, SessionState, SessionWriter};
 use crate::daemon::Shared;
 use crate::offline::index::SessionFacts;
 use crate::rig::Rig;
+use std::panic::AssertUnwindSafe;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};
@@ -78,16 +81,51 @@ pub async fn run(shared: Arc<Shared>, mut rig: Rig) -> Rig {
             }
         }
         let sh = shared.clone();
+        let id = job.id;
         let handle = tokio::task::spawn_blocking(move || {
-            execute(&sh, &job, &mut rig);
-            rig
+            let ran = std::panic::catch_unwind(AssertUnwindSafe(|| execute(&sh, &job, &mut rig)));
+            let panicked = ran.err().map(|p| panic_message(p.as_ref()));
+            if panicked.is_some() {
+                stop_after_panic(&mut rig);
+            }
+            (rig, panicked)
         });
-        match handle.await {
-            Ok(r) => rig = r,
-            // The rig went down with a panicking job: nothing safe is left to drive.
-            Err(e) => panic!("job thread panicked: {e}"),
+        let (r, panicked) = handle.await.expect("the job's thread catches its panics");
+        rig = r;
+        if let Some(what) = panicked {
+            restart_after_panic(&shared, id, &what);
         }
     }
+}
+
+/// The rig's stages stopped after a job's thread panicked (errors logged: nothing else
+/// can be done with them here).
+fn stop_after_panic(rig: &mut Rig) {
+    let piezo = rig.piezo.as_deref_mut();
+    for stage in std::iter::once(rig.axis.as_mut()).chain(piezo) {
+        if let Err(e) = stage.stop() {
+            tracing::warn!(stage = stage.name(), "not stopped after a panic: {e}");
+        }
+    }
+}
+
+/// A job's thread panicked outside the engine (its setup or closing): the job fails, its
+/// session (if it has one) is marked failed, and the worker goes on with the next job.
+fn restart_after_panic(shared: &Shared, id: u64, what: &str) {
+    tracing::error!(job = id, panic = %what, "the worker panicked; it restarts with the next job");
+    let message = format!("the worker panicked: {what}; it restarted");
+    let session = shared.jobs().get(id).and_then(|r| r.session.clone());
+    if let Some(name) = &session {
+        let dir = shared.settings.data_root.join(name);
+        if let Err(e) = crate::daemon::session::mark_failed(&dir, &message) {
+            tracing::warn!(session = %name, "not marked failed: {e}");
+        }
+    }
+    let e = JobError::Internal {
+        message,
+        stopped: None,
+    };
+    end(shared, id, session, Outcome::Failed(e));
 }
 
 /// The next rig request, or never when there is no channel.
@@ -166,6 +204,7 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
     let note = calibration.note.clone();
     shared.events.emit(id, EventBody::Calibration(note.clone()));
     let (outcome, session, runs, images) = capture(shared, job, rig, session, calibration.applied);
+    let outcome = decided(shared, job, outcome);
     let names: Vec<&str> = rig
         .info
         .board
@@ -202,6 +241,24 @@ fn execute(shared: &Arc<Shared>, job: &JobRecord, live: &mut Rig) {
         }
     }
     end(shared, id, Some(name), outcome);
+}
+
+/// The job's end once its capture is over, decided under the job table's lock: a cancel
+/// that reached the table before this point ends the job `cancelled` (even one that arrived
+/// during its last step, which the engine finished); one after it is refused as too late.
+fn decided(shared: &Shared, job: &JobRecord, outcome: Outcome) -> Outcome {
+    let mut jobs = shared.jobs();
+    if let Some(r) = jobs.get_mut(job.id) {
+        r.closing = true;
+    }
+    match (outcome, job.stop.cause()) {
+        (Outcome::Finished, Some(StopCause::Client)) => Outcome::Cancelled(Stop {
+            cause: StopCause::Client,
+            during: None,
+            stopped: None,
+        }),
+        (o, _) => o,
+    }
 }
 
 /// The calibration the job applies (`daemon::calibration::for_job`), its warnings logged;
@@ -322,7 +379,11 @@ fn capture(
         settings: EngineSettings {
             settle: Duration::from_millis(job.spec.settle_ms),
             grab_timeout: Duration::from_millis(rig.info.grab_timeout_ms),
-            repeat_interval: job.spec.interval_s.map(Duration::from_secs_f64),
+            // Checked at submit; a number no Duration holds waits not at all.
+            repeat_interval: job
+                .spec
+                .interval_s
+                .and_then(|s| Duration::try_from_secs_f64(s).ok()),
             on_feed_hold: shared.settings.on_feed_hold,
             ..EngineSettings::default()
         },

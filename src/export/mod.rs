@@ -163,8 +163,9 @@ impl Source {
             file: rel.display().to_string(),
             message,
         };
-        let bytes =
-            crate::nofollow::read_in(&self.session.dir, &rel).map_err(|e| bad(e.to_string()))?;
+        let max = crate::bounds::MAX_FRAME_BYTES;
+        let bytes = crate::nofollow::read_in_max(&self.session.dir, &rel, max)
+            .map_err(|e| bad(e.to_string()))?;
         let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
             .map_err(|e| bad(format!("not a readable PNG: {e}")))?
             .into_rgb8();

@@ -168,6 +168,8 @@ pub const POLL: Duration = Duration::from_millis(200);
 const STOP_POLL: Duration = Duration::from_millis(100);
 /// A read that takes only what has already arrived.
 const NO_WAIT: Duration = Duration::from_millis(1);
+/// How often a homing cycle looks for a `stop` while it waits for its `ok`.
+const HOME_POLL: Duration = Duration::from_millis(10);
 
 impl GrblStage {
     /// A driver that connects on first use (lazy open). Fails only on bad options.
@@ -671,6 +673,64 @@ impl GrblStage {
         Ok(())
     }
 
+    /// `$H`, its reply awaited in short reads so `stopped()` is polled between them. GRBL
+    /// takes no feed hold during homing: a stop is a soft reset, after which it is in alarm
+    /// (`Ok(true)`; `status` reports it, `unlock` or `home` clears it).
+    fn home_cycle_until(&mut self, stopped: &dyn Fn() -> bool) -> Result<bool, HwError> {
+        if self.lock.is_some_and(|l| l.needs_reset) {
+            self.soft_reset()?;
+        }
+        if self.in_flight {
+            let budget = self.move_budget(Duration::from_millis(self.opts.reply_timeout_ms));
+            self.finish_in_flight(Deadline::after(budget))?;
+        }
+        let dl = Deadline::after(Duration::from_millis(self.opts.home_timeout_ms));
+        self.synced = false;
+        self.link.write_line("$H")?;
+        let waiting_for = "reply to \"$H\"";
+        loop {
+            if stopped() {
+                tracing::warn!(device = %self.name, "homing stopped: soft reset");
+                self.soft_reset()?;
+                self.target_um = None;
+                return Ok(true);
+            }
+            let left = dl.at.saturating_duration_since(Instant::now());
+            let poll = Deadline::after(HOME_POLL.min(left));
+            let raw = match self.link.read_line(poll, waiting_for) {
+                Ok(raw) => raw,
+                Err(HwError::Timeout { .. }) if !dl.expired() => continue,
+                Err(HwError::Timeout { .. }) => {
+                    return Err(HwError::Timeout {
+                        device: self.name.clone(),
+                        timeout_ms: dl.budget.as_millis() as u64,
+                        waiting_for: waiting_for.to_string(),
+                    })
+                }
+                Err(e) => return Err(e),
+            };
+            match classify(&raw) {
+                Line::Ok => break,
+                Line::Error(code) => {
+                    return Err(HwError::Controller {
+                        device: self.name.clone(),
+                        code: code as i32,
+                        message: format!("{} (for \"$H\")", GrblErrorCode::from_code(code).text()),
+                    })
+                }
+                Line::Alarm(code) => {
+                    self.note(&Line::Alarm(code));
+                    return Err(self.alarm_error(Some(code)));
+                }
+                other => self.note(&other),
+            }
+        }
+        self.lock = None;
+        let dl = self.reply_deadline();
+        self.target_um = Some(self.query(dl)?.position_um);
+        Ok(false)
+    }
+
     /// Send the move, then `G4 P0` behind it without waiting: its `ok` marks the move's end.
     fn move_to(&mut self, from_um: f64, target_um: f64, gcode: String) -> Result<(), HwError> {
         self.ensure_unlocked()?;
@@ -917,6 +977,13 @@ impl Stage for GrblStage {
         self.guard(|s| {
             s.ensure_connected()?;
             s.home_cycle()
+        })
+    }
+
+    fn home_stoppable(&mut self, stopped: &dyn Fn() -> bool) -> Result<bool, HwError> {
+        self.guard(|s| {
+            s.ensure_connected()?;
+            s.home_cycle_until(stopped)
         })
     }
 

@@ -67,8 +67,8 @@ pub fn fit_folder(dir: &Path, fit: &FolderFit) -> anyhow::Result<Calibration> {
         })
     };
     let first_frame = folder.frames.first().context("a scan has frames")?;
-    let (w, h) = image::image_dimensions(first_frame)
-        .with_context(|| format!("reading {}", first_frame.display()))?;
+    // Read as every frame is: a regular file, bounded, its header's size within the limits.
+    let (w, h) = FrameFile::Path(first_frame.clone()).size()?;
     let rig = fit.rig.clone().unwrap_or_else(|| {
         format!(
             "{w}x{h} frames from {}, {} µm/px given",

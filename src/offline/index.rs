@@ -101,6 +101,16 @@ pub struct SessionFacts {
 }
 
 impl SessionFacts {
+    /// The facts of a session read from its folder: filed under the folder's name (a copy
+    /// of a session is its own session, whatever its manifest says it was called).
+    pub fn of_session(s: &crate::daemon::session::Session) -> SessionFacts {
+        let mut facts = SessionFacts::of(&s.manifest);
+        if let Some(folder) = s.dir.file_name().and_then(|n| n.to_str()) {
+            facts.session = folder.to_string();
+        }
+        facts
+    }
+
     pub fn of(m: &crate::daemon::session::Manifest) -> SessionFacts {
         SessionFacts {
             session: m.name.clone(),
@@ -289,7 +299,7 @@ pub fn write_csv(rows: &[Row], out: impl std::io::Write) -> Result<(), csv::Erro
 /// [`RECORDED`]) and each `processed/<settings>/result.json`, as rows. Files that cannot be
 /// read are returned with why.
 pub fn session_rows(s: &crate::daemon::session::Session) -> (Vec<(String, Vec<Row>)>, Skipped) {
-    let facts = SessionFacts::of(&s.manifest);
+    let facts = SessionFacts::of_session(s);
     let mut out = Vec::new();
     let mut bad = Vec::new();
     let mut files = vec![(
@@ -312,7 +322,8 @@ pub fn session_rows(s: &crate::daemon::session::Session) -> (Vec<(String, Vec<Ro
         }
     }
     for (settings, rel) in files {
-        let bytes = match crate::nofollow::read_in(&s.dir, &rel) {
+        let bytes = match crate::nofollow::read_in_max(&s.dir, &rel, crate::bounds::MAX_STEPS_BYTES)
+        {
             Ok(b) => b,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
             Err(e) => {

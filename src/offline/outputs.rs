@@ -69,6 +69,11 @@ pub fn registration_name(
 /// `session/processed/<name>`, made if missing (never through a symlink).
 pub fn settings_dir(session: &Path, name: &str) -> Result<PathBuf, OutputError> {
     let processed = session.join(PROCESSED);
+    // The name is made from flags and a calibration's id: one component below `processed/`.
+    crate::bounds::one_component("settings name", name).map_err(|message| OutputError {
+        path: processed.clone(),
+        message,
+    })?;
     let dir = processed.join(name);
     for d in [&processed, &dir] {
         crate::nofollow::create_dir(d).map_err(|e| OutputError {

@@ -57,6 +57,12 @@ pub fn push_frames(
     decoders: usize,
 ) -> Result<(), PushError> {
     let workers = decoders.max(1);
+    // Every frame must be the size frame 0's header says (within the frame limits): a
+    // frame of another size is refused before its pixels are allocated.
+    let size = match frames.first() {
+        Some(f) => Some(f.file.size()?),
+        None => None,
+    };
     let pool = Mutex::new(Vec::<RgbImage>::new());
     let rows_wanted = Arc::new(AtomicU32::new(u32::MAX));
     pipeline.share_rows_needed(rows_wanted.clone(), ROWS_MARGIN);
@@ -80,7 +86,7 @@ pub fn push_frames(
             let (pool, rows_wanted, ahead, slots) = (&pool, &*rows_wanted, &ahead, &slots_in);
             let (measurer, gate) = (&*measurer, &gate);
             scope.spawn(move || {
-                let mut reader = FrameReader::default();
+                let mut reader = FrameReader::expecting(size);
                 while let Some(i) = ahead.take() {
                     let reuse = pool.lock().ok().and_then(|mut p| p.pop());
                     let read = reader
@@ -96,7 +102,7 @@ pub fn push_frames(
                 }
             });
         }
-        let mut again = FrameReader::default();
+        let mut again = FrameReader::expecting(size);
         for (i, f) in frames.iter().enumerate() {
             let slot = &slots_out[i % window];
             let (frame, rows, pre) = slot.recv().map_err(|_| PushError::Decoder)??;

@@ -117,14 +117,15 @@ fn one(
         &settings,
         registration.as_deref(),
     )?;
-    let rows = rows_of(&SessionFacts::of(&s.manifest), &name, &done.result);
+    let facts = SessionFacts::of_session(&s);
+    let rows = rows_of(&facts, &name, &done.result);
     if let Some(path) = index_path(dir, &how.index) {
         let mut all = indexes.lock().unwrap_or_else(|e| e.into_inner());
         if !all.iter().any(|(p, _)| *p == path) {
             all.push((path.clone(), Index::open(&path)?));
         }
         let index = &mut all.iter_mut().find(|(p, _)| *p == path).expect("added").1;
-        index.replace(&s.manifest.name, &name, &rows)?;
+        index.replace(&facts.session, &name, &rows)?;
     }
     let runs_failed = done
         .result

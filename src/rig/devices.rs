@@ -114,6 +114,13 @@ pub trait Stage: Send {
     fn stop(&mut self) -> Result<(), HwError>;
     /// Run the homing cycle (or the driver's configured home move) and wait for it.
     fn home(&mut self) -> Result<(), HwError>;
+    /// [`Stage::home`], abandoned as soon as `stopped()` says so (polled while it runs):
+    /// `Ok(true)` when it was stopped, the stage halted the controller's way (GRBL: a soft
+    /// reset, which leaves it in alarm). A driver that cannot stop its homing runs it whole.
+    fn home_stoppable(&mut self, stopped: &dyn Fn() -> bool) -> Result<bool, HwError> {
+        let _ = stopped;
+        self.home().map(|()| false)
+    }
     fn status(&mut self) -> Result<StageStatus, HwError>;
     /// Clear a latched alarm or error the controller's own way (GRBL `$X`; GCS `ERR?`, servo
     /// on again). `Ok` only once the controller confirms it is usable.
@@ -138,6 +145,22 @@ pub trait Stage: Send {
     /// the driver knows: the engine's move deadline grows by it.
     fn planned_move(&self) -> Option<Duration> {
         None
+    }
+}
+
+/// `f`'s result, or, if it panics, an error of `device` naming the panic: a driver's panic
+/// fails the request it served, never the thread that owns the rig.
+pub fn panic_free<T>(device: &str, f: impl FnOnce() -> Result<T, HwError>) -> Result<T, HwError> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+        Ok(r) => r,
+        Err(p) => {
+            let message = crate::acquisition::sink::panic_message(p.as_ref());
+            tracing::error!(device, panic = %message, "a device call panicked");
+            Err(HwError::Other {
+                device: device.to_string(),
+                message: format!("internal error: panicked: {message}"),
+            })
+        }
     }
 }
 

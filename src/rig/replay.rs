@@ -125,14 +125,25 @@ impl ReplayCamera {
             .frame_file(row.index)
             .map_err(|e| err(e.to_string()))?;
         let path = dir.join(&rel);
-        let bytes = crate::nofollow::read_in(&dir, &rel).map_err(|e| err(e.to_string()))?;
-        let image = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
-            .map_err(|e| err(format!("{}: {e}", path.display())))?
-            .into_rgb8();
+        let max = crate::bounds::MAX_FRAME_BYTES;
+        let bytes =
+            crate::nofollow::read_in_max(&dir, &rel, max).map_err(|e| err(e.to_string()))?;
+        // The recorded frame size, checked from the header before a pixel is decoded.
+        let image = crate::bounds::decode_frame(&bytes, Some(self.size))
+            .map_err(|e| err(format!("{}: {e}", path.display())))?;
+        let timestamp = Duration::try_from_secs_f64(row.t_unix_s)
+            .ok()
+            .and_then(|d| UNIX_EPOCH.checked_add(d))
+            .ok_or_else(|| {
+                err(format!(
+                    "frame {}: t_unix_s {} is not a time",
+                    row.index, row.t_unix_s
+                ))
+            })?;
         Ok(Frame {
             image,
             sequence: row.sequence,
-            timestamp: UNIX_EPOCH + Duration::from_secs_f64(row.t_unix_s.max(0.0)),
+            timestamp,
         })
     }
 }

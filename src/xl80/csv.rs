@@ -210,8 +210,8 @@ impl CsvParser {
                         let day = self.log.start.unwrap_or(UNIX_EPOCH);
                         let day_s = day.duration_since(UNIX_EPOCH).ok()?.as_secs() / 86_400;
                         UNIX_EPOCH
-                            + Duration::from_secs(day_s * 86_400)
-                            + Duration::from_secs_f64(tod)
+                            .checked_add(Duration::from_secs(day_s * 86_400))?
+                            .checked_add(Duration::try_from_secs_f64(tod).ok()?)?
                     }
                 };
                 let start = *self.log.start.get_or_insert(abs);

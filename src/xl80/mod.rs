@@ -148,10 +148,11 @@ impl Xl80Log {
     pub fn time_of(&self, r: &Reading) -> Option<SystemTime> {
         let t = r.t_s?;
         let start = self.start?;
+        // A log's time is a number in a file: one no Duration holds has no wall time.
         if t >= 0.0 {
-            start.checked_add(Duration::from_secs_f64(t))
+            start.checked_add(Duration::try_from_secs_f64(t).ok()?)
         } else {
-            start.checked_sub(Duration::from_secs_f64(-t))
+            start.checked_sub(Duration::try_from_secs_f64(-t).ok()?)
         }
     }
 

@@ -10,6 +10,7 @@ use super::wire::{SnapReply, ViewFrame, ViewTarget};
 use super::{unix_s, Inner, LiveFrame, SnapWaiter};
 use crate::daemon::outbox::Line;
 use crate::daemon::protocol::{encode, Event, EventBody, ServerLine, PROTOCOL_VERSION};
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use tokio::sync::watch;
 
@@ -102,11 +103,12 @@ fn next(inner: &Inner) -> Option<(LiveFrame, Due)> {
             snaps: Vec::new(),
         };
         for s in st.subs.iter_mut() {
-            let ready = s
-                .last
-                .is_none_or(|last| t.duration_since(last).is_ok_and(|d| d >= s.interval));
+            let ready = s.taken.load(Ordering::SeqCst)
+                && s.last
+                    .is_none_or(|last| t.duration_since(last).is_ok_and(|d| d >= s.interval));
             if ready {
                 s.last = Some(t);
+                s.taken.store(false, Ordering::SeqCst);
                 due.subs.push((s.shown, s.tx.clone()));
             }
         }

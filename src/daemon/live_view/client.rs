@@ -101,11 +101,12 @@ pub fn preview(
     let shown = Shown::check(&opts, frame)?;
     // The old one goes first: one subscription per connection.
     *sub = None;
-    let (id, rx) = shared.live.subscribe(shown, max_fps);
+    let (id, rx, taken) = shared.live.subscribe(shown, max_fps);
+    let stall = Duration::from_millis(shared.settings.stalled_client_ms.max(1));
     *sub = Some(Subscription {
         shared: shared.clone(),
         id,
-        forwarder: tokio::spawn(forward(rx, outbox.clone())),
+        forwarder: tokio::spawn(forward(rx, taken, outbox.clone(), stall)),
     });
     Ok(ReplyBody::Preview(PreviewReply {
         max_fps,
@@ -122,8 +123,15 @@ pub fn stop(sub: &mut Option<Subscription>) -> ReplyBody {
     })
 }
 
-/// Copy the latest preview line to the client, one in flight at a time.
-async fn forward(mut rx: watch::Receiver<Option<Line>>, out: Arc<Outbox>) {
+/// Copy the latest preview line to the client, one in flight at a time. `taken` tells the
+/// live view this forwarder took the slot's line (it renders no other meanwhile). A line
+/// not written within `stall` (the client reads nothing) ends the connection.
+async fn forward(
+    mut rx: watch::Receiver<Option<Line>>,
+    taken: super::Taken,
+    out: Arc<Outbox>,
+    stall: Duration,
+) {
     let mut in_flight: Option<Line> = None;
     loop {
         // The writer drops a line once it is on the socket: until then, wait.
@@ -132,7 +140,10 @@ async fn forward(mut rx: watch::Receiver<Option<Line>>, out: Arc<Outbox>) {
             if in_flight.as_ref().is_none_or(|l| Arc::strong_count(l) <= 1) {
                 break;
             }
-            written.await;
+            if tokio::time::timeout(stall, written).await.is_err() {
+                out.give_up();
+                return;
+            }
         }
         in_flight = None;
         if rx.changed().await.is_err() {
@@ -141,6 +152,7 @@ async fn forward(mut rx: watch::Receiver<Option<Line>>, out: Arc<Outbox>) {
         let Some(line) = rx.borrow_and_update().clone() else {
             continue;
         };
+        taken.set();
         // A copy of its own (the slot keeps the original): once the writer drops it, this
         // is its only holder.
         let line: Line = Arc::from(&line[..]);

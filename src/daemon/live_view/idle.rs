@@ -49,9 +49,11 @@ impl LiveView {
 
 fn due_in(st: &State, now: SystemTime) -> Option<(SystemTime, SystemTime)> {
     let snap = st.snaps.iter().map(|s| s.after).min();
+    // A subscriber whose last frame is still waiting for its client gets no other.
     let sub = st
         .subs
         .iter()
+        .filter(|s| s.taken.load(std::sync::atomic::Ordering::SeqCst))
         .map(|s| {
             // One interval after its last frame, and after the last grab's frame.
             let last = s.last.max(st.last_grab);
@@ -75,25 +77,15 @@ pub async fn grab(live: &std::sync::Arc<crate::daemon::Shared>, rig: Rig) -> Rig
     let timeout = Duration::from_millis(rig.info.grab_timeout_ms);
     let handle = tokio::task::spawn_blocking(move || {
         let mut rig = rig;
-        let r = grab_now(&mut rig, not_before, timeout);
+        let r =
+            crate::rig::devices::panic_free("camera", || grab_now(&mut rig, not_before, timeout));
         (rig, r)
     });
     let (rig, result) = match handle.await {
         Ok(r) => r,
         Err(e) => panic!("live view grab thread panicked: {e}"),
     };
-    let live = &live.live;
-    match result {
-        Ok(frame) => {
-            let mut st = live.inner.state();
-            st.last_grab = Some(frame.frame().timestamp);
-            st.retry_at = None;
-            st.failures = 0;
-            drop(st);
-            live.offer(frame);
-        }
-        Err(e) => live.grab_failed(&e),
-    }
+    live.live.grabbed(result);
     rig
 }
 
@@ -118,6 +110,22 @@ fn grab_now(
 }
 
 impl LiveView {
+    /// A grab for the live view ended (the idle worker's, or a paused job's): its frame
+    /// offered, or the failure handed to the waiting snaps.
+    pub fn grabbed(&self, result: Result<LiveFrame, HwError>) {
+        match result {
+            Ok(frame) => {
+                let mut st = self.inner.state();
+                st.last_grab = Some(frame.frame().timestamp);
+                st.retry_at = None;
+                st.failures = 0;
+                drop(st);
+                self.offer(frame);
+            }
+            Err(e) => self.grab_failed(&e),
+        }
+    }
+
     /// A grab failed: the waiting snaps get the error, the next grab backs off.
     fn grab_failed(&self, e: &HwError) {
         let mut st = self.inner.state();
@@ -156,6 +164,7 @@ mod tests {
             interval: Duration::from_millis(100),
             last: None,
             tx,
+            taken: std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true)),
         });
         assert_eq!(due_in(&st, now), Some((now, now)));
         st.last_grab = Some(now);

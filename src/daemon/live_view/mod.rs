@@ -24,7 +24,7 @@ use crate::daemon::protocol::ProtoError;
 use crate::hw::Frame;
 use crate::rig::RigInfo;
 use render::Shown;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, SystemTime};
 use tokio::sync::{oneshot, watch, Notify};
@@ -67,6 +67,8 @@ struct Sub {
     /// The exposure time of the last frame rendered for it.
     last: Option<SystemTime>,
     tx: watch::Sender<Option<Line>>,
+    /// Its forwarder took the last line rendered (false from a render until then).
+    taken: Arc<AtomicBool>,
 }
 
 /// A `snap` waiting for its frame.
@@ -118,6 +120,21 @@ impl Inner {
 }
 
 /// The live view's hub, one per daemon (in `Shared`).
+/// A preview subscriber's flag: its forwarder took the last line rendered for it. Until
+/// then no frame is grabbed or rendered for it; setting it wakes the worker's idle grabs.
+#[derive(Clone)]
+pub struct Taken {
+    flag: Arc<AtomicBool>,
+    inner: Arc<Inner>,
+}
+
+impl Taken {
+    pub fn set(&self) {
+        self.flag.store(true, Ordering::SeqCst);
+        self.inner.watchers_changed.notify_one();
+    }
+}
+
 pub struct LiveView {
     inner: Arc<Inner>,
     analyser: Mutex<Option<std::thread::JoinHandle<()>>>,
@@ -156,21 +173,35 @@ impl LiveView {
         self.inner.offered.notify_one();
     }
 
-    /// Register a preview subscriber; its id (to remove it) and its latest-line slot.
-    pub fn subscribe(&self, shown: Shown, max_fps: f64) -> (u64, watch::Receiver<Option<Line>>) {
+    /// Register a preview subscriber; its id (to remove it), its latest-line slot, and the
+    /// flag its forwarder sets once it took the slot's line: until then no frame is grabbed
+    /// or rendered for it (a client that reads nothing costs nothing).
+    pub fn subscribe(
+        &self,
+        shown: Shown,
+        max_fps: f64,
+    ) -> (u64, watch::Receiver<Option<Line>>, Taken) {
+        let taken = Taken {
+            flag: Arc::new(AtomicBool::new(true)),
+            inner: self.inner.clone(),
+        };
         let (tx, rx) = watch::channel(None);
+        // `check_fps` bounds the rate; a rate outside it still gets a finite interval.
+        let interval = Duration::try_from_secs_f64(1.0 / max_fps)
+            .unwrap_or(Duration::from_secs_f64(1.0 / wire::MIN_FPS));
         let mut st = self.inner.state();
         st.next_id += 1;
         let id = st.next_id;
         st.subs.push(Sub {
             id,
             shown,
-            interval: Duration::from_secs_f64(1.0 / max_fps),
+            interval,
             last: None,
             tx,
+            taken: taken.flag.clone(),
         });
         self.inner.recount(&st);
-        (id, rx)
+        (id, rx, taken)
     }
 
     pub fn unsubscribe(&self, id: u64) {

@@ -1,7 +1,7 @@
 //! A frame made into what a client sees: the targets found in it (the pipeline's detection
 //! and estimator, and its focus figure) and its image cropped, scaled and PNG-encoded.
 
-use super::wire::{ViewOptions, ViewTarget, MAX_FPS};
+use super::wire::{ViewOptions, ViewTarget, MAX_FPS, MIN_FPS};
 use crate::daemon::protocol::{ErrorCode, ProtoError};
 use crate::pipeline::detect::{detect, measurement_channel, DetectConfig};
 use crate::pipeline::estimate::estimate_targets;
@@ -52,13 +52,13 @@ impl Shown {
     }
 }
 
-/// A preview's rate: above 0, at most [`MAX_FPS`].
+/// A preview's rate: from [`MIN_FPS`] to [`MAX_FPS`] (NaN refused).
 pub fn check_fps(max_fps: f64) -> Result<f64, ProtoError> {
-    if max_fps.is_finite() && max_fps > 0.0 && max_fps <= MAX_FPS {
+    if (MIN_FPS..=MAX_FPS).contains(&max_fps) {
         Ok(max_fps)
     } else {
         Err(bad(format!(
-            "`max_fps` must be above 0 and at most {MAX_FPS}, got {max_fps}"
+            "`max_fps` must be from {MIN_FPS} to {MAX_FPS}, got {max_fps}"
         )))
     }
 }
@@ -227,6 +227,14 @@ mod tests {
             assert!(e.message.starts_with("`scale` must be above 0"), "{e:?}");
         }
         assert!(check_fps(0.0).is_err() && check_fps(61.0).is_err());
+        for v in [1e-300, 5e-324, -0.0, 0.009, f64::NAN, f64::INFINITY, -1e308] {
+            let e = check_fps(v).unwrap_err();
+            assert!(
+                e.message.contains("`max_fps` must be from 0.01 to 60"),
+                "{v}: {e:?}"
+            );
+        }
+        assert_eq!(check_fps(0.01), Ok(0.01));
         assert_eq!(check_fps(30.0), Ok(30.0));
     }
 

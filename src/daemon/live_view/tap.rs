@@ -8,6 +8,7 @@ use super::{FrameImage, LiveFrame, LiveView};
 use crate::acquisition::record::StepRecord;
 use crate::acquisition::sink::{SinkError, StepSink};
 use crate::acquisition::StageKind;
+use crate::hw::{Frame, HwError};
 use std::sync::Arc;
 
 pub struct Tap<S: StepSink> {
@@ -56,5 +57,23 @@ impl<S: StepSink> StepSink for Tap<S> {
     }
     fn finish(&mut self) -> Result<(), SinkError> {
         self.inner.finish()
+    }
+    /// A paused job's camera serves the live view as the idle worker does, at the rate
+    /// its watchers ask.
+    fn wants_paused_frame(&self) -> bool {
+        self.live().grab_due()
+    }
+    fn paused_frame(&mut self, frame: Result<Frame, HwError>, at_um: Option<f64>) {
+        let mut stage_um = StagePositions::default();
+        match self.stage {
+            StageKind::Axis => stage_um.axis_um = at_um,
+            StageKind::Piezo => stage_um.piezo_um = at_um,
+        }
+        let frame = frame.map(|f| LiveFrame {
+            job_id: Some(self.job_id),
+            image: FrameImage::Own(f),
+            stage_um,
+        });
+        self.live().grabbed(frame);
     }
 }

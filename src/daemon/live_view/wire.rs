@@ -6,6 +6,8 @@ use serde::{Deserialize, Serialize};
 
 /// Highest `max_fps` a preview may ask for.
 pub const MAX_FPS: f64 = 60.0;
+/// Lowest `max_fps` a preview may ask for: a frame every 100 s.
+pub const MIN_FPS: f64 = 0.01;
 
 /// How a frame is shown: a region of it (`crop`: x, y, w, h in frame pixels; default the
 /// whole frame), then scaled by `scale` (0 < scale <= 1; default 1).

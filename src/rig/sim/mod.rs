@@ -47,6 +47,9 @@ pub enum Fault {
     SerialLoss(u32),
     /// The camera's stream stalls from its n-th grab (until the driver restarts it).
     CameraTimeout(u32),
+    /// The axis driver panics on its n-th move: a fault of the daemon's own code, to
+    /// exercise how a panicking job is failed and the worker goes on.
+    Panic(u32),
 }
 
 impl std::str::FromStr for Fault {
@@ -64,8 +67,9 @@ impl std::str::FromStr for Fault {
             "alarm" => Ok(Fault::Alarm(n)),
             "serial-loss" => Ok(Fault::SerialLoss(n)),
             "camera-timeout" => Ok(Fault::CameraTimeout(n)),
+            "panic" => Ok(Fault::Panic(n)),
             _ => Err(format!(
-                "fault {s:?}: unknown kind {kind:?} (alarm, serial-loss, camera-timeout)"
+                "fault {s:?}: unknown kind {kind:?} (alarm, serial-loss, camera-timeout, panic)"
             )),
         }
     }
@@ -231,6 +235,10 @@ fn emulated_axis(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError
             Fault::SerialLoss(n) => Some(*n),
             _ => None,
         }),
+        panic_at: s.fault_at(|f| match f {
+            Fault::Panic(n) => Some(*n),
+            _ => None,
+        }),
     })
 }
 
@@ -252,6 +260,7 @@ fn emulated_piezo(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwErro
         moves: 0,
         alarm_at: None,
         loss_at: None,
+        panic_at: None,
     })
 }
 
@@ -331,12 +340,16 @@ struct EmulatedStage {
     moves: u32,
     alarm_at: Option<u32>,
     loss_at: Option<u32>,
+    panic_at: Option<u32>,
 }
 
 impl EmulatedStage {
     /// Count a move and arm the fault due on it.
     fn arm(&mut self) {
         self.moves += 1;
+        if self.panic_at == Some(self.moves) {
+            panic!("injected panic on move {}", self.moves);
+        }
         if self.alarm_at == Some(self.moves) {
             self.faults.update(|p| p.alarm_mid_move = true);
         }
@@ -371,6 +384,9 @@ impl Stage for EmulatedStage {
     }
     fn home(&mut self) -> Result<(), HwError> {
         self.stage.home()
+    }
+    fn home_stoppable(&mut self, stopped: &dyn Fn() -> bool) -> Result<bool, HwError> {
+        self.stage.home_stoppable(stopped)
     }
     fn status(&mut self) -> Result<StageStatus, HwError> {
         self.stage.status()
