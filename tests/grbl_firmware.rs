@@ -14,9 +14,13 @@ use support::firmware::Firmware;
 /// GRBL 1.1h's defaults: `$100=250` (4 µm steps), `$110=500` mm/min, `$120=10` mm/s².
 const STEP_UM: f64 = 4.0;
 
+/// The driver on the firmware's port. Replies may take 3 s: the firmware's simulated clock
+/// runs slow on a loaded machine.
 fn connect(fw: &Firmware) -> GrblStage {
     let limits = TravelLimits::new(-50_000.0, 50_000.0, 50_000.0).unwrap();
-    GrblStage::connect("axis", GrblOptions::new(fw.port.clone(), limits)).unwrap()
+    let mut opts = GrblOptions::new(fw.port.clone(), limits);
+    opts.reply_timeout_ms = 3_000;
+    GrblStage::connect("axis", opts).unwrap()
 }
 
 /// Soft resets (0x18) sent to the firmware so far.
