@@ -380,27 +380,46 @@ function eta(j) {
   return j.eta_s !== undefined ? `${num(j.eta_s, 0)} s` : '–';
 }
 
+// The queue's rows are rebuilt only when its jobs or their states change; progress and ETA
+// are updated in place, so a button is never replaced under the pointer.
+let queueShape = null;
+
 function showQueue() {
   const s = rig.status;
   if (!s) return;
   const jobs = (s.running ? [s.running] : []).concat(s.queued_jobs || []);
-  $('queue').tBodies[0].innerHTML = jobs.map((j) => {
+  const shape = jobs.map((j) => `${j.job_id}:${j.state}`).join(',');
+  if (shape !== queueShape) {
+    queueShape = shape;
+    $('queue').tBodies[0].innerHTML = jobs.map(queueRow).join('') ||
+      '<tr><td colspan="5" class="muted">no job running or queued</td></tr>';
+    $('queue').querySelectorAll('button[data-id]').forEach(jobButton);
+  }
+  for (const j of jobs) {
+    const tr = $('queue').querySelector(`tr[data-job="${j.job_id}"]`);
+    if (!tr) continue;
     const pct = j.total_frames ? Math.round(100 * j.frames_done / j.total_frames) : 0;
-    const act = j.state === 'paused' ? 'resume' : 'pause';
-    return `<tr data-job="${j.job_id}"><td>${j.job_id}${j.label ? ` ${esc(j.label)}` : ''}</td><td class="job-state">${j.state}</td>` +
-      `<td><span class="bar"><span data-w="${pct}"></span></span> <span class="job-frames">${j.frames_done}/${j.total_frames}</span></td>` +
-      `<td>${eta(j)}</td><td>${j.state === 'queued' ? '' : `<button class="job-${act}" data-id="${j.job_id}">${act}</button>`}` +
-      ` <button class="job-cancel" data-id="${j.job_id}">cancel</button></td></tr>`;
-  }).join('') || '<tr><td colspan="5" class="muted">no job running or queued</td></tr>';
-  $('queue').querySelectorAll('[data-w]').forEach((el) => { el.style.width = `${el.dataset.w}%`; });
-  $('queue').querySelectorAll('button[data-id]').forEach((b) => {
-    const kind = b.className.replace('job-', '');
-    b.onclick = async () => {
-      const r = await api({ kind, job_id: Number(b.dataset.id) });
-      $('queue-error').textContent = r.ok ? '' : `${kind} job ${b.dataset.id}: ${r.error.message}`;
-      refreshRig();
-    };
-  });
+    tr.querySelector('[data-w]').style.width = `${pct}%`;
+    tr.querySelector('.job-frames').textContent = `${j.frames_done}/${j.total_frames}`;
+    tr.querySelector('.job-eta').textContent = eta(j);
+  }
+}
+
+function queueRow(j) {
+  const act = j.state === 'paused' ? 'resume' : 'pause';
+  return `<tr data-job="${j.job_id}"><td>${j.job_id}${j.label ? ` ${esc(j.label)}` : ''}</td><td class="job-state">${j.state}</td>` +
+    '<td><span class="bar"><span data-w></span></span> <span class="job-frames"></span></td>' +
+    `<td class="job-eta"></td><td>${j.state === 'queued' ? '' : `<button class="job-${act}" data-id="${j.job_id}">${act}</button>`}` +
+    ` <button class="job-cancel" data-id="${j.job_id}">cancel</button></td></tr>`;
+}
+
+function jobButton(b) {
+  const kind = b.className.replace('job-', '');
+  b.onclick = async () => {
+    const r = await api({ kind, job_id: Number(b.dataset.id) });
+    $('queue-error').textContent = r.ok ? '' : `${kind} job ${b.dataset.id}: ${r.error.message}`;
+    refreshRig();
+  };
 }
 
 let refreshTimer = null;
