@@ -12,7 +12,6 @@
 //! sets how long the 10 tabs stay open (default 120 s).
 
 #[path = "../tests/support/mod.rs"]
-#[allow(dead_code, unused_imports)]
 mod support;
 #[path = "../tests/support/web.rs"]
 #[allow(dead_code)]

@@ -6,17 +6,23 @@
 //!
 //! Frames are flow-controlled: one is in flight until the page says `{"painted": true}`;
 //! meanwhile only the newest frame waits (older ones are dropped), so a slow browser gets
-//! fewer frames, never older ones. A page that stops reading is dropped after
-//! [`SEND_TIMEOUT`]: nothing is queued for it here.
+//! fewer frames, never older ones. A page that stops reading is dropped: after
+//! [`SEND_TIMEOUT`] on a message it does not take, or [`PAINT_TIMEOUT`] without painting the
+//! frame it has. Nothing is queued for it here.
 
 use super::link::{Daemon, Link};
 use crate::daemon::protocol::Request;
 use axum::extract::ws::{Message, WebSocket};
 use serde_json::{json, Value};
 use std::time::Duration;
+use tokio::time::Instant;
 
 /// Longest a message may wait to go to the page before the page is dropped.
 pub const SEND_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// Longest a frame may stay unpainted before the page is dropped (a hidden tab that the
+/// browser throttles comes back through the page's own reconnection).
+pub const PAINT_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// The preview a page gets until it asks for another.
 pub const DEFAULT_FPS: f64 = 15.0;
@@ -63,8 +69,17 @@ fn preview(max_fps: f64, scale: Option<f64>, crop: Option<[u32; 4]>) -> Request 
 /// The frames on their way to one page: at most one sent and unpainted, one waiting.
 #[derive(Default)]
 struct Frames {
-    in_flight: bool,
+    /// When the unpainted frame was sent.
+    in_flight: Option<Instant>,
     waiting: Option<String>,
+}
+
+/// Resolves when the frame sent at `since` has waited [`PAINT_TIMEOUT`]; never without one.
+async fn unpainted(since: Option<Instant>) {
+    match since {
+        Some(t) => tokio::time::sleep_until(t + PAINT_TIMEOUT).await,
+        None => std::future::pending().await,
+    }
 }
 
 /// Whether a daemon line is a preview event (a string value cannot hold this unescaped).
@@ -80,11 +95,14 @@ async fn pump(ws: &mut WebSocket, link: &mut Link) -> anyhow::Result<()> {
         tokio::select! {
             line = link.next_line() => {
                 let line = line?;
-                if is_preview(&line) && frames.in_flight {
+                let preview = is_preview(&line);
+                if preview && frames.in_flight.is_some() {
                     frames.waiting = Some(line);
                     continue;
                 }
-                frames.in_flight |= is_preview(&line);
+                if preview {
+                    frames.in_flight = Some(Instant::now());
+                }
                 if send(ws, line).await.is_err() {
                     return Ok(());
                 }
@@ -92,9 +110,9 @@ async fn pump(ws: &mut WebSocket, link: &mut Link) -> anyhow::Result<()> {
             msg = ws.recv() => match msg {
                 Some(Ok(Message::Text(t))) => {
                     if is_painted(t.as_str()) {
-                        frames.in_flight = false;
+                        frames.in_flight = None;
                         if let Some(next) = frames.waiting.take() {
-                            frames.in_flight = true;
+                            frames.in_flight = Some(Instant::now());
                             if send(ws, next).await.is_err() {
                                 return Ok(());
                             }
@@ -106,6 +124,10 @@ async fn pump(ws: &mut WebSocket, link: &mut Link) -> anyhow::Result<()> {
                 Some(Ok(_)) => {}
                 Some(Err(_)) | None => return Ok(()),
             },
+            () = unpainted(frames.in_flight) => {
+                tracing::info!("a page painted no frame for {PAINT_TIMEOUT:?}: dropped");
+                return Ok(());
+            }
         }
     }
 }
