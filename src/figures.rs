@@ -25,6 +25,7 @@ pub fn figure4(st: &StudyStats, case: usize) -> Chart {
                 .map(|(i, v)| ((i + 1) as f64, v - t.nominal_um))
                 .collect(),
             style: Style::Lines,
+            y_u: Vec::new(),
         })
         .collect();
     Chart {
@@ -61,6 +62,7 @@ pub fn figure5(st: &StudyStats) -> Chart {
             .map(|(i, c)| (x(i), c.rms_std_um))
             .collect(),
         style: Style::Lines,
+        y_u: Vec::new(),
     }];
     series.extend(names.iter().map(|&n| {
         Series {
@@ -72,6 +74,7 @@ pub fn figure5(st: &StudyStats) -> Chart {
                 .filter_map(|(i, c)| Some((x(i), c.targets.iter().find(|t| t.name == n)?.std_um)))
                 .collect(),
             style: Style::Points,
+            y_u: Vec::new(),
         }
     }));
     Chart {
@@ -136,6 +139,7 @@ pub fn residuals(runs: &[RunResult], steps: &[StepRow]) -> Chart {
         label: label.into(),
         points,
         style: Style::Points,
+        y_u: Vec::new(),
     })
     .collect();
     Chart {

@@ -29,6 +29,8 @@ pub struct Series {
     pub label: String,
     pub points: Vec<(f64, f64)>,
     pub style: Style,
+    /// Each point's standard uncertainty in y, drawn as an error bar ±u (empty: none).
+    pub y_u: Vec<f64>,
 }
 
 /// A chart to draw: everything a reader needs is in its text.
@@ -101,7 +103,20 @@ impl Chart {
     /// The data's extent, a little wider so marks at the ends are whole; (0, 1) on an axis
     /// with no finite value, one unit either side of a single value.
     fn bounds(&self) -> ((f64, f64), (f64, f64)) {
-        let pts = || self.series.iter().flat_map(|s| &s.points).filter(finite);
+        // Error bars' ends count, so a bar is never cut off.
+        let ends: Vec<(f64, f64)> = self
+            .series
+            .iter()
+            .flat_map(|s| s.points.iter().zip(&s.y_u))
+            .flat_map(|(&(x, y), &u)| [(x, y - u), (x, y + u)])
+            .collect();
+        let pts = || {
+            self.series
+                .iter()
+                .flat_map(|s| &s.points)
+                .chain(&ends)
+                .filter(finite)
+        };
         let range = |v: &mut dyn Iterator<Item = f64>| {
             let (lo, hi) = v.fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)));
             let d = hi - lo;
@@ -191,6 +206,14 @@ fn draw_series<DB: DrawingBackend>(
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
     let pts: Vec<(f64, f64)> = s.points.iter().filter(finite).copied().collect();
     let radius = if s.style == Style::Lines { 3 } else { 2 };
+    let bars = s
+        .points
+        .iter()
+        .zip(&s.y_u)
+        .filter(|(p, u)| finite(p) && u.is_finite());
+    chart.draw_series(bars.map(|(&(x, y), &u)| {
+        PathElement::new(vec![(x, y - u), (x, y + u)], colour.stroke_width(1))
+    }))?;
     let marks = chart.draw_series(pts.iter().map(|&p| Circle::new(p, radius, colour.filled())))?;
     match s.style {
         Style::Points => {
@@ -224,11 +247,13 @@ mod tests {
                     label: "A (100 µm)".into(),
                     points: vec![(1.0, 3.0), (2.0, -1.0), (3.0, f64::NAN), (4.0, 2.0)],
                     style: Style::Lines,
+                    y_u: Vec::new(),
                 },
                 Series {
                     label: "scatter".into(),
                     points: vec![(1.5, 0.0)],
                     style: Style::Points,
+                    y_u: Vec::new(),
                 },
             ],
             x_names: None,
@@ -250,6 +275,26 @@ mod tests {
             .filter(|p| p.0.iter().all(|&v| v < 100))
             .count();
         assert!(dark > 1000, "{dark} dark pixels");
+    }
+
+    #[test]
+    fn error_bars_are_drawn_whole() {
+        let mut c = chart();
+        c.series = vec![Series {
+            label: "with u".into(),
+            points: vec![(1.0, 0.0), (2.0, 1.0)],
+            style: Style::Points,
+            y_u: vec![5.0, f64::NAN],
+        }];
+        // The axes reach the bar's ends (±5 about 0), not only the points.
+        let (_, (y0, y1)) = c.bounds();
+        assert!(y0 <= -5.0 && y1 >= 5.0, "{y0}..{y1}");
+        // One bar where u is finite; the points alone span the axes, so nothing else moves.
+        c.series[0].points = vec![(1.0, -5.0), (2.0, 5.0), (3.0, 0.0)];
+        c.series[0].y_u = vec![f64::NAN, f64::NAN, 1.0];
+        let bars = c.svg().unwrap().matches("<polyline").count();
+        c.series[0].y_u.clear();
+        assert_eq!(c.svg().unwrap().matches("<polyline").count() + 1, bars);
     }
 
     #[test]

@@ -26,6 +26,7 @@ pub mod submit;
 pub mod text;
 pub mod view;
 pub mod watch;
+pub mod web;
 
 use crate::daemon::rig_state::RigAction;
 use clap::{Parser, Subcommand};
@@ -103,6 +104,9 @@ pub enum Command {
     /// Let a paused job go on with its next frame; or resume an interrupted session from
     /// its first missing frame as a new job.
     Resume(pause::ResumeArgs),
+    /// The browser console: serve the rig's page on 127.0.0.1, printing its URL with a
+    /// fresh access token (docs/console.md).
+    Web(web::WebArgs),
 }
 
 /// Entry point of the `rigctl` binary.
@@ -187,5 +191,6 @@ pub fn main() -> anyhow::Result<()> {
         Command::Stop(a) => manual::stop(a),
         Command::Pause(a) => pause::pause(a),
         Command::Resume(a) => pause::resume(a),
+        Command::Web(a) => web::run(a),
     }
 }

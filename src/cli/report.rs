@@ -46,7 +46,7 @@ pub fn read_result(session: &Path) -> anyhow::Result<JobResult> {
 /// atomically; the paths written, report.txt first.
 pub fn write(session: &Path, out: &Path) -> anyhow::Result<Vec<PathBuf>> {
     let result = read_result(session)?;
-    let steps = Session::open(session)?.steps;
+    let charts = charts_of(session, &result)?;
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let save = |name: String, bytes: &[u8]| -> anyhow::Result<PathBuf> {
         let path = out.join(name);
@@ -54,7 +54,7 @@ pub fn write(session: &Path, out: &Path) -> anyhow::Result<Vec<PathBuf>> {
         Ok(path)
     };
     let mut written = vec![save("report.txt".into(), text(&result).as_bytes())?];
-    for (stem, chart) in figures::charts(&result, &steps) {
+    for (stem, chart) in charts {
         let png = chart
             .png()
             .map_err(|e| anyhow::anyhow!("{stem}.png: {e}"))?;
@@ -66,6 +66,20 @@ pub fn write(session: &Path, out: &Path) -> anyhow::Result<Vec<PathBuf>> {
     }
     atomic_file::sync_dir(out)?;
     Ok(written)
+}
+
+/// The session's charts by file stem (`figures::charts`), from its `result.json` and
+/// `steps.csv`.
+pub fn charts(session: &Path) -> anyhow::Result<Vec<(String, crate::plot::Chart)>> {
+    charts_of(session, &read_result(session)?)
+}
+
+fn charts_of(
+    session: &Path,
+    result: &JobResult,
+) -> anyhow::Result<Vec<(String, crate::plot::Chart)>> {
+    let steps = Session::open(session)?.steps;
+    Ok(figures::charts(result, &steps))
 }
 
 /// The study's tables (when the job processed), then a line per run: its targets and the
