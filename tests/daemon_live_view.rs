@@ -158,8 +158,7 @@ fn snap_takes_scale_and_crop_and_bad_options_are_named() {
             })
             .unwrap_err();
         assert!(
-            e.to_string()
-                .contains("`max_fps` must be from 0.01 to 60"),
+            e.to_string().contains("`max_fps` must be from 0.01 to 60"),
             "{e}"
         );
     }
