@@ -1,11 +1,14 @@
 //! The step interval of a job on GRBL 1.1h's own firmware (tests/support/firmware.rs), with
 //! the sim camera: 20 frames at 100 µm (25 motor steps at the firmware's 250 steps/mm), settle
 //! 50 ms, no processing. From the session's steps.csv: the median interval between frames'
-//! exposures against the move's planned time at the firmware's `$110`/`$120`, plus the settle
-//! and the median grab. Also the `?` polls a second over the job, counted on the wire.
+//! exposures, against the same move timed on the bare protocol (`G91 G1 X0.1 F600` and
+//! `G4 P0` written at once, until both `ok`s: the least any driver can take on this firmware)
+//! plus the settle and the median grab. Also the move's planned time at the firmware's
+//! `$110`/`$120`, and the `?` polls a second over the job, counted on the wire.
 //!
-//! `cargo bench --bench grbl_firmware_step` (figures in docs/performance.md). The firmware's
-//! simulated clock keeps real time only on a quiet machine.
+//! `cargo bench --bench grbl_firmware_step` (figures in docs/performance.md). grbl-sim
+//! simulates the AVR tick by tick and keeps real time only on a fast core: the bare move
+//! shows how much slower than planned its clock runs here.
 
 #[path = "../tests/support/firmware.rs"]
 #[allow(dead_code)]
@@ -32,6 +35,27 @@ fn median(v: &mut [f64]) -> f64 {
     v[v.len() / 2]
 }
 
+/// The median time of ten 100 µm moves on the bare protocol, ms.
+fn bare_move_ms(port: &str) -> f64 {
+    let mut c = firmware::RawClient::open(port);
+    while c.line(std::time::Duration::from_millis(1500)).is_some() {}
+    let within = std::time::Duration::from_secs(30);
+    let mut times: Vec<f64> = (0..10)
+        .map(|_| {
+            let t = Instant::now();
+            c.send(b"G91 G1 X0.1 F600\nG4 P0\n");
+            c.until(|l| l == "ok", within);
+            c.until(|l| l == "ok", within);
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    // Back where the job's scan starts.
+    c.send(b"G90 G0 X0\nG4 P0\n");
+    c.until(|l| l == "ok", within);
+    c.until(|l| l == "ok", within);
+    median(&mut times)
+}
+
 fn rig_toml(port: &str) -> String {
     format!(
         "[axis]\ndriver = \"grbl\"\nport = \"{port}\"\nsoft_min_um = -50000.0\n\
@@ -45,6 +69,7 @@ fn main() {
     let Some(fw) = firmware::Firmware::start("grbl_firmware_step") else {
         return;
     };
+    let bare_ms = bare_move_ms(&fw.port);
     let dir = tempfile::tempdir().unwrap();
     let cfg = Config::from_toml_str(&rig_toml(&fw.port), &dir.path().join("rig.toml")).unwrap();
     let rig = rigd::rig::from_config(&cfg).unwrap();
@@ -82,10 +107,15 @@ fn main() {
         .collect();
     let mut grabs: Vec<f64> = s.steps.iter().skip(1).map(|r| r.grab_ms).collect();
     let planned_ms = machine.move_time(STEP_UM, 10_000.0).as_secs_f64() * 1e3;
-    let expected = planned_ms + SETTLE_MS as f64 + median(&mut grabs);
+    let expected = bare_ms + SETTLE_MS as f64 + median(&mut grabs);
     let interval = median(&mut intervals);
     println!("GRBL 1.1h firmware, 20 frames at {STEP_UM} µm, settle {SETTLE_MS} ms");
-    println!("planned move {planned_ms:.1} ms + settle + grab = {expected:.1} ms");
+    println!(
+        "the move: planned {planned_ms:.1} ms; on the bare protocol {bare_ms:.1} ms \
+         (the simulated clock at {:.2}x real time)",
+        planned_ms / bare_ms
+    );
+    println!("bare move + settle + grab = {expected:.1} ms");
     println!(
         "median step interval {interval:.1} ms: {:+.1} % of that",
         100.0 * (interval - expected) / expected
