@@ -124,6 +124,9 @@ pub struct StageConfig {
     /// GRBL: feed rate of moves, µm/s.
     #[serde(default = "default_feed_um_s")]
     pub feed_um_s: f64,
+    /// GRBL: average rate of `?` status reports, Hz (at most 10; GRBL asks for 5).
+    #[serde(default = "default_status_poll_hz")]
+    pub status_poll_hz: f64,
     /// GCS: the axis identifier on the controller.
     #[serde(default = "default_gcs_axis")]
     pub gcs_axis: String,
@@ -165,6 +168,9 @@ fn default_home_timeout_ms() -> u64 {
 }
 fn default_feed_um_s() -> f64 {
     10_000.0
+}
+fn default_status_poll_hz() -> f64 {
+    5.0
 }
 fn default_um_per_unit() -> f64 {
     1.0
@@ -570,6 +576,16 @@ impl Config {
         if s.um_per_unit <= 0.0 {
             return Err(self.invalid(&key("um_per_unit"), "must be positive"));
         }
+        let max_hz = crate::hw::grbl::MAX_POLL_HZ;
+        if !(s.status_poll_hz > 0.0 && s.status_poll_hz <= max_hz) {
+            return Err(self.invalid(
+                &key("status_poll_hz"),
+                format!(
+                    "must be above 0 and at most {max_hz} (GRBL's most), not {}",
+                    s.status_poll_hz
+                ),
+            ));
+        }
         if s.driver == StageDriver::Gcs
             && (s.gcs_axis.is_empty() || s.gcs_axis.contains(char::is_whitespace))
         {
@@ -700,6 +716,7 @@ impl StageConfig {
             home_timeout_ms: self.home_timeout_ms,
             on_alarm: self.on_alarm,
             home_on_connect: self.home_on_connect,
+            status_poll_hz: self.status_poll_hz,
             limits: self.limits(),
         }
     }

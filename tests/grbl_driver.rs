@@ -4,10 +4,10 @@
 
 mod support;
 
-use rigd::hw::grbl::{GrblOptions, GrblStage, OnAlarm};
+use rigd::hw::grbl::{GrblOptions, GrblStage, GrblState, OnAlarm};
 use rigd::hw::grbl_codes::GrblAlarm;
 use rigd::hw::limits::TravelLimits;
-use rigd::hw::{HwError, MotionState, Stage};
+use rigd::hw::{HwError, MotionState, Stage, StageStatus};
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
 use rigd::sim::motion::{AxisParams, Profile};
 use std::time::{Duration, Instant};
@@ -140,19 +140,22 @@ fn resume_after_a_feed_hold_goes_on_to_the_held_target() {
     let r = rig();
     let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
     s.move_abs(4_000.0).unwrap();
-    let polls = || 0..100_000;
-    assert!(
-        polls().any(|_| s.status().unwrap().position_um > 200.0),
-        "never under way"
-    );
-    // Someone presses the controller's feed-hold button.
-    r.sim.faults().update(|f| f.feed_hold = true);
-    let held = polls()
-        .find_map(|_| {
+    // status() answers from the last report, renewed at the poll budget: watch for 5 s.
+    let watch = |s: &mut GrblStage, f: &dyn Fn(&StageStatus) -> bool| {
+        let t0 = Instant::now();
+        while t0.elapsed() < Duration::from_secs(5) {
             let st = s.status().unwrap();
-            (st.state == MotionState::Holding).then_some(st.position_um)
-        })
-        .expect("the controller holds");
+            if f(&st) {
+                return Some(st.position_um);
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        None
+    };
+    std::thread::sleep(Duration::from_millis(60));
+    // Someone presses the controller's feed-hold button, the axis under way.
+    r.sim.faults().update(|f| f.feed_hold = true);
+    let held = watch(&mut s, &|st| st.state == MotionState::Holding).expect("the controller holds");
     assert!(held > 200.0 && held < 3_900.0, "held at {held}");
     s.resume().unwrap();
     s.move_abs(4_000.0).unwrap();
@@ -421,6 +424,24 @@ fn fault_late_reply_is_not_taken_for_the_next_one() {
 }
 
 #[test]
+fn a_mangled_status_report_is_asked_for_again() {
+    let r = rig();
+    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    let polls = s.polls();
+    r.sim.faults().update(|f| f.mangle_reports = 1);
+    let t0 = Instant::now();
+    assert_eq!(s.report().unwrap().state, GrblState::Idle);
+    // The second `?` comes at once, well within the reply deadline.
+    assert!(
+        t0.elapsed() < Duration::from_millis(500),
+        "{:?}",
+        t0.elapsed()
+    );
+    assert_eq!(s.polls() - polls, 2);
+    assert_eq!(s.garbage_lines(), 1);
+}
+
+#[test]
 fn fault_garbage_lines_are_skipped_and_counted() {
     let r = rig();
     let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
@@ -436,7 +457,7 @@ fn fault_port_gone_is_reported_then_reopened_on_next_use() {
     s.move_rel(50.0).unwrap();
     s.wait_settled(SETTLE).unwrap();
     unplug(r.sim.faults());
-    let e = s.position_um().unwrap_err();
+    let e = s.report().unwrap_err();
     assert!(matches!(e, HwError::PortGone { .. }), "{e}");
     assert!(!s.is_connected());
     // Still gone: reopening fails cleanly.

@@ -73,6 +73,9 @@ pub struct FaultPlan {
     pub drop_every: u32,
     /// Garbage before every Nth reply (0 = never).
     pub garbage_every: u32,
+    /// Mangle the next N status reports (`<…>` replies): their closing `>` garbled, as a
+    /// noisy line or grbl-sim's racing output does now and then.
+    pub mangle_reports: u32,
     /// The controller's feed-hold button, pressed (GRBL: taken as `!` on the emulator's next
     /// turn; a person at the machine, not the client).
     pub feed_hold: bool,
@@ -122,6 +125,13 @@ impl Faults {
         std::mem::take(&mut self.lock().plan.feed_hold)
     }
     /// Consumed by a controller when a move starts.
+    /// Whether to mangle this status report (one of `mangle_reports`).
+    fn take_mangle(&self) -> bool {
+        let p = &mut self.lock().plan;
+        let mangle = p.mangle_reports > 0;
+        p.mangle_reports = p.mangle_reports.saturating_sub(1);
+        mangle
+    }
     pub fn take_alarm_mid_move(&self) -> bool {
         std::mem::take(&mut self.lock().plan.alarm_mid_move)
     }
@@ -378,7 +388,13 @@ impl<C: Controller> Loop<C> {
                         bytes.extend_from_slice(GARBAGE);
                         bytes.extend_from_slice(self.ctrl.line_end());
                     }
+                    let at = bytes.len();
                     bytes.extend_from_slice(&b);
+                    if b.starts_with(b"<") && self.faults.take_mangle() {
+                        if let Some(i) = bytes[at..].iter().rposition(|&c| c == b'>') {
+                            bytes[at + i] = b'o';
+                        }
+                    }
                     (bytes, f.late.map(|d| now + d))
                 }
             };

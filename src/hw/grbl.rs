@@ -9,8 +9,10 @@
 //! - One line at a time, each answered `ok` or `error:N`. `ok` only means "accepted into the
 //!   planner": a move is followed by `G4 P0`, whose `ok` comes once the planner is empty —
 //!   that `ok` is the move's end. Any other line waits for it first.
-//! - `?` at most every [`POLL`] (5 Hz, as GRBL asks: each report costs the main loop that
-//!   feeds the stepper); `status()` answers from the last report in between.
+//! - `?` at 5 Hz on average (`status_poll_hz`, [`PollBudget`]; GRBL asks for no more, since
+//!   each report costs the main loop that feeds the stepper): `status()` answers from the
+//!   last report while it stands ([`POLL`] at rest, longer while a move's `ok` is awaited).
+//!   The report that confirms a move's end counts too, so steps come at 5 a second at most.
 //! - Push messages (`[MSG:…]`, `ALARM:N`, `<…>` reports, a banner after a reset) are not
 //!   replies: they update what the driver knows and the wait goes on.
 //! - Stop is a feed hold `!` (or jog cancel 0x85 for a jog), polled at 10 Hz until the hold
@@ -31,6 +33,7 @@ use super::grbl_codes::{GrblAlarm, GrblErrorCode};
 use super::grbl_lines::{classify, Line};
 pub use super::grbl_lines::{GrblReport, GrblState};
 use super::limits::TravelLimits;
+use super::poll_budget::PollBudget;
 use super::serial::{Deadline, OverSerial, SerialLink};
 use super::{HwError, MotionState, Stage, StageMachine, StageStatus};
 use serde::{Deserialize, Serialize};
@@ -73,6 +76,10 @@ pub struct GrblOptions {
     /// Run `$H` right after connecting.
     #[serde(default)]
     pub home_on_connect: bool,
+    /// Average rate of `?` status reports, Hz: GRBL asks for 5 at most, 10 "may be
+    /// possible". Each step's end is confirmed by one, so it also caps steps per second.
+    #[serde(default = "defaults::status_poll_hz")]
+    pub status_poll_hz: f64,
     pub limits: TravelLimits,
 }
 
@@ -92,6 +99,9 @@ mod defaults {
     pub fn home_timeout_ms() -> u64 {
         60_000
     }
+    pub fn status_poll_hz() -> f64 {
+        5.0
+    }
 }
 
 impl GrblOptions {
@@ -106,6 +116,7 @@ impl GrblOptions {
             home_timeout_ms: defaults::home_timeout_ms(),
             on_alarm: OnAlarm::Fail,
             home_on_connect: false,
+            status_poll_hz: defaults::status_poll_hz(),
             limits,
         }
     }
@@ -116,6 +127,12 @@ impl GrblOptions {
             return Err(format!(
                 "feed_um_s must be positive, not {}",
                 self.feed_um_s
+            ));
+        }
+        if !(self.status_poll_hz > 0.0 && self.status_poll_hz <= MAX_POLL_HZ) {
+            return Err(format!(
+                "status_poll_hz must be above 0 and at most {MAX_POLL_HZ} (GRBL's most), not {}",
+                self.status_poll_hz
             ));
         }
         if self.port.is_empty() {
@@ -150,6 +167,8 @@ pub struct GrblStage {
     synced: bool,
     /// The last status report and when it came: `status()` answers from it between polls.
     last: Option<(Instant, GrblReport)>,
+    /// The `?` rate budget ([`GrblOptions::status_poll_hz`]).
+    budget: PollBudget,
     /// `$100`/`$110`/`$120`, read at connect.
     machine: Option<StageMachine>,
     /// How long the last move sent takes at the controller's rate.
@@ -161,9 +180,14 @@ pub struct GrblStage {
 
 /// How long a line must stay quiet to count as drained.
 const DRAIN_QUIET: Duration = Duration::from_millis(30);
-/// Between `?` polls: GRBL's interface document asks for at most 5 Hz, since every report
-/// costs the main loop that also feeds the stepper segments.
+/// How long a report stands for the current state when nothing is moving.
 pub const POLL: Duration = Duration::from_millis(200);
+/// How long a report stands for the current state while a move runs: a move's end comes
+/// as the `ok` to its `G4 P0`, so following it needs few reports, and the budget is kept
+/// for the report that confirms where it ended.
+const FOLLOW: Duration = Duration::from_millis(500);
+/// GRBL's interface document: "10Hz may be possible".
+pub const MAX_POLL_HZ: f64 = 10.0;
 /// Between `?` polls while a stop waits for the feed hold to complete (10 Hz, GRBL's most).
 const STOP_POLL: Duration = Duration::from_millis(100);
 /// A read that takes only what has already arrived.
@@ -181,6 +205,7 @@ impl GrblStage {
         })?;
         Ok(GrblStage {
             link: SerialLink::new(&name, &opts.port, opts.baud, DRAIN_QUIET),
+            budget: PollBudget::new(opts.status_poll_hz, Instant::now()),
             name,
             opts,
             target_um: None,
@@ -472,30 +497,62 @@ impl GrblStage {
         }
     }
 
-    /// Ask for a `?` status report.
+    /// Ask for a `?` status report, within the poll budget (waiting for it if need be).
     fn query(&mut self, dl: Deadline) -> Result<GrblReport, HwError> {
-        self.link.write(b"?")?;
-        self.polls += 1;
+        let wait = self.budget.wait(Instant::now());
+        std::thread::sleep(wait);
+        self.query_now(dl.later_by(wait))
+    }
+
+    /// Ask for a `?` status report now: a stop watching the axis brake does not wait.
+    fn query_now(&mut self, mut dl: Deadline) -> Result<GrblReport, HwError> {
+        loop {
+            self.budget.spend(Instant::now());
+            self.link.write(b"?")?;
+            self.polls += 1;
+            match self.await_report(dl)? {
+                Some(r) => return Ok(r),
+                // The reply came mangled (line noise; grbl-sim's output races now and
+                // then): ask again, within the budget and the same deadline.
+                None => {
+                    let wait = self.budget.wait(Instant::now());
+                    std::thread::sleep(wait);
+                    dl = dl.later_by(wait);
+                }
+            }
+        }
+    }
+
+    /// The reply to a `?`, the lines before it taken in (`None`: it came mangled).
+    fn await_report(&mut self, dl: Deadline) -> Result<Option<GrblReport>, HwError> {
         loop {
             let raw = self.link.read_line(dl, "a status report")?;
             match classify(&raw) {
                 Line::Status(r) => {
                     self.note(&Line::Status(r));
-                    return Ok(r);
+                    return Ok(Some(r));
+                }
+                Line::Garbage(g) if g.starts_with('<') => {
+                    tracing::warn!(device = %self.name, line = %g, "a mangled status report");
+                    self.garbage_lines += 1;
+                    return Ok(None);
                 }
                 other => self.note(&other),
             }
         }
     }
 
-    /// The latest report: the last one while it is younger than a poll interval (with the
+    /// The latest report: the last one while it stands for the current state (with the
     /// lines that came since taken in), else a new one.
     fn current_report(&mut self) -> Result<GrblReport, HwError> {
-        if self.in_flight {
+        let stands = if self.in_flight {
             self.take_waiting_lines()?;
-        }
+            FOLLOW
+        } else {
+            POLL
+        };
         match self.last {
-            Some((at, r)) if at.elapsed() < POLL => Ok(r),
+            Some((at, r)) if at.elapsed() < stands => Ok(r),
             _ => self.query(self.reply_deadline()),
         }
     }
@@ -514,14 +571,14 @@ impl GrblStage {
         }
     }
 
-    /// Wait for the `ok` that ends the move in flight, polling `?` at [`POLL`] to follow it
-    /// (an alarm ends the wait). A wait that runs out forgets the move.
+    /// Wait for the `ok` that ends the move in flight, polling `?` every [`FOLLOW`] to follow
+    /// it (an alarm ends the wait). A wait that runs out forgets the move.
     fn finish_in_flight(&mut self, dl: Deadline) -> Result<(), HwError> {
         while self.in_flight {
             let left = dl.at.saturating_duration_since(Instant::now());
-            let next_poll = self
-                .last
-                .map_or(Duration::ZERO, |(at, _)| POLL.saturating_sub(at.elapsed()));
+            let next_poll = self.last.map_or(Duration::ZERO, |(at, _)| {
+                FOLLOW.saturating_sub(at.elapsed())
+            });
             let tick = Deadline::after(left.min(next_poll).max(NO_WAIT));
             match self
                 .link
@@ -786,7 +843,7 @@ impl GrblStage {
 /// moving controller is only the last resort: it raises `ALARM:3` (position lost).
 impl GrblStage {
     fn stop_now(&mut self) -> Result<(), HwError> {
-        let r = self.query(self.reply_deadline())?;
+        let r = self.query_now(self.reply_deadline())?;
         let r = match r.state {
             // Nothing moves in alarm; a hold that already completed needs no feed hold.
             GrblState::Alarm => {
@@ -831,7 +888,7 @@ impl GrblStage {
         let dl = Deadline::after(self.brake_budget());
         loop {
             std::thread::sleep(STOP_POLL);
-            let r = self.query(self.reply_deadline())?;
+            let r = self.query_now(self.reply_deadline())?;
             let braking = matches!(
                 r.state,
                 GrblState::Run | GrblState::Jog | GrblState::Hold { complete: false }
@@ -963,7 +1020,7 @@ impl Stage for GrblStage {
     }
 
     fn position_um(&mut self) -> Result<f64, HwError> {
-        Ok(self.report()?.position_um)
+        Ok(self.status()?.position_um)
     }
 
     fn stop(&mut self) -> Result<(), HwError> {

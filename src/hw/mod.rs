@@ -10,6 +10,7 @@ pub mod grbl_codes;
 mod grbl_lines;
 pub mod limits;
 pub mod pixfmt;
+pub mod poll_budget;
 pub mod serial;
 #[cfg(feature = "v4l2")]
 pub mod v4l2;

@@ -321,6 +321,13 @@ impl Deadline {
     pub fn expired(&self) -> bool {
         Instant::now() >= self.at
     }
+    /// The same deadline, `d` later (time spent waiting for a turn is not a reply's).
+    pub fn later_by(self, d: Duration) -> Deadline {
+        Deadline {
+            at: self.at + d,
+            budget: self.budget + d,
+        }
+    }
 }
 
 #[cfg(test)]

@@ -124,7 +124,7 @@ impl Firmware {
         }
         let port = std::fs::read_to_string(&pathfile).unwrap();
         Firmware {
-            bridge: Bridge(bridge),
+            bridge: Bridge(bridge, work.path().join("traffic.log")),
             port,
             work,
             _one_at_a_time: guard,
@@ -164,10 +164,13 @@ impl Firmware {
 }
 
 /// `pty_bridge.py` in its own process group, killed with the firmware it started on drop.
-struct Bridge(Child);
+struct Bridge(Child, PathBuf);
 
 impl Drop for Bridge {
     fn drop(&mut self) {
+        if std::thread::panicking() {
+            show_traffic_end(&self.1);
+        }
         // killpg itself: procps's `kill -KILL -PGID` may read the group as a signal number
         // and kill(-1) instead.
         let group = nix::unistd::Pid::from_raw(self.0.id() as i32);
@@ -263,5 +266,16 @@ impl RawClient {
                 return lines;
             }
         }
+    }
+}
+
+/// A failing test shows the end of the traffic, which its temporary folder takes away.
+fn show_traffic_end(log: &Path) {
+    let log = std::fs::read(log).unwrap_or_default();
+    let text = String::from_utf8_lossy(&log);
+    let lines: Vec<&str> = text.lines().collect();
+    eprintln!("the last of the firmware's traffic:");
+    for l in &lines[lines.len().saturating_sub(60)..] {
+        eprintln!("  {l}");
     }
 }
