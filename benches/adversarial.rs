@@ -1,11 +1,11 @@
-//! Issue 14's resource attacks against the real `rigd` binary, with the figures the goals
+//! Resource attacks against the real `rigd` binary, with the figures the goals
 //! name: CPU and log lines under a flood of idle connections at a 1024-fd limit, and RSS
 //! under pipelined unread `list` requests, subscribers that never read, and a whole-frame
 //! k = 32 job. Reads /proc/PID/stat and /proc/PID/status of the child.
 //!
 //! `cargo bench --bench adversarial` (this build's rigd); `RIGD_BIN=/path/to/rigd` to run
-//! the same attacks against another build (e.g. main's before issue 14). The whole-frame
-//! attack is only run against this build: before, it peaks at 7.5 GB.
+//! the same attacks against another build. The whole-frame attack is only run against this
+//! build: a build that accepts it peaks at 7.5 GB.
 //! Figures in docs/performance.md.
 
 #[path = "../tests/support/adversary.rs"]

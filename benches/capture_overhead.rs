@@ -1,4 +1,4 @@
-//! Capture overhead on `rigd --sim`'s rig (issue 10's goal): a 40-frame job at 50 µm steps,
+//! Capture overhead on `rigd --sim`'s rig (goal: ≤ 5 % of a step): a 40-frame job at 50 µm steps,
 //! settle 20 ms, processed at k = 10. From the session's steps.csv: the median interval
 //! between frames' exposure times against the median move + settle + grab. What is left is
 //! the engine's own time per step; the frame's PNG, fsync and processing run behind it.

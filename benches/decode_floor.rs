@@ -1,4 +1,4 @@
-//! Issue 12's two speed yardsticks for the 20-frame k = 10 job, as whole processes measured
+//! The two speed yardsticks for the 20-frame k = 10 job, as whole processes measured
 //! side by side in one run on this machine (docs/performance.md):
 //!
 //! - **floor**: this binary run again with `RIGD_DECODE_ONLY=DIR`: it reads and decodes every

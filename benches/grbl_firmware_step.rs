@@ -24,7 +24,7 @@ use rigd::cli::client::Client;
 use rigd::config::{Config, DaemonSettings};
 use rigd::daemon::protocol::Request;
 use rigd::daemon::server::Background;
-use rigd::daemon::session::Session;
+use rigd::session::Session;
 use std::time::Instant;
 
 const STEP_UM: f64 = 100.0;

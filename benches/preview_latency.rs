@@ -1,4 +1,4 @@
-//! The live view's goal (issue 13): grab-to-client latency at most one frame period on the
+//! The live view's goal: grab-to-client latency at most one frame period on the
 //! sim at 30 fps while a job runs, and the job's step interval unchanged within 2 %.
 //!
 //! `rigd --sim`'s rig with its camera at 30 fps (1280x720, exposure 10 ms); jobs of 40

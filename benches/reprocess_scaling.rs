@@ -12,10 +12,10 @@
 
 use rigd::acquisition::plan::plan;
 use rigd::acquisition::{JobSpec, Processing};
-use rigd::daemon::session::{unix_s, SessionState, SessionWriter, StepRow};
 use rigd::offline::reprocess::{reprocess, IndexTarget, Reprocess};
 use rigd::offline::Overrides;
 use rigd::rig::{RigInfo, RigMode};
+use rigd::session::{unix_s, SessionState, SessionWriter, StepRow};
 use rigd::sim::render::{SceneRenderer, View};
 use rigd::sim::{Board, CameraModel};
 use std::path::{Path, PathBuf};

@@ -328,7 +328,7 @@ impl Default for PipelineConfig {
 
 /// Where the daemon listens and records: `[daemon]` in a config file, overridden by
 /// `rigd --socket/--data-root`, defaulted when neither says ([`DaemonSettings::default`]).
-/// `rigd` serves on these (and locks them: `daemon::ownership`); `rigd` and `rigctl hw`
+/// `rigd` serves on these (and locks them: `ownership`); `rigd` and `rigctl hw`
 /// lock the devices in `lock_dir`, so both resolve it the same way.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -378,7 +378,7 @@ impl Default for DaemonSettings {
             idle_timeout_s: 600,
             max_job_memory_mb: 2048,
             on_feed_hold: crate::acquisition::HoldPolicy::Pause,
-            calibration_max_age_days: crate::daemon::calibration::DEFAULT_MAX_AGE_DAYS,
+            calibration_max_age_days: crate::calibration_note::DEFAULT_MAX_AGE_DAYS,
         }
     }
 }
@@ -536,7 +536,7 @@ impl Config {
 
     fn validate_stage(&self, name: &str, s: &StageConfig) -> Result<(), ConfigError> {
         // Numbers in messages print short: 1e308, not 309 digits.
-        use crate::rig::devices::short_um as um;
+        use crate::text::short_um as um;
         let key = |k: &str| format!("{name}.{k}");
         let needs_port = matches!(s.driver, StageDriver::Grbl | StageDriver::Gcs);
         if needs_port && s.port.as_deref().unwrap_or("").is_empty() {
@@ -599,7 +599,7 @@ impl Config {
 
     /// `[axis] default_start_um`: only the axis has one, inside its soft limits.
     fn validate_default_start(&self, name: &str, s: &StageConfig) -> Result<(), ConfigError> {
-        use crate::rig::devices::short_um as um;
+        use crate::text::short_um as um;
         let key = |k: &str| format!("{name}.{k}");
         let Some(v) = s.default_start_um else {
             return Ok(());

@@ -5,9 +5,9 @@
 //! `steps.csv`; written by `rigctl report` and `rigctl demo` (docs/paper-tables.md).
 
 use crate::acquisition::study::{JobResult, RunResult};
-use crate::daemon::session::StepRow;
 use crate::pipeline::stats::StudyStats;
 use crate::plot::{Chart, Series, Style};
+use crate::session::StepRow;
 
 /// Figure 4 for case `case` of a study: each target's offset along its nominal direction
 /// minus the nominal (so every target shares one axis), against the repeat.

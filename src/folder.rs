@@ -55,6 +55,16 @@ pub struct Folder {
 /// List and check a folder; `limit` keeps the first N frames only. Frames are read later,
 /// one at a time ([`load_frame`]).
 pub fn open(dir: &Path, limit: Option<usize>) -> Result<Folder, FolderError> {
+    if !dir.is_dir() {
+        return Err(FolderError::Io {
+            path: dir.to_path_buf(),
+            message: match dir.exists() {
+                true => "not a folder (give a session, or a folder of frames/*.png and steps.csv)",
+                false => "no such folder",
+            }
+            .into(),
+        });
+    }
     let frames_dir = dir.join("frames");
     let rd = std::fs::read_dir(&frames_dir).map_err(|e| FolderError::Io {
         path: frames_dir.clone(),

@@ -26,6 +26,7 @@ pub mod acquisition;
 pub mod atomic_file;
 pub mod bounds;
 pub mod calibration_file;
+pub mod calibration_note;
 pub mod calibration_store;
 pub mod cli;
 pub mod config;
@@ -37,10 +38,15 @@ pub mod hw;
 pub mod lock;
 pub mod nofollow;
 pub mod offline;
+pub mod ownership;
 pub mod plot;
 pub mod report;
 pub mod results_csv;
 pub mod rig;
+pub mod session;
+pub mod text;
+pub mod timestamps;
+pub mod versions;
 pub mod xl80;
 
 /// The simulator (feature `sim`, on by default).

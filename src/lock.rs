@@ -276,7 +276,7 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         let p = d.path().join("x.lock");
         let first = LockFile::acquire(&p, "data root /srv", &me(), "").unwrap();
-        // flock is per open file: a second open in this very process is refused too.
+        // flock is per open file: a second open in this very process is also refused.
         let e = LockFile::acquire(&p, "data root /srv", &me(), ": stop it first").unwrap_err();
         let msg = e.to_string();
         let pid = std::process::id();

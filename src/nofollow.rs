@@ -93,7 +93,7 @@ pub fn read_in(dir: &Path, rel: impl AsRef<Path>) -> io::Result<Vec<u8>> {
 
 /// [`read_in`] of a file of at most `max_bytes`: a larger one is refused, saying its size
 /// and the bound, before it is read (and a file growing meanwhile is cut at the bound + 1
-/// and refused too).
+/// and also refused).
 pub fn read_in_max(dir: &Path, rel: impl AsRef<Path>, max_bytes: u64) -> io::Result<Vec<u8>> {
     let rel = rel.as_ref();
     let file = open_in(dir, rel, Access::Read)?;

@@ -1,9 +1,9 @@
 //! Reports: one processing result as text, and a study as the paper's Tables 1-3 (text and
 //! JSON). Its Figures 4 and 5 are `figures`' charts.
 
-use crate::cli::text::wire_name;
 use crate::pipeline::stats::{StudyStats, TargetStats};
 use crate::pipeline::ProcessResult;
+use crate::text::wire_name;
 use std::fmt::Write;
 
 /// A processing result as a small table.
@@ -159,7 +159,7 @@ fn table3(s: &mut String, st: &StudyStats, names: &[&str]) {
 
 /// A table figure, or `—` when it is undefined (the spread of a single repeat).
 fn f(x: f64, digits: usize) -> String {
-    crate::cli::text::fixed(Some(x), digits)
+    crate::text::fixed(Some(x), digits)
 }
 
 fn short(name: &str) -> String {

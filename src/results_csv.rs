@@ -9,8 +9,8 @@
 
 use crate::acquisition::study::RunResult;
 use crate::atomic_file::{self, AtomicWriteError};
-use crate::cli::text::wire_name;
 use crate::pipeline::ProcessResult;
+use crate::text::wire_name;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 

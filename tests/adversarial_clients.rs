@@ -1,7 +1,7 @@
-//! Clients as an adversary writes them, against the real `rigd` binary (issue 14,
-//! "Resources"): a flood of idle connections at a 1024-fd limit, a client that pipelines
-//! requests and reads nothing, subscribers that read too slowly, `list` over many sessions,
-//! jobs whose processing would not fit in memory. The CPU and RSS figures of the same
+//! Clients as an adversary writes them, against the real `rigd` binary (resources): a flood
+//! of idle connections at a 1024-fd limit, a client that pipelines requests and reads
+//! nothing, subscribers that read too slowly, `list` over many sessions, jobs whose
+//! processing would not fit in memory. The CPU and RSS figures of the same
 //! attacks are in `benches/adversarial.rs` (docs/performance.md).
 
 #![cfg(feature = "sim")] // the simulated rig (default feature)
@@ -13,14 +13,14 @@ use std::time::{Duration, Instant};
 use support::adversary::{capture_job, follow, idle_flood, Spawn};
 
 /// The binary under test: this build's, or `RIGD_BIN` (to see the attacks against another
-/// build, e.g. main's before this change).
+/// build).
 fn rigd() -> String {
     std::env::var("RIGD_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_rigd").to_string())
 }
 
-/// The issue's attack: 1100 idle connections at the common 1024-fd soft limit while a job
-/// runs. Before: every accept failed with EMFILE in a tight loop (~90% CPU, ~900 000 log
-/// lines in 5 s), new clients stalled and the job failed with "Too many open files".
+/// 1100 idle connections at the common 1024-fd soft limit while a job runs. What it guards
+/// against: every accept failing with EMFILE in a tight loop (~90% CPU, ~900 000 log lines
+/// in 5 s), new clients stalled and the job failed with "Too many open files".
 #[test]
 fn an_fd_flood_leaves_the_job_whole_the_log_short_and_new_clients_served() {
     support::adversary::raise_fd_limit(1200);
@@ -81,9 +81,9 @@ fn an_fd_flood_leaves_the_job_whole_the_log_short_and_new_clients_served() {
     eprintln!("served {served_after:?} after the flood closed; {lines} log lines");
 }
 
-/// 300 pipelined `list` requests, never read. Before: replies queued without bound (150
-/// took 1.5 GB). Now the daemon stops reading while the client's queue is full and then
-/// disconnects it, logging why; other clients are served meanwhile.
+/// 300 pipelined `list` requests, never read. The daemon stops reading while the client's
+/// queue is full and then disconnects it, logging why; other clients are served meanwhile.
+/// (Replies queued without bound would take 1.5 GB for 150.)
 #[test]
 fn a_client_that_reads_nothing_is_cut_off_and_others_are_served() {
     let dir = tempfile::tempdir().unwrap();
@@ -144,9 +144,9 @@ fn a_client_that_reads_nothing_is_cut_off_and_others_are_served() {
     );
 }
 
-/// Subscribers that read nothing while jobs with 20 kB labels go by. Before: each held up
-/// to 1024 lines (60 of them took 1.9 GB). Now each has a byte-bounded queue: a slow one
-/// loses events, is told how many once it catches up, and then gets events again.
+/// Subscribers that read nothing while jobs with 20 kB labels go by. Each has a
+/// byte-bounded queue (queues of up to 1024 lines would let 60 of them take 1.9 GB): a slow
+/// one loses events, is told how many once it catches up, and then gets events again.
 #[test]
 fn a_slow_subscriber_loses_events_with_one_notice_and_a_fast_one_loses_none() {
     let dir = tempfile::tempdir().unwrap();
@@ -230,7 +230,7 @@ fn a_slow_subscriber_loses_events_with_one_notice_and_a_fast_one_loses_none() {
 }
 
 /// `list` over 25 sessions in pages of 10: every session once, newest first; bad limits
-/// named. Before: one reply held every session on disk.
+/// named; no reply holds every session on disk.
 #[test]
 fn list_comes_in_pages_that_cover_every_session_once() {
     let dir = tempfile::tempdir().unwrap();
@@ -285,9 +285,9 @@ fn list_comes_in_pages_that_cover_every_session_once() {
     }
 }
 
-/// The issue's `whole_frame` with k = 32 on 1280x720 frames: before, it was accepted and
-/// peaked at 7.5 GB (a 947 MB PNG, while the disk check budgeted ~6.5 MB). Now it is
-/// refused at submit naming the estimate and the budget, and so is a replay asking for it.
+/// `whole_frame` with k = 32 on 1280x720 frames (run, it peaks at 7.5 GB and writes a 947 MB
+/// PNG, where the disk check alone budgets ~6.5 MB) is refused at submit naming the estimate
+/// and the budget, and so is a replay asking for it.
 #[test]
 fn a_job_or_replay_over_the_memory_budget_is_refused_before_anything_moves() {
     let dir = tempfile::tempdir().unwrap();
@@ -307,7 +307,7 @@ fn a_job_or_replay_over_the_memory_budget_is_refused_before_anything_moves() {
     let m = r["error"]["message"].as_str().unwrap();
     assert!(m.starts_with("processing this job needs about "), "{m}");
     // 4 k² w h of f32 and its 16-bit copy (6 k² w h, 5.7 GB) while the run ends; then
-    // the copy kept, copied again and encoded: issue 14 measured a 7.5 GB peak.
+    // the copy kept, copied again and encoded: a run of it peaks at 7.5 GB (measured).
     let mb: u64 = m["processing this job needs about ".len()..]
         .split(' ')
         .next()

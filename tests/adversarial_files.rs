@@ -1,4 +1,4 @@
-//! Issue 14, "Files", against the real `rigd` binary: symlinks planted in the data root (a
+//! Files against the real `rigd` binary: symlinks planted in the data root (a
 //! session folder, a `.manifest.json.tmp`, a frame, a temporary) are never followed by
 //! recovery or by a replay; leftover temporaries are removed at recovery; the socket is
 //! 0600 without a group and 0660 with one.
@@ -9,8 +9,8 @@ mod support;
 
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::Manifest;
-use rigd::daemon::session::{self, Session, SessionState, MANIFEST};
+use rigd::session::Manifest;
+use rigd::session::{self, Session, SessionState, MANIFEST};
 use std::os::unix::fs::{symlink, PermissionsExt};
 use std::path::{Path, PathBuf};
 use support::daemon::{capture_job, run_job, session_name, subscribe};

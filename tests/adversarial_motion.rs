@@ -1,4 +1,4 @@
-//! Issue 14, "Motion limits" and "Drivers": the attacks on the drivers' limits, reproduced
+//! Motion limits and drivers: the attacks on the drivers' limits, reproduced
 //! over real pseudo-terminals against the GCS and GRBL emulators (their parsers are sim/'s
 //! own), each asserting what the stage truly did.
 //!
@@ -60,10 +60,10 @@ fn lim(min_um: f64, max_um: f64, max_step_um: f64) -> TravelLimits {
     TravelLimits::new(min_um, max_um, max_step_um).unwrap()
 }
 
-/// The issue's first GCS attack: soft limits 0–90 µm, a `move-abs 88` that times out while
-/// still moving, then (a new `rigctl hw` call) `move-rel 4`. Before: the step was checked
-/// against `POS?` (~6.7 + 4), `MVR 1 4` was sent and the piezo ended at 92 µm. After: it is
-/// checked against `MOV?` (88 + 4 = 92 > 90) and refused; the piezo ends at 88.
+/// The first GCS attack: soft limits 0–90 µm, a `move-abs 88` that times out while still
+/// moving, then (a new `rigctl hw` call) `move-rel 4`. The step is checked against `MOV?`
+/// (88 + 4 = 92 > 90) and refused; the piezo ends at 88. (Checked against `POS?`, ~6.7 + 4,
+/// `MVR 1 4` would be sent and the piezo would end at 92 µm.)
 #[test]
 fn a_relative_step_after_a_timed_out_move_is_checked_against_the_target() {
     let r = gcs(lim(0.0, 90.0, 90.0), 0.0);
@@ -87,10 +87,10 @@ fn a_relative_step_after_a_timed_out_move_is_checked_against_the_target() {
     assert!((r.true_um() - 88.0).abs() < 1e-3);
 }
 
-/// The issue's second GCS attack: `move-abs 50` then (a new call) `move-rel 50` on a 0–100
-/// travel. Before: checked against `POS?` (50.0004 with the loop's error) and refused as
-/// "move to 100.0004 µm". After: 50 + 50 = 100 from the target, accepted, ends at 100 µm.
-/// The tries include ones where the sensor read above 50 (the refusal before).
+/// The second GCS attack: `move-abs 50` then (a new call) `move-rel 50` on a 0–100 travel:
+/// 50 + 50 = 100 from the target, accepted, ends at 100 µm. (Checked against `POS?`, 50.0004
+/// with the loop's error, it would be refused as "move to 100.0004 µm".) The tries include
+/// ones where the sensor read above 50.
 #[test]
 fn a_legal_relative_step_is_not_refused_for_the_sensor_noise() {
     // 0.02 µm RMS positioning error: POS? is off the target by about that much (seeded).
@@ -112,8 +112,8 @@ fn a_legal_relative_step_is_not_refused_for_the_sensor_noise() {
 }
 
 /// `max_step_um` is the distance of any move from the last target, absolute moves too.
-/// Before: `move-abs 60` with a 50 µm max step was accepted (absolute moves were bounded by
-/// the travel alone).
+/// `move-abs 60` with a 50 µm max step is refused: absolute moves are not bounded by the
+/// travel alone.
 #[test]
 fn an_absolute_move_longer_than_max_step_is_refused_gcs() {
     let r = fast_gcs(lim(0.0, 100.0, 50.0), 0.0);
@@ -165,7 +165,7 @@ fn an_absolute_move_longer_than_max_step_is_refused_grbl() {
     assert!(matches!(e, HwError::Limit { .. }), "{e}");
 }
 
-/// A settle that runs out while GRBL answers every poll says so (before: "no reply within
+/// A settle that runs out while GRBL answers every poll says so (not "no reply within
 /// N ms (waiting for reply to \"G4 P0\")"); the move's late `ok` is not taken for the next
 /// command's, and no move is planned on top of the unfinished one.
 #[test]
@@ -211,8 +211,8 @@ fn a_gcs_settle_that_runs_out_is_not_settled_not_silent() {
     assert!((s.wait_settled(SETTLE).unwrap() - 20.0).abs() < 1e-3);
 }
 
-/// `home` keeps to `move_timeout_ms` (before: a fixed max(reply timeout, 1 s) deadline, so a
-/// 2.5 s home move failed at 1 s whatever the config said, and a stuck one took 1 s).
+/// `home` keeps to `move_timeout_ms`, not a fixed max(reply timeout, 1 s) deadline (with
+/// one, a 2.5 s home move would fail at 1 s whatever the config says, and a stuck one at 1 s).
 #[test]
 fn gcs_home_waits_as_long_as_the_config_says() {
     let r = gcs(lim(0.0, 100.0, 100.0), 0.0);
@@ -308,8 +308,8 @@ mod jobs {
         (axis, sim)
     }
 
-    /// The issue: with max_step_um = 5000 a job of 100 000 µm steps moved 1000 → 101000 →
-    /// 201000. Now refused at submit, naming the move and the limit; nothing moves.
+    /// With max_step_um = 5000 a job of 100 000 µm steps (1000 → 101000 → 201000) is refused
+    /// at submit, naming the move and the limit; nothing moves.
     #[test]
     fn a_job_with_steps_over_max_step_is_refused_at_submit() {
         let (axis, sim) = grbl();

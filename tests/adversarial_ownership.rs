@@ -1,4 +1,4 @@
-//! Issue 14, "Hardware ownership" and "Stops" (signals), against the real `rigd` binary: a
+//! Hardware ownership and stops (signals) against the real `rigd` binary: a
 //! second instance with the same config, the same data root, the same socket or the same
 //! port is refused before it sends a byte or changes a file; nothing but a stale socket is
 //! ever removed at the socket path; `rigctl hw` and `rigctl demo` honour the same locks;
@@ -11,8 +11,8 @@ mod support;
 
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::{Session, SessionState};
 use rigd::lock::{device_lock_path, Holder, LockFile};
+use rigd::session::{Session, SessionState};
 use rigd::sim::grbl::GrblSim;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};

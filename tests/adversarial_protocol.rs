@@ -1,8 +1,8 @@
-//! Protocol strictness against the real `rigd` binary (issue 14, "Protocol strictness"),
-//! and the simulated interferometer's log while the daemon idles. Before, each of these
-//! was accepted: a job sent as an array ran, `hello`/`list` took unknown fields, the last
-//! of duplicate keys won, ids beyond 2^53 came back altered, job ids repeated after a
-//! restart, and the sim XL-80's log grew ~24 kB/s with no job running.
+//! Protocol strictness against the real `rigd` binary, and the simulated interferometer's
+//! log while the daemon idles. None of these is accepted: a job sent as an array, unknown
+//! fields in `hello`/`list`, duplicate keys (the last winning), ids beyond 2^53 altered, job
+//! ids repeated after a restart, and the sim XL-80's log growing (~24 kB/s) with no job
+//! running.
 
 #![cfg(feature = "sim")] // the simulated rig (default feature)
 
@@ -12,7 +12,7 @@ use std::time::Duration;
 use support::adversary::{capture_job, follow, Spawn};
 
 /// The binary under test: this build's, or `RIGD_BIN` (to see the attacks against another
-/// build, e.g. main's before this change).
+/// build).
 fn rigd() -> String {
     std::env::var("RIGD_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_rigd").to_string())
 }
@@ -23,7 +23,7 @@ fn malformed_shapes_are_refused_and_nothing_runs() {
     let d = Spawn::new(rigd(), dir.path()).start();
     let mut c = d.client();
     let cases: &[(&str, &str)] = &[
-        // serde takes a struct as an array of its fields in order: this one ran before.
+        // serde takes a struct as an array of its fields in order: this one would run.
         (
             r#"{"id":1,"kind":"submit","job":["axis",10.0,3]}"#,
             "`job` must be a JSON object, got an array",
@@ -44,7 +44,7 @@ fn malformed_shapes_are_refused_and_nothing_runs() {
             r#"{"id":5,"kind":"status","kind":"cancel","job_id":1}"#,
             r#"duplicate key "kind" in the request"#,
         ),
-        // Issue 13's requests, as strict as the others: a second target would have won.
+        // Manual control's requests, as strict as the others: else a second target would win.
         (
             r#"{"id":6,"kind":"move","stage":"axis","to_um":10,"to_um":200000}"#,
             r#"duplicate key "to_um" in the request"#,
@@ -127,8 +127,8 @@ fn ids_come_back_exactly_or_are_refused() {
     }
 }
 
-/// Job 2 is cancelled while queued (it never makes a session), the daemon restarts: before,
-/// the next id was the highest on disk + 1, so 2 was handed out again.
+/// Job 2 is cancelled while queued (it never makes a session), the daemon restarts: the next
+/// id is not the highest on disk + 1, which would hand out 2 again.
 #[test]
 fn job_ids_never_repeat_across_restarts() {
     let dir = tempfile::tempdir().unwrap();
@@ -176,7 +176,7 @@ fn the_simulated_interferometer_log_does_not_grow_while_idle() {
         let a = size();
         std::thread::sleep(Duration::from_millis(1500));
         let b = size();
-        // At 1 kHz the log grew ~36 kB in 1.5 s before.
+        // A log written at 1 kHz while idle would grow ~36 kB in 1.5 s.
         assert_eq!(a, b, "the log grew {} bytes in 1.5 s {what}", b - a);
     };
     idle("after the start");

@@ -1,4 +1,4 @@
-//! Issue 11: calibration from the stage on the sim's `webcam` camera (a board 1°/1.5° off
+//! Calibration from the stage on the sim's `webcam` camera (a board 1°/1.5° off
 //! parallel, barrel distortion, MJPEG). A scan of known displacements rendered as a
 //! `rigctl process` folder, `rigctl calibrate` on it, the local scale it finds against the
 //! sim's optics, and the offsets of a measurement run before and after `--calibration`.

@@ -108,7 +108,7 @@ fn every_config_file_parses_as_a_rig_config() {
 
 #[test]
 fn a_block_that_drifted_is_caught() {
-    // The schema docs/stages.md used to show: a `[axis.limits]` table rigd does not have.
+    // A drifted block: an `[axis.limits]` table rigd does not have.
     let md = "Text.\n\n```toml\n[axis]\ndriver = \"grbl\"\nport = \"/dev/ttyUSB0\"\n\
               [axis.limits]\nmin_um = 0\n```\n\n<!-- toml: sim-rig -->\n```toml\nseed = 1\n```\n";
     let blocks = toml_blocks(Path::new("drift.md"), md);

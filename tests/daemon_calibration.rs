@@ -1,4 +1,4 @@
-//! Issue 11: the daemon's calibration job over its real socket, on the simulated rig. The
+//! The daemon's calibration job over its real socket, on the simulated rig. The
 //! job scans, fits (the code path of `rigctl calibrate DIR`) and keeps the record in the
 //! data root as the current calibration; the next job applies it and names it in its
 //! events, manifest and result; a stale or mismatched record warns, a corrupt one fails the
@@ -10,8 +10,8 @@ mod support;
 
 use rigd::acquisition::calibration_job::CalibrationScan;
 use rigd::acquisition::JobSpec;
+use rigd::calibration_note::CalibrationNote;
 use rigd::calibration_store;
-use rigd::daemon::calibration::CalibrationNote;
 use rigd::daemon::protocol::{EventBody, Request};
 use rigd::rig::simulated;
 use serde_json::Value;
@@ -279,8 +279,8 @@ fn rigctl_calibrate_without_a_folder_runs_the_daemons_job_and_prints_its_summary
 
 /// A job queued behind a calibration job counts the ink prior that calibration may learn:
 /// the submit reply's `memory_mb` (what was checked against `[daemon] max_job_memory_mb`)
-/// is the prior's working set more than the same job's alone. Before, only the current
-/// calibration's prior was counted, and a job queued behind a scan was estimated short.
+/// is the prior's working set more than the same job's alone. Counting only the current
+/// calibration's prior would estimate a job queued behind a scan short.
 #[test]
 fn a_job_behind_a_calibration_job_counts_the_prior_it_may_learn() {
     let d = Daemon::start(simulated(&rigd::cli::demo::sim_settings("webcam").unwrap()).unwrap());

@@ -8,8 +8,8 @@ mod support;
 
 use rigd::acquisition::{JobSpec, StageKind};
 use rigd::daemon::protocol::Request;
-use rigd::daemon::session::SessionState;
 use rigd::rig::from_config;
+use rigd::session::SessionState;
 use std::time::Instant;
 use support::daemon::{
     assert_finished, capture_job, config, fast_grbl, run_job, subscribe, Daemon, RigdProcess,

@@ -7,7 +7,7 @@ mod support;
 use rigd::acquisition::JobSpec;
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::{Session, SessionState};
+use rigd::session::{Session, SessionState};
 use std::path::PathBuf;
 use support::daemon::{assert_frames_decode, capture_job, submit, subscribe, RigdProcess};
 

@@ -8,8 +8,8 @@ mod support;
 use rigd::acquisition::{JobRegistration, JobSpec};
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::{Session, SessionState};
 use rigd::pipeline::{Combine, Estimator};
+use rigd::session::{Session, SessionState};
 use support::daemon::{
     assert_finished, events_until_end, job_id, rig_from_toml, subscribe, Daemon,
 };

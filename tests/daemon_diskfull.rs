@@ -12,7 +12,7 @@ mod support;
 use rigd::acquisition::JobSpec;
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::{Session, SessionState};
+use rigd::session::{Session, SessionState};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

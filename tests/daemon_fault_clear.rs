@@ -1,10 +1,9 @@
-//! Issue 14, "A latched alarm or a lost port leaves the daemon unusable", and the stops:
-//! through the daemon over its real socket on the simulated rig (rigd's GRBL driver over a
-//! pty to the GRBL emulator, whose own fault injection raises ALARM:1 or pulls the port).
-//! Before: every later job was accepted, created an empty session and failed, and nothing in
-//! the protocol unlocked, homed or reconnected. After: the rig state says `fault` (device,
-//! reason, what clears it) to every client, jobs are refused at submit naming the request
-//! that clears it, and `unlock` / `reconnect` clear it once the controller confirms.
+//! A latched alarm or a lost port, and the stops, through the daemon over its real socket on
+//! the simulated rig (rigd's GRBL driver over a pty to the GRBL emulator, whose own fault
+//! injection raises ALARM:1 or pulls the port). The rig state says `fault` (device, reason,
+//! what clears it) to every client, jobs are refused at submit naming the request that
+//! clears it (none is accepted only to make an empty session and fail), and `unlock` /
+//! `reconnect` clear it once the controller confirms.
 
 #![cfg(feature = "sim")]
 
@@ -13,8 +12,8 @@ mod support;
 use rigd::acquisition::JobSpec;
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::{Session, SessionState};
 use rigd::rig::{simulated, Fault, SimSettings};
+use rigd::session::{Session, SessionState};
 use std::time::Duration;
 use support::daemon::{
     assert_finished, capture_job, events_until_end, fast_camera, reported_steps, run_job, submit,

@@ -10,9 +10,9 @@ mod support;
 use rigd::acquisition::outcome::{EndDetail, Phase};
 use rigd::acquisition::JobSpec;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::{Session, SessionState};
 use rigd::hw::MotionState;
 use rigd::rig::{simulated_with_truth, Fault, SimSettings, SimTruth};
+use rigd::session::{Session, SessionState};
 use rigd::sim::motion::AxisParams;
 use std::time::{Duration, Instant};
 use support::daemon::{

@@ -7,7 +7,7 @@
 mod support;
 
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::SessionState;
+use rigd::session::SessionState;
 use std::time::{Duration, Instant};
 use support::daemon::{capture_job, events_until_end, rig_from_toml, submit, Daemon};
 use support::firmware::Firmware;

@@ -11,10 +11,10 @@ mod support;
 
 use rigd::acquisition::{HoldPolicy, JobSpec};
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::SessionState;
 use rigd::hw::grbl::{GrblOptions, GrblStage};
 use rigd::hw::limits::TravelLimits;
 use rigd::hw::{HwError, Stage, StageStatus};
+use rigd::session::SessionState;
 use std::time::{Duration, Instant};
 use support::daemon::{
     end_of, events_until_end, fast_grbl, rig_from_toml, submit, Daemon, SIM_RIG_SMALL,

@@ -8,8 +8,8 @@ mod support;
 use rigd::acquisition::{JobSpec, Processing};
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::SessionState;
 use rigd::rig::{simulated, Fault, SimSettings};
+use rigd::session::SessionState;
 use serde_json::Value;
 use support::daemon::{
     assert_finished, assert_frames_decode, capture_job, events_until_end, fast_camera, job_id,

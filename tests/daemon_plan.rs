@@ -8,9 +8,9 @@ mod support;
 
 use rigd::acquisition::{Grid, JobRegistration, JobSpec, Line, ScanPlan, StageKind};
 use rigd::daemon::protocol::Request;
-use rigd::daemon::session::Session;
 use rigd::pipeline::Combine;
 use rigd::rig::{simulated, SimSettings};
+use rigd::session::Session;
 use support::daemon::*;
 
 fn sim(dir: &std::path::Path) -> SimSettings {

@@ -521,7 +521,7 @@ fn registration_by_image_keeps_the_commanded_position_and_records_the_reading() 
     );
 }
 
-/// Issue 14: a SIGTERM (the daemon's shutdown) during the last step's settle ends that step
+/// A SIGTERM (the daemon's shutdown) during the last step's settle ends that step
 /// without its frame, and the job ends cancelled with the frames before it.
 #[test]
 fn a_shutdown_during_the_last_settle_records_only_the_frames_before() {
@@ -558,9 +558,8 @@ fn a_shutdown_during_the_last_settle_records_only_the_frames_before() {
     assert_eq!(sink.records[0].commanded_um, 100.0);
 }
 
-/// Issue 14: a client told `cancelling` during the last step's grab gets `cancelled`, not
-/// `finished`, and that grab's frame is not recorded (before the engine, 14 of 40 such
-/// cancels ended `finished`).
+/// A client told `cancelling` during the last step's grab gets `cancelled`, not `finished`,
+/// and that grab's frame is not recorded.
 #[test]
 fn a_cancel_during_the_last_grab_ends_cancelled_without_that_frame() {
     let p = plan(&[100.0, 150.0, 200.0]);

@@ -11,9 +11,9 @@
 mod support;
 
 use image::RgbImage;
-use rigd::daemon::frame_png;
-use rigd::daemon::session::Session;
 use rigd::export::{export, ExportError, Format};
+use rigd::session::frame_png;
+use rigd::session::Session;
 use std::path::Path;
 use support::daemon::{capture_job, record_small};
 use tiff::decoder::{ifd::Value, Decoder, DecodingResult};

@@ -13,8 +13,8 @@ mod support;
 use hdf5::types::VarLenUnicode;
 use hdf5_metno as hdf5;
 use rigd::acquisition::{Grid, JobSpec, Line, ScanPlan, StageKind};
-use rigd::daemon::session::Session;
 use rigd::export::{export, Format};
+use rigd::session::Session;
 use support::daemon::{capture_job, record_small};
 
 const FRAMES: u32 = 5;

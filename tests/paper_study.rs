@@ -1,4 +1,4 @@
-//! The paper's study on the simulated rig (issue 3, "The paper, reproduced").
+//! The paper's study on the simulated rig: the paper, reproduced.
 //!
 //! Each experiment starts the camera at a random sub-pixel position and renders the paper's
 //! three cases: one raw frame; 10 frames at 100 µm steps (k = 5); 20 frames at 50 µm steps

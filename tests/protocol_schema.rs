@@ -185,7 +185,7 @@ fn traffic(tap: &mut Tap) {
     tap.send(json!({"kind": "resume_session", "session": "nope"}));
 }
 
-/// Issue 13's requests: manual control, the live view, pause and resume, a 2-D plan.
+/// Manual control, the live view, pause and resume, a 2-D plan.
 fn at_the_rig(tap: &mut Tap) {
     tap.ok(json!({"kind": "position"}));
     tap.ok(json!({"kind": "move", "stage": "axis", "by_um": 100.0}));

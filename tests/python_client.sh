@@ -17,3 +17,13 @@ while [ ! -S "$DIR/rigd.sock" ]; do
     sleep 0.05
 done
 python3 docs/examples/client.py "$DIR/rigd.sock"
+# Without an argument it takes $RIGD_SOCKET, as rigctl does.
+RIGD_SOCKET="$DIR/rigd.sock" python3 docs/examples/client.py >/dev/null
+# No daemon: a message naming the socket, not a traceback.
+if out=$(python3 docs/examples/client.py "$DIR/missing.sock" 2>&1); then
+    echo "client.py succeeded without a daemon"; exit 1
+fi
+case "$out" in
+    *"cannot connect to rigd at $DIR/missing.sock"*) ;;
+    *) echo "client.py without a daemon said: $out"; exit 1 ;;
+esac

@@ -10,8 +10,8 @@ mod support;
 
 use rigd::acquisition::{JobSpec, PaperCase};
 use rigd::daemon::protocol::Request;
-use rigd::daemon::session::Session;
 use rigd::rig::simulated;
+use rigd::session::Session;
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -164,6 +164,32 @@ fn process_on_a_study_session_gives_the_daemons_result_run_by_run() {
     ]);
     let e = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && e.contains("1..=32"), "{e}");
+}
+
+/// `--k` on a session whose runs average per-frame fits (`combine = mean`) would change
+/// nothing: it is refused, saying what to add; with `--combine interp` it reconstructs.
+#[test]
+fn k_on_a_session_combined_by_mean_is_refused_saying_what_would_use_it() {
+    let d = daemon();
+    let job = JobSpec {
+        combine: Some(rigd::pipeline::Combine::Mean),
+        ..scan(4, "mean")
+    };
+    let (s, _) = recorded(&d, job);
+    let out = rigctl(&[
+        "process".as_ref(),
+        s.dir.as_os_str(),
+        "--k".as_ref(),
+        "3".as_ref(),
+    ]);
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{e}");
+    assert!(
+        e.contains("--k 3 changes nothing") && e.contains("--combine interp"),
+        "{e}"
+    );
+    let v = process_json(&s.dir, &["--k", "3", "--combine", "interp"]);
+    assert_eq!(v["runs"][0]["result"]["options"]["k"], 3, "{v}");
 }
 
 /// Every file below `dir`, by its path relative to `dir`, with its bytes.

@@ -1,4 +1,4 @@
-//! Issue 12's "results a lab can use": the flat `results.csv` beside every `result.json`
+//! Results a lab can use: the flat `results.csv` beside every `result.json`
 //! (a daemon's session on the sim rig, `rigctl process --out`), and `rigctl report`'s
 //! labelled figures and report of a study session.
 
@@ -124,7 +124,7 @@ fn a_study_session_has_its_results_table_and_rigctl_report_draws_its_figures() {
 
 /// The residual chart's numbers: each step's displacement within the sim's errors of the
 /// commanded one (a sign or unit slip would put them hundreds of µm off).
-fn check_residuals(result: &JobResult, s: &rigd::daemon::session::Session) {
+fn check_residuals(result: &JobResult, s: &rigd::session::Session) {
     let chart = rigd::figures::residuals(&result.runs, &s.steps);
     let series: HashMap<&str, &Series> =
         chart.series.iter().map(|x| (x.label.as_str(), x)).collect();

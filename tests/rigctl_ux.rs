@@ -1,4 +1,4 @@
-//! rigctl as a new user meets it (issue 13): the real `rigctl` and `rigd` binaries against a
+//! rigctl as a new user meets it: the real `rigctl` and `rigd` binaries against a
 //! `rigd --sim` on a temporary socket. Status and list as tables with start, elapsed and
 //! ETA; submit's results table and absolute session path; negative numbers; one-repeat
 //! studies; messages without Rust internals; every argument with a help text.
@@ -246,6 +246,21 @@ fn submit_ends_with_a_results_table_and_the_sessions_absolute_path() {
         data
     );
     assert!(session.join("result.json").is_file());
+    // u, the board's nominal and the bias are columns; the calibration is named.
+    assert!(
+        lines[0].contains("u dx") && lines[0].contains("bias dx"),
+        "{text}"
+    );
+    // Uncalibrated: u is the global scale's 2 % of the offset's length, and the scatter's.
+    let u: f64 = cells[7].parse().unwrap();
+    let dy: f64 = cells[4].parse().unwrap();
+    assert!((u - 0.02 * dx.hypot(dy)).abs() < 5.0, "u of F: {f}");
+    let bias: f64 = cells[11].parse().unwrap();
+    assert!(
+        (dx - cells[9].parse::<f64>().unwrap() - bias).abs() < 0.1,
+        "{f}"
+    );
+    assert!(text.contains("calibration: none applied"), "{text}");
 
     // A bare submit names the flags it needs, not the protocol's fields.
     let e = err(&rigctl(&socket, &["submit"]));
@@ -330,8 +345,10 @@ fn hw_without_a_config_says_why_once() {
 #[test]
 fn the_demo_keeps_its_report_and_drops_its_frames_unless_told_to_keep_them() {
     let dir = tempfile::tempdir().unwrap();
+    let tmp = tempfile::tempdir().unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_rigctl"))
         .current_dir(dir.path())
+        .env("TMPDIR", tmp.path())
         .args(["demo", "--repeats", "1"])
         .output()
         .unwrap();
@@ -351,4 +368,199 @@ fn the_demo_keeps_its_report_and_drops_its_frames_unless_told_to_keep_them() {
     );
     assert!(session.join("result.json").is_file() && session.join("steps.csv").is_file());
     assert!(!session.join("frames").exists(), "the frames were kept");
+    // Its socket and the socket's lock went with it.
+    let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().collect();
+    assert!(left.is_empty(), "left in TMPDIR: {left:?}");
+}
+
+/// `rigctl submit` following a long job, its stderr lines on a channel.
+fn submit_followed(socket: &Path) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
+    use std::io::BufRead;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args([
+            "submit",
+            "--steps",
+            "400",
+            "--step-um",
+            "50",
+            "--settle-ms",
+            "50",
+        ])
+        .env("RIGD_SOCKET", socket)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let stderr = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stderr).lines() {
+            let Ok(line) = line else { return };
+            if tx.send(line).is_err() {
+                return;
+            }
+        }
+    });
+    (child, rx)
+}
+
+/// The first stderr line containing `what`, within 20 s.
+fn line_with(rx: &std::sync::mpsc::Receiver<String>, what: &str) -> String {
+    let t0 = Instant::now();
+    while let Some(left) = Duration::from_secs(20).checked_sub(t0.elapsed()) {
+        match rx.recv_timeout(left) {
+            Ok(l) if l.contains(what) => return l,
+            Ok(_) => {}
+            Err(_) => break,
+        }
+    }
+    panic!("no line with {what:?} on rigctl's stderr");
+}
+
+fn interrupt(child: &std::process::Child) {
+    let pid = nix::unistd::Pid::from_raw(child.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGINT).unwrap();
+}
+
+#[test]
+fn ctrl_c_on_submit_says_the_job_goes_on_and_a_second_one_cancels_it() {
+    let (_dir, socket, _rigd) = sim();
+    let (mut child, rx) = submit_followed(&socket);
+    let queued = line_with(&rx, "queued");
+    let id: u64 = queued.split_whitespace().nth(1).unwrap().parse().unwrap();
+    interrupt(&child);
+    let said = line_with(&rx, "keeps running");
+    assert!(said.contains(&format!("rigctl cancel {id}")), "{said}");
+    interrupt(&child);
+    line_with(&rx, &format!("cancelling job {id}"));
+    let status = child.wait().unwrap();
+    assert!(!status.success());
+    let st = json(&socket, &["status", &id.to_string(), "--json"]);
+    assert_eq!(st["state"], "cancelled", "{st}");
+}
+
+#[test]
+fn one_ctrl_c_on_submit_detaches_and_the_job_runs_on() {
+    let (_dir, socket, _rigd) = sim();
+    let (mut child, rx) = submit_followed(&socket);
+    let queued = line_with(&rx, "queued");
+    let id: u64 = queued.split_whitespace().nth(1).unwrap().parse().unwrap();
+    interrupt(&child);
+    line_with(&rx, "keeps running");
+    line_with(&rx, &format!("detached from job {id}"));
+    assert_eq!(child.wait().unwrap().code(), Some(130));
+    let st = json(&socket, &["status", &id.to_string(), "--json"]);
+    assert_eq!(st["state"], "running", "{st}");
+    ok(&rigctl(&socket, &["cancel", &id.to_string()]));
+}
+
+#[test]
+fn numbers_that_mean_nothing_are_refused_naming_the_flag() {
+    let bogus = Path::new("/nonexistent/rigd.sock");
+    for (args, flag, says) in [
+        (
+            &["submit", "--steps", "20", "--step-um", "NaN"][..],
+            "--step-um",
+            "not a finite number",
+        ),
+        (
+            &["submit", "--steps", "-20", "--step-um", "50"][..],
+            "--steps",
+            "-20",
+        ),
+        (
+            &[
+                "submit",
+                "--steps",
+                "2",
+                "--step-um",
+                "5",
+                "--start-um",
+                "inf",
+            ][..],
+            "--start-um",
+            "not a finite number",
+        ),
+        (
+            &["move", "--by-um", "NaN"][..],
+            "--by-um",
+            "not a finite number",
+        ),
+    ] {
+        let e = err(&rigctl(bogus, args));
+        assert!(e.contains(flag) && e.contains(says), "{args:?}: {e}");
+        assert!(!e.contains("unexpected argument"), "{args:?}: {e}");
+    }
+}
+
+#[test]
+fn a_missing_session_or_folder_is_named_once_with_its_cause_once() {
+    let bogus = Path::new("/nonexistent/rigd.sock");
+    for args in [
+        &["export", "/nonexistent/session-x", "--format", "ome-tiff"][..],
+        &["reprocess", "/nonexistent/session-x"],
+        &["process", "/nonexistent/session-x"],
+        &["report", "/nonexistent/session-x"],
+    ] {
+        let cmd = args[0];
+        let e = err(&rigctl(bogus, args));
+        assert!(e.contains("/nonexistent/session-x"), "{cmd}: {e}");
+        let causes =
+            e.matches("No such file or directory").count() + e.matches("no such folder").count();
+        assert_eq!(causes, 1, "{cmd}: {e}");
+        assert!(!e.contains("cannot list the frames folder"), "{cmd}: {e}");
+    }
+}
+
+#[test]
+fn info_shows_the_rig_a_number_depends_on() {
+    let (dir, socket, _rigd) = sim();
+    let text = ok(&rigctl(&socket, &["info"]));
+    for want in [
+        "rig ",
+        "sim",
+        "scale",
+        "µm/px",
+        "frame",
+        "axis limits",
+        "axis controller",
+    ] {
+        assert!(text.contains(want), "{want:?} in:\n{text}");
+    }
+    let root = std::fs::canonicalize(dir.path().join("data")).unwrap();
+    assert!(text.contains(&root.display().to_string()), "{text}");
+    assert_no_internals(&text);
+    assert!(text.contains("sim: ideal"), "{text}");
+    let v = json(&socket, &["hello", "--json"]);
+    assert_eq!(v["data_root"].as_str(), Some(root.to_str().unwrap()), "{v}");
+}
+
+#[test]
+fn rigd_sim_takes_a_camera_profile_and_only_with_sim() {
+    let dir = tempfile::tempdir().unwrap();
+    let socket = dir.path().join("rigd.sock");
+    let _rigd = RigdProcess::spawn(
+        &[
+            "--sim".as_ref(),
+            "--camera".as_ref(),
+            "webcam".as_ref(),
+            "--socket".as_ref(),
+            socket.as_os_str(),
+            "--data-root".as_ref(),
+            dir.path().join("data").as_os_str(),
+        ],
+        &socket,
+    );
+    let v = json(&socket, &["info", "--json"]);
+    assert_eq!(v["rig"]["camera"], "sim: webcam", "{v}");
+    let out = Command::new(env!("CARGO_BIN_EXE_rigd"))
+        .args(["--camera", "webcam", "--socket"])
+        .arg(dir.path().join("other.sock"))
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && e.contains("--camera needs --sim"),
+        "{e}"
+    );
 }

@@ -1,7 +1,7 @@
-//! The V4L2 camera backend against a real kernel driver (vivid in the VM harness of issue 6,
-//! or any camera). Set RIGD_V4L2_DEVICE to the capture node (e.g. /dev/video0); without it
-//! every test prints `SKIPPED: <test>: <why>` (shown even when output is captured) and
-//! passes; a node named there that does not exist fails the tests.
+//! The V4L2 camera backend against a real kernel driver (vivid in docs/vivid.md's VM
+//! harness, or any camera). Set RIGD_V4L2_DEVICE to the capture node (e.g. /dev/video0);
+//! without it every test prints `SKIPPED: <test>: <why>` (shown even when output is
+//! captured) and passes; a node named there that does not exist fails the tests.
 //!
 //! Optional: RIGD_V4L2_FORMAT (YUYV, RGB3 or MJPG; default YUYV), RIGD_V4L2_SIZE (WxH;
 //! default 1280x720).

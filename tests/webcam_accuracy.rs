@@ -1,4 +1,4 @@
-//! Issue 11's study: how well rigd measures offsets on the sim's `webcam` camera (Bayer,
+//! The webcam study: how well rigd measures offsets on the sim's `webcam` camera (Bayer,
 //! demosaicing, sRGB, sharpening, MJPEG 4:2:0, a tilted board, barrel distortion, a rough
 //! print), on random layouts it has never seen, against the raw-sensor Cramér–Rao bound.
 //!
@@ -221,7 +221,7 @@ fn calibrate(frames: &FrameRenderer, sequence: &mut u64) -> Arc<Calibration> {
     } else {
         Calibration::fit_twice(measure, &fit).unwrap()
     };
-    println!("{}", rigd::cli::calibrate::summary(&cal));
+    println!("{}", rigd::calibration_note::summary(&cal));
     if std::env::var("RIGD_TRUE_MAP").is_ok() {
         true_maps(frames, &mut cal);
     }
@@ -779,7 +779,7 @@ fn which_effect_scatters() {
 /// scan learns 4.17 % over 3217 µm (the print is 4 % over 3000 µm); calibrated std 10.80 /
 /// 4.80 / 2.80 µm (1.50 / 2.11 / 1.74x), bias 12.8 / 9.2 / 9.1 µm (17.1 / 13.7 / 14.3 µm
 /// without the prior), within 2u 96 / 96 / 97 %. With the density read 2.5 blur widths
-/// inside the edges (before), the disks went unread, the rings' 1.6 px band learnt 2.9 %
+/// inside the edges, the disks went unread, the rings' 1.6 px band learnt 2.9 %
 /// over 1423 µm, and the prior left 15.2 / 12.1 / 12.4 µm and covered 90 / 94 / 94 %.
 #[test]
 #[ignore = "a diagnosis: cargo test --release --test webcam_accuracy -- --ignored --nocapture unsharpened"]
@@ -901,7 +901,7 @@ fn noiseless_bias_of_each_shape() {
 /// (u 101 µm), the lens blur undone, in the contrast-weighted plane, each target's cells
 /// together, read 2 blur widths inside the edges (each shape alone, 2.5 widths inside:
 /// 4.36 %, 2833 µm; in green alone 3.90 %,
-/// 2767 µm; on the sim before it blurred the density, 4.10 / 3.88 / 4.09 % and 2718 /
+/// 2767 µm; on a sim that does not blur the density, 4.10 / 3.88 / 4.09 % and 2718 /
 /// 2747 / 2819 µm on layouts 11 / 12 / 13). On the ideal camera's even print it finds no
 /// unevenness worth a prior.
 #[test]
@@ -1014,7 +1014,7 @@ fn the_calibration_maps_each_targets_ink() {
         "{m:?}"
     );
     // The calibration's summary tells the user what to change.
-    let text = rigd::cli::calibrate::summary(&cal);
+    let text = rigd::calibration_note::summary(&cal);
     assert!(
         text.contains("halos just inside the edges") && text.contains("sharpness = 0"),
         "{text}"
@@ -1045,13 +1045,13 @@ fn the_calibration_measures_the_lenss_lateral_colour() {
         l.magnification_u[2] < 5e-6 && l.residual_rms_px[2] < 0.015,
         "{l:?}"
     );
-    // The record keeps it, and a record from before it was measured reads as unmeasured.
+    // The record keeps it, and a record without it reads as unmeasured.
     let json = serde_json::to_value(&*cal).unwrap();
     let back: Calibration = serde_json::from_value(json.clone()).unwrap();
     assert_eq!(back.lateral_colour, cal.lateral_colour);
     let mut old = json;
     old.as_object_mut().unwrap().remove("lateral_colour");
-    // A record from before the scan chose its ink margin: read at 2 blur widths.
+    // A record without the scan's ink margin: read at 2 blur widths.
     old.as_object_mut()
         .unwrap()
         .remove("ink_margin")
@@ -1070,7 +1070,7 @@ fn the_calibration_measures_the_lenss_lateral_colour() {
         "{m:?}"
     );
     assert_eq!(cal.ink_margin_s(), DENSITY_READ_MARGIN_S);
-    let text = rigd::cli::calibrate::summary(&cal);
+    let text = rigd::calibration_note::summary(&cal);
     assert!(
         text.contains("ink read from 1.00 blur widths inside the edges (bands against the interior, in blur widths: 1.00–1.25: ")
             && !text.contains("halos"),

@@ -438,9 +438,9 @@ fn sample_with_low_bytes(bits: u64, low: &[u8]) -> f64 {
     }
 }
 
-/// Issue 14: the reader skipped two more bytes after `Data:` when they were CR LF, so a
-/// capture whose first sample's low bytes are 0D 0A (1 in 65 536) was read shifted: readings
-/// of ±1e300 µm and "no `EOF::`". Nor may a sample whose bytes begin `EOF::` end the data.
+/// After `Data:` the reader takes the next bytes as samples even when they are CR LF: a
+/// capture whose first sample's low bytes are 0D 0A (1 in 65 536) is not read two bytes
+/// shifted (readings of ±1e300 µm and "no `EOF::`"). Nor may a sample whose bytes begin `EOF::` end the data.
 #[test]
 fn rtx_first_samples_are_never_misread() {
     use proptest::prelude::*;

@@ -5,7 +5,7 @@
 use rigd::acquisition::JobSpec;
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::{EventBody, Request};
-use rigd::daemon::session::Session;
+use rigd::session::Session;
 use std::path::Path;
 
 /// Follow job `id` on the subscribed client `c` until it finishes; its session's name

@@ -27,7 +27,7 @@ pub fn write_folder(dir: &std::path::Path) {
     let scale_um_per_px = CameraModel::default().scale_um_per_px;
     for (i, f) in frames(20).iter().enumerate() {
         let text = vec![("index".to_string(), i.to_string())];
-        let png = rigd::daemon::frame_png::encode(f, scale_um_per_px, text).unwrap();
+        let png = rigd::session::frame_png::encode(f, scale_um_per_px, text).unwrap();
         std::fs::write(dir.join(format!("frames/{i:04}.png")), png).unwrap();
         steps.push_str(&format!("{i},{}\n", STEP_UM * i as f64));
     }

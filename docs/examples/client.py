@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """A minimal rigd client: the JSON-lines protocol of docs/protocol.md, standard library only.
 
-Usage: client.py SOCKET
+Usage: client.py [SOCKET]   (default: $RIGD_SOCKET, else $XDG_RUNTIME_DIR/rigd.sock, else
+/tmp/rigd-UID.sock, as rigd's own default)
 Says hello, submits a 5-frame capture job, follows its events to the end, fetches the
 result and checks a bad request gets an error reply. Exits non-zero if anything is off.
 
@@ -9,6 +10,7 @@ Like every client it is tolerant of a newer daemon (docs/protocol.md, "Compatibi
 skips line types and event kinds it does not know and ignores fields it does not use.
 """
 import json
+import os
 import socket
 import sys
 
@@ -17,10 +19,23 @@ import sys
 KNOWN_EVENTS = {"accepted", "started", "step", "processed", "result", "finished", "failed", "cancelled"}
 
 
+def default_socket():
+    """rigd's default socket: $RIGD_SOCKET, $XDG_RUNTIME_DIR/rigd.sock, /tmp/rigd-UID.sock."""
+    if os.environ.get("RIGD_SOCKET"):
+        return os.environ["RIGD_SOCKET"]
+    if os.environ.get("XDG_RUNTIME_DIR"):
+        return os.path.join(os.environ["XDG_RUNTIME_DIR"], "rigd.sock")
+    return f"/tmp/rigd-{os.getuid()}.sock"
+
+
 class Rigd:
     def __init__(self, path):
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.connect(path)
+        try:
+            self.sock.connect(path)
+        except OSError as e:
+            raise SystemExit(f"cannot connect to rigd at {path} (is it running? `rigd --sim` "
+                             f"starts one): {e.strerror}")
         self.file = self.sock.makefile("rwb")
         self.next_id = 1
         self.events = []
@@ -94,4 +109,4 @@ def main(path):
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1]))
+    sys.exit(main(sys.argv[1] if len(sys.argv) > 1 else default_socket()))

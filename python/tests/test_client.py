@@ -129,3 +129,12 @@ def test_socket_path_as_rigctl_resolves_it(
     assert rigd.default_socket() == tmp_path / "rigd.sock"
     monkeypatch.delenv("XDG_RUNTIME_DIR")
     assert rigd.default_socket() == Path(f"/tmp/rigd-{os.getuid()}.sock")
+
+
+def test_no_daemon_at_the_socket_names_it_and_says_what_to_do(tmp_path: Path) -> None:
+    missing = tmp_path / "missing.sock"
+    with pytest.raises(rigd.CannotConnect) as e:
+        rigd.Client(missing)
+    text = str(e.value)
+    assert str(missing) in text and "is it running?" in text and "RIGD_SOCKET" in text
+    assert isinstance(e.value, ConnectionError) and e.value.path == missing

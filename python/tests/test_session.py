@@ -74,11 +74,14 @@ def test_offsets_equal_result_json(finished_job: FinishedJob) -> None:
     assert list(off["target"]) == [o["name"] for o in objects]
     assert list(off["dx_um"]) == [o["offset_um"][0] for o in objects]
     assert list(off["dy_um"]) == [o["offset_um"][1] for o in objects]
-    assert list(off["sigma_y_um"]) == [o["sigma_um"][1] for o in objects]
-    assert list(off["nominal_x_um"]) == [o["nominal_um"][0] for o in objects]
+    assert list(off["u_dy_um"]) == [o["u_um"][1] for o in objects]
+    assert list(off["u_a_dx_um"]) == [o["u_a_um"][0] for o in objects]
+    assert list(off["nominal_dx_um"]) == [o["nominal_um"][0] for o in objects]
+    # u holds the frames' share and more (the scale's).
+    assert (off["u_dx_um"] >= off["u_a_dx_um"]).all()
     assert set(off["run"]) == {0} and set(off["case"]) == {"scan"} and set(off["k"]) == {2}
     # The sim board's offsets are measured within a few µm of nominal.
-    err = np.hypot(off["dx_um"] - off["nominal_x_um"], off["dy_um"] - off["nominal_y_um"])
+    err = np.hypot(off["dx_um"] - off["nominal_dx_um"], off["dy_um"] - off["nominal_dy_um"])
     assert err.max() < 20
 
 
@@ -167,3 +170,17 @@ def test_a_replay_copies_no_frame_and_reads_the_recorded_ones(
     assert np.array_equal(replay.frames(), original.frames())
     assert replay.result is not None and original.result is not None
     assert replay.result["runs"] == original.result["runs"]
+
+
+def test_a_session_without_its_frames_says_they_were_removed(
+    finished_job: FinishedJob, tmp_path: Path
+) -> None:
+    copy = tmp_path / finished_job.path.name
+    shutil.copytree(finished_job.path, copy, ignore=shutil.ignore_patterns("frames"))
+    s = rigd.Session(copy)
+    try:
+        s.frames()
+    except FileNotFoundError as e:
+        assert "frames are gone" in str(e) and "--keep" in str(e)
+    else:
+        raise AssertionError("frames() of a session without frames/ did not fail")

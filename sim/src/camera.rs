@@ -324,7 +324,7 @@ impl CameraModel {
 }
 
 // `[camera] profile = "webcam"` starts from the profile and the table's other keys override
-// it; without `profile` the table starts from the ideal camera, as before. Serialising writes
+// it; without `profile` the table starts from the ideal camera. Serialising writes
 // every field (no profile), so a written config reads back the same camera.
 impl Serialize for CameraModel {
     fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {

@@ -1,6 +1,5 @@
-//! The `ideal` camera (the default) renders bit for bit what it rendered before the webcam
-//! effects existed: checksums of frames computed with main's code (commit 357eef4) before the
-//! change, compared here.
+//! The `ideal` camera (the default) renders bit for bit what a renderer without the webcam
+//! effects renders: checksums of frames computed at commit 357eef4, compared here.
 
 mod common;
 use common::*;

@@ -99,7 +99,7 @@ fn profiles_are_named_and_a_table_overrides_its_profile() {
         (stress.mjpeg_quality, stress.tilt_y_deg, stress.psf_sigma_px),
         (Some(50), 3.0, 1.2)
     );
-    // Without a profile the table starts from the ideal camera, as before.
+    // Without a profile the table starts from the ideal camera.
     let c: CameraModel = toml::from_str("width = 320").unwrap();
     assert_eq!(c.cfa, Cfa::None);
     let e = toml::from_str::<CameraModel>("profile = \"phone\"")
@@ -160,7 +160,7 @@ fn tilt_changes_the_local_scale_across_the_frame() {
     eprintln!("tilt 2°: width ratio right/left {got_h:.4} (want {want_h:.4}), height {got_v:.4} (want {want_v:.4})");
     assert!((got_h - want_h).abs() < 0.003, "{got_h} vs {want_h}");
     assert!((got_v - want_v).abs() < 0.003, "{got_v} vs {want_v}");
-    // A few percent: the "local µm/px varies by a few percent across the frame".
+    // A few percent: "local µm/px varies by a few percent across the frame".
     assert!(want_v < 0.97 && want_h < 0.94);
 }
 

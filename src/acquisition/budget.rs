@@ -6,7 +6,7 @@
 //! machine's memory is refused with the figures, not killed half-way.
 
 use crate::acquisition::plan::{estimated_bytes, Plan, PlanError};
-use crate::rig::RigInfo;
+use crate::acquisition::rig::RigInfo;
 
 /// Frames held in memory at once besides processing's own: the engine's, two in the
 /// recorder's queue, four in the processor's, one being written, one being decoded.
@@ -129,7 +129,7 @@ mod tests {
     use super::*;
     use crate::acquisition::job::JobSpec;
     use crate::acquisition::plan::plan;
-    use crate::rig::{RigInfo, RigMode};
+    use crate::acquisition::rig::{RigInfo, RigMode};
     use std::path::Path;
 
     fn rig(frame_size: (u32, u32)) -> RigInfo {
@@ -191,7 +191,7 @@ mod tests {
         );
         // In memory: the 4 k² w h f32 reconstruction and its 16-bit copy while the run
         // ends, then the copy kept, copied again and encoded when the job ends: four 16-bit
-        // images, 7.55 GB. Issue 14 measured this job's peak: 7.5 GB.
+        // images, 7.55 GB. A run of this job peaks at 7.5 GB (measured).
         let mem = memory_bytes(&plan_whole, &r, false);
         assert!((7_200_000_000..8_000_000_000).contains(&mem), "{mem}");
         let e = check_memory(&plan_whole, &r, 2048, false).unwrap_err().0;

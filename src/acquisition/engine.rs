@@ -122,7 +122,7 @@ impl Engine<'_> {
         let caught =
             std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.capture(dev, sink)));
         let outcome = caught.unwrap_or_else(|panic| {
-            let message = crate::acquisition::sink::panic_message(panic.as_ref());
+            let message = crate::text::panic_message(panic.as_ref());
             tracing::error!(panic = %message, "the step engine panicked: the job fails");
             let e = JobError::Internal {
                 message: format!("the step engine panicked: {message}"),

@@ -4,7 +4,7 @@
 //! milliseconds: holds, alarms, stops in each phase, stalls, failing stops and polls.
 
 use crate::hw::{Camera, Frame, HwError, MotionState, Stage, StageStatus};
-use crate::rig::{LogSample, LogSource, PositionLog};
+use crate::hw::{LogSample, LogSource, PositionLog};
 use image::RgbImage;
 use std::collections::VecDeque;
 use std::time::{Duration, SystemTime};
@@ -253,7 +253,7 @@ impl PositionLog for ScriptedLog {
             .pop_front()
             .unwrap_or_else(|| panic!("log: unexpected reading: the script is used up"));
         if let Some(p) = at {
-            let t_unix_s = crate::daemon::session::unix_s(t);
+            let t_unix_s = crate::timestamps::unix_s(t);
             let sample = self.samples.len();
             self.samples.push(LogSample {
                 t_unix_s,

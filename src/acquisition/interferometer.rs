@@ -11,7 +11,7 @@
 use crate::acquisition::job::JobRegistration;
 use crate::acquisition::record::StepRecord;
 use crate::acquisition::sink::{SinkError, StepSink};
-use crate::rig::PositionLog;
+use crate::hw::PositionLog;
 use std::sync::Arc;
 
 pub struct ReadLog<S: StepSink> {

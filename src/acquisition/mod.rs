@@ -26,6 +26,7 @@ pub mod pause;
 pub mod plan;
 pub mod processor;
 pub mod record;
+pub mod rig;
 pub mod shapes;
 pub mod sink;
 pub mod study;

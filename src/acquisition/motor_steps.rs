@@ -6,7 +6,7 @@
 use super::job::JobSpec;
 use super::plan::Plan;
 use super::StageKind;
-use crate::rig::devices::StageMachine;
+use crate::hw::devices::StageMachine;
 
 /// One warning per distinct step between a run's frames on the axis that is not a whole
 /// number of `machine`'s motor steps, naming the moves the axis will really make.

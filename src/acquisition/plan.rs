@@ -7,8 +7,8 @@ use crate::acquisition::budget;
 use crate::acquisition::job::{
     combine_for, CaseScan, JobRegistration, JobSpec, Processing, StageKind,
 };
+use crate::acquisition::rig::RigInfo;
 use crate::pipeline::{ProcessOptions, ValidOptions};
-use crate::rig::RigInfo;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -31,7 +31,7 @@ fn rejected(msg: impl Into<String>) -> PlanError {
 /// A length for a message: plain up to a kilometre, scientific beyond (no 309-digit
 /// numbers in a refusal).
 pub fn um(v: f64) -> String {
-    crate::rig::devices::short_um(v)
+    crate::text::short_um(v)
 }
 
 /// One scan of one case in one repeat.
@@ -421,7 +421,7 @@ mod tests {
 
     fn rig() -> RigInfo {
         RigInfo {
-            mode: crate::rig::RigMode::Sim,
+            mode: crate::acquisition::rig::RigMode::Sim,
             axis_limits_um: [0.0, 10_000.0],
             piezo_limits_um: None,
             axis_max_step_um: None,

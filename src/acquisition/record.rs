@@ -1,7 +1,7 @@
 //! What one step produced: the step engine's one record per frame, handed to every sink.
 
 use crate::hw::Frame;
-use crate::rig::{LogSample, LogSource};
+use crate::hw::{LogSample, LogSource};
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
 

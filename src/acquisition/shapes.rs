@@ -7,7 +7,7 @@
 
 use crate::acquisition::job::{CaseScan, Grid, JobSpec, Line, ListPoint, ScanPlan, StageKind};
 use crate::acquisition::plan::{run_options, um, PlanError, RunPlan, MAX_FRAMES};
-use crate::rig::RigInfo;
+use crate::acquisition::rig::RigInfo;
 
 fn rejected(msg: impl Into<String>) -> PlanError {
     PlanError(msg.into())
@@ -306,7 +306,7 @@ mod tests {
 
     fn rig() -> RigInfo {
         RigInfo {
-            mode: crate::rig::RigMode::Sim,
+            mode: crate::acquisition::rig::RigMode::Sim,
             axis_limits_um: [0.0, 10_000.0],
             piezo_limits_um: Some([0.0, 1_400.0]),
             axis_max_step_um: Some(1_000.0),

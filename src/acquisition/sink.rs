@@ -5,7 +5,8 @@
 //! path: the next move starts while the previous frame is written.
 
 use crate::acquisition::record::StepRecord;
-use std::any::Any;
+
+use crate::text::panic_message;
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
@@ -192,16 +193,5 @@ impl<S: StepSink + 'static> StepSink for Threaded<S> {
 impl<S: StepSink + 'static> Drop for Threaded<S> {
     fn drop(&mut self) {
         let _ = self.join();
-    }
-}
-
-/// The text of a panic payload.
-pub fn panic_message(p: &(dyn Any + Send)) -> String {
-    if let Some(s) = p.downcast_ref::<&str>() {
-        s.to_string()
-    } else if let Some(s) = p.downcast_ref::<String>() {
-        s.clone()
-    } else {
-        "a panic without a message".into()
     }
 }

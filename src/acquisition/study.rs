@@ -30,10 +30,10 @@ pub struct JobResult {
     /// The calibration the job applied, or why none (absent from results written before
     /// the daemon kept calibrations).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub calibration: Option<crate::daemon::calibration::CalibrationNote>,
+    pub calibration: Option<crate::calibration_note::CalibrationNote>,
     /// A calibration job's record.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub calibrated: Option<crate::daemon::calibration::Calibrated>,
+    pub calibrated: Option<crate::calibration_note::Calibrated>,
 }
 
 /// One line of the study's summary (what `rigctl demo --json` lists as `cases`).
@@ -171,7 +171,7 @@ pub fn summarize(runs: &[RunResult], names: &[&str], scale_um_per_px: f64) -> St
 /// Per case: RMS std and RMS |bias| of the offsets as measured (calibrated when a
 /// calibration was applied) and at the global scale, beside the paper's RMS std.
 pub fn calibration_table(s: &StudySummary) -> String {
-    use crate::cli::text::fixed;
+    use crate::text::fixed;
     let mut out = String::from(
         "\nCalibrated (offset_um) against the global scale (offset_global_um); bias against the \
          board's nominal offsets (the sim's truth):\n",
@@ -217,7 +217,7 @@ pub fn tables(s: &StudySummary) -> String {
             c.frames,
             c.step_um,
             c.k,
-            crate::cli::text::fixed(Some(c.rms_std_um), 1),
+            crate::text::fixed(Some(c.rms_std_um), 1),
             c.improvement
                 .map(|x| format!("{x:.2}x"))
                 .unwrap_or_else(|| "-".into())

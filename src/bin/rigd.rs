@@ -4,8 +4,8 @@
 use anyhow::{bail, Context};
 use clap::Parser;
 use rigd::config::{Config, DaemonSettings};
-use rigd::daemon::ownership::{devices_of, Device, Ownership};
 use rigd::daemon::{notify, server};
+use rigd::ownership::{devices_of, Device, Ownership};
 use rigd::rig::Rig;
 use std::path::PathBuf;
 
@@ -25,6 +25,10 @@ struct Args {
     /// Where sessions are written (overrides the configuration; sim default ./rigd-sessions).
     #[arg(long, value_name = "DIR")]
     data_root: Option<PathBuf>,
+    /// The simulated rig's camera profile: ideal (default), webcam or stress (docs/sim.md).
+    #[cfg(feature = "sim")]
+    #[arg(long, value_name = "PROFILE")]
+    camera: Option<String>,
     /// Inject a fault into the simulated rig: alarm@N, serial-loss@N (N-th move),
     /// camera-timeout@N (N-th grab), panic@N (the N-th move panics). Repeatable.
     #[cfg(feature = "sim")]
@@ -52,7 +56,7 @@ fn main() -> std::process::ExitCode {
     match run(Args::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("rigd: {e:#}");
+            eprintln!("rigd: {}", rigd::text::error_chain(e.chain()));
             std::process::ExitCode::FAILURE
         }
     }
@@ -102,17 +106,22 @@ fn open_rig(a: &Args, cfg: Option<&Config>) -> anyhow::Result<Rig> {
     if !a.faults.is_empty() && !a.sim {
         bail!("--fault needs --sim");
     }
+    if a.camera.is_some() && !a.sim {
+        bail!("--camera needs --sim (a configured rig's camera is its [camera] section)");
+    }
     if a.grab_timeout_ms.is_some() && !a.sim {
         bail!("--grab-timeout-ms needs --sim (a configured rig uses [camera] frame_timeout_ms)");
     }
     if !a.sim {
         return config_rig(cfg);
     }
-    let mut rig = rigd::rig::simulated(&rigd::rig::SimSettings {
+    let profile = a.camera.as_deref().unwrap_or("ideal");
+    let settings = rigd::rig::SimSettings {
         faults: a.faults.clone(),
-        ..Default::default()
-    })
-    .context("starting the simulated rig")?;
+        ..rigd::rig::SimSettings::for_camera(profile)
+            .with_context(|| format!("--camera {profile}"))?
+    };
+    let mut rig = rigd::rig::simulated(&settings).context("starting the simulated rig")?;
     if let Some(ms) = a.grab_timeout_ms {
         rig.info.grab_timeout_ms = ms;
     }

@@ -6,7 +6,7 @@
 use crate::acquisition::calibration_job::{CalibrationScan, ScanReference};
 use crate::acquisition::JobRegistration;
 use crate::board::Board;
-use crate::calibration::{Calibration, Reference};
+use crate::calibration::Reference;
 use crate::cli::client::{follow, report_end, SocketArg};
 use crate::daemon::protocol::Request;
 use crate::offline::calibrate::{fit_folder, FolderFit};
@@ -97,7 +97,7 @@ fn offline(args: &CalibrateArgs, dir: PathBuf, reference: Reference) -> anyhow::
     if args.json {
         println!("{}", serde_json::to_string(&cal)?);
     } else {
-        print!("{}", summary(&cal));
+        print!("{}", crate::calibration_note::summary(&cal));
         println!("written to {}", out.display());
     }
     Ok(())
@@ -143,7 +143,7 @@ fn on_the_rig(args: &CalibrateArgs, reference: Reference) -> anyhow::Result<()> 
         println!("{}", serde_json::to_string(&fetched["result"])?);
         return Ok(());
     }
-    let made: crate::daemon::calibration::Calibrated = serde_json::from_value(made.clone())
+    let made: crate::calibration_note::Calibrated = serde_json::from_value(made.clone())
         .context("the calibration job's result names no calibration")?;
     print!("{}", made.summary);
     println!(
@@ -151,124 +151,4 @@ fn on_the_rig(args: &CalibrateArgs, reference: Reference) -> anyhow::Result<()> 
         made.path
     );
     Ok(())
-}
-
-/// A few lines: the field's residuals and per target its local scale and uncertainty.
-pub fn summary(cal: &Calibration) -> String {
-    let f = &cal.field;
-    let mut s = format!(
-        "calibration {} ({:?}, {} frames, step {} µm, {} layout): field model residual RMS {:.2} µm, max {:.2} µm\n",
-        cal.id, cal.method, cal.scan.frames, cal.scan.step_um, f.layout, f.residual_rms_um, f.residual_max_um
-    );
-    for p in &f.parameters {
-        s += &format!("  {:<15} {:>14.6e} ± {:.2e}\n", p.name, p.value, p.u);
-    }
-    s += "  target  centre_px           µm/px (own)   µm/px (model)  u_rel   line RMS µm\n";
-    for t in &cal.targets {
-        s += &format!(
-            "  {:<7} ({:>7.1}, {:>6.1})  {:>9.3} ±{:.3} {:>9.3}  {:.1e}  {:.2}\n",
-            t.name.as_deref().unwrap_or("-"),
-            t.centre_px[0],
-            t.centre_px[1],
-            t.scale_um_per_px,
-            t.scale_u_um_per_px,
-            t.model_scale_um_per_px,
-            t.model_scale_rel_u,
-            t.residual_rms_um
-        );
-    }
-    s += &ink_line(cal);
-    s += &ink_margin_line(cal);
-    s += &lateral_line(cal);
-    s
-}
-
-/// How close to the edges the ink was read, and the bands against the interior it was
-/// chosen from.
-fn ink_margin_line(cal: &Calibration) -> String {
-    let Some(m) = &cal.ink_margin else {
-        return String::new();
-    };
-    let bands: Vec<String> = (m.bands.iter())
-        .map(|b| {
-            format!(
-                "{:.2}–{:.2}: {:+.2} ± {:.2} %",
-                b.from_s,
-                b.to_s,
-                100.0 * b.density_diff,
-                100.0 * b.u_density_diff
-            )
-        })
-        .collect();
-    let mut s = format!(
-        "  ink read from {:.2} blur widths inside the edges (bands against the interior, in blur widths: {})\n",
-        m.margin_s,
-        bands.join("; ")
-    );
-    if m.halos() {
-        s += &format!("  {HALO_ADVICE}\n");
-    }
-    s
-}
-
-/// What a calibration whose bands show halos tells the user (`InkMargin::halos`).
-pub const HALO_ADVICE: &str = "the frames show halos just inside the edges (most often the camera \
-    sharpening its frames): set `[camera] sharpness = 0` (docs/camera.md) and calibrate again to \
-    read the ink nearer the edges";
-
-/// The lens's lateral colour as the scan measured it: each registered channel's
-/// magnification against green and what it comes to at the frame's corner.
-fn lateral_line(cal: &Calibration) -> String {
-    let Some(l) = &cal.lateral_colour else {
-        return "  lateral colour: not measured (jobs mix the channels as they are)\n".into();
-    };
-    let corner = l.model.centre_px[0].hypot(l.model.centre_px[1]);
-    let channels: Vec<String> = [(0, "red"), (2, "blue")]
-        .into_iter()
-        .filter(|&(c, _)| l.shifts[c] > 0)
-        .map(|(c, name)| {
-            format!(
-                "{name} {:+.2e} ± {:.1e} ({:+.3} px at the corner, {:.3} px RMS residual, {} shifts)",
-                l.model.magnification[c],
-                l.magnification_u[c],
-                l.model.magnification[c] * corner,
-                l.residual_rms_px[c],
-                l.shifts[c]
-            )
-        })
-        .collect();
-    format!(
-        "  lateral colour against green: {}; jobs register these channels onto green\n",
-        channels.join(", ")
-    )
-}
-
-/// What the scan learnt of the print's ink, and whether jobs take it as the fit's prior.
-fn ink_line(cal: &Calibration) -> String {
-    let Some(i) = &cal.ink else {
-        return "  print's ink: not resolved by the scan (jobs take the print as evenly inked)\n"
-            .into();
-    };
-    let maps = &cal.ink_fields;
-    let taken = match (i.prior(), maps.is_empty()) {
-        (Some(_), true) => "jobs take it as the fit's prior".to_string(),
-        (Some(_), false) => {
-            let left = maps.iter().map(|f| f.residual_rms).sum::<f64>() / maps.len() as f64;
-            format!(
-                "jobs take it as the fit's prior, centred on {} targets' maps ({:.2} % left unknown at the edges)",
-                maps.len(),
-                100.0 * left
-            )
-        }
-        (None, _) => "even enough: jobs take the print as evenly inked".to_string(),
-    };
-    format!(
-        "  print's ink: density RMS {:.2} % ± {:.2} %, correlation {:.0} ± {:.0} µm ({} shapes, blur {:.2} px): {taken}\n",
-        100.0 * i.density_rms,
-        100.0 * i.u_density_rms,
-        i.corr_um,
-        i.u_corr_um,
-        i.shapes,
-        i.blur_px
-    )
 }

@@ -4,12 +4,12 @@ use crate::cli::server_line::{self, Decoded};
 use crate::daemon::protocol::{Event, EventBody, Request, ServerLine};
 use anyhow::{anyhow, bail, Context};
 use std::collections::VecDeque;
-use std::io::{BufRead, BufReader, Write};
+use std::io::{BufRead, BufReader, IsTerminal, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use crate::cli::text;
+use crate::text;
 
 /// `--socket PATH`, taken by every subcommand that talks to the daemon.
 #[derive(clap::Args, Debug, Clone)]
@@ -88,7 +88,7 @@ impl Client {
                         (true, None, _) => Ok(serde_json::Value::Null),
                         (false, _, Some(e)) => Err(anyhow!(
                             "rigd: {}: {}",
-                            crate::cli::text::wire_name(&e.code),
+                            crate::text::wire_name(&e.code),
                             e.message
                         )),
                         (false, _, None) => Err(anyhow!("rigd refused the request")),
@@ -197,6 +197,7 @@ pub fn follow_from(
     mut pace: Pace,
     done: u32,
 ) -> anyhow::Result<Ended> {
+    let log_lines = !quiet && !std::io::stderr().is_terminal();
     let bar = if quiet {
         indicatif::ProgressBar::hidden()
     } else {
@@ -233,6 +234,10 @@ pub fn follow_from(
                 bar.set_position(done as u64);
                 let p = pace.describe(done, total, Instant::now());
                 bar.set_message(format!("{p}  ({case}, repeat {repeat})"));
+                // No bar off a terminal: a line at every tenth of the job instead.
+                if log_lines && tenth(done, total) != tenth(done - 1, total) {
+                    eprintln!("job {id}: {done}/{total} frames, {p}");
+                }
             }
             EventBody::Result {
                 run,
@@ -252,6 +257,11 @@ pub fn follow_from(
             _ => {}
         }
     }
+}
+
+/// Which tenth of `total` frames `done` is in.
+fn tenth(done: u32, total: u32) -> u64 {
+    u64::from(done) * 10 / u64::from(total.max(1))
 }
 
 /// Print how a job ended; an error if it did not finish.

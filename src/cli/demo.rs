@@ -11,14 +11,13 @@
 
 use crate::acquisition::study::{calibration_table, tables, StudySummary};
 use crate::acquisition::{JobSpec, PaperCase};
+use crate::calibration_note::Calibrated;
 use crate::cli::client::{follow, report_end, Client, Ended};
 use crate::config::DaemonSettings;
-use crate::daemon::calibration::Calibrated;
-use crate::daemon::ownership::Ownership;
 use crate::daemon::protocol::Request;
 use crate::daemon::server;
+use crate::ownership::Ownership;
 use crate::rig::{simulated, SimSettings};
-use crate::sim::CameraModel;
 use anyhow::Context;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -50,22 +49,15 @@ pub struct DemoArgs {
     /// Skip the calibration job: the study's offsets use the global scale only.
     #[arg(long)]
     pub no_calibrate: bool,
+    /// Print the calibration's whole summary (the field model's parameters, every
+    /// target's scale), not only its verdict.
+    #[arg(long)]
+    pub verbose: bool,
 }
 
-/// The demo's sim: the camera of `profile` on a fast frame clock (the ideal camera as it
-/// always was in the demo: 5 ms frames, 2 ms exposure), so the study takes about a minute.
+/// The demo's sim: the camera of `profile` on a fast frame clock.
 pub fn sim_settings(profile: &str) -> anyhow::Result<SimSettings> {
-    let mut camera = CameraModel::profile(profile)?;
-    camera.supersample = 4;
-    match profile {
-        "ideal" => (camera.frame_period_ms, camera.exposure_ms) = (5.0, 2.0),
-        _ => camera.frame_period_ms = (camera.exposure_ms + 2.0).max(5.0),
-    }
-    Ok(SimSettings {
-        camera,
-        camera_profile: Some(profile.to_string()),
-        ..SimSettings::default()
-    })
+    Ok(SimSettings::for_camera(profile)?)
 }
 
 /// The paper's study as a job: each repeat starts 1/repeats of a pixel further.
@@ -84,9 +76,13 @@ pub fn run(mut a: DemoArgs) -> anyhow::Result<()> {
     let t0 = Instant::now();
     a.data_root = std::path::absolute(&a.data_root)
         .with_context(|| format!("data root {}", a.data_root.display()))?;
+    let own_socket = a.socket.is_none();
     let socket = a.socket.clone().unwrap_or_else(|| {
         std::env::temp_dir().join(format!("rigd-demo-{}.sock", std::process::id()))
     });
+    // The demo's own socket is this process's alone: its lock file goes with it, whatever
+    // the outcome (declared before the daemon, so dropped after it has stopped).
+    let _lock_file = own_socket.then(|| RemovedOnDrop(crate::ownership::socket_lock_path(&socket)));
     let settings = DaemonSettings {
         socket: socket.clone(),
         group: None,
@@ -215,9 +211,21 @@ fn calibrate(c: &mut Client, a: &DemoArgs) -> anyhow::Result<Calibrated> {
     let made: Calibrated = serde_json::from_value(fetched["result"]["calibrated"].clone())
         .context("the calibration job's result names no calibration")?;
     if !a.json {
-        println!("{}", made.summary);
+        match a.verbose {
+            true => println!("{}", made.summary),
+            false => println!("{}", verdict(&made)),
+        }
     }
     Ok(made)
+}
+
+/// The calibration in two lines: its residual against the scan, and where the record is.
+fn verdict(c: &Calibrated) -> String {
+    format!(
+        "calibration {}: {} targets, {} frames at {} µm; the field model fits the scan to {:.1} µm \
+         RMS ({:.1} µm at most)\n  record: {} (`--verbose` prints its parameters)\n",
+        c.id, c.targets, c.frames, c.step_um, c.residual_rms_um, c.residual_max_um, c.path
+    )
 }
 
 /// The session's bulk: its frames and reconstructions (about 1 GB for the paper's study).
@@ -230,4 +238,13 @@ fn drop_bulk(dir: &std::path::Path) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// A file removed when this is dropped.
+struct RemovedOnDrop(std::path::PathBuf);
+
+impl Drop for RemovedOnDrop {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
 }

@@ -1,11 +1,11 @@
 //! `rigctl hw`: talk to the configured hardware directly, to bring a rig up and check it
-//! before running jobs. Takes the same device locks as rigd (`daemon::ownership`, in the
+//! before running jobs. Takes the same device locks as rigd (`ownership`, in the
 //! config's `[daemon] lock_dir`) for the devices the command opens, so it is refused while
 //! a daemon (or another `rigctl hw`) owns them, and names who does.
 
 use crate::config::{Config, StageConfig};
-use crate::daemon::ownership::{devices_of, lock_devices};
 use crate::lock::{lock_dir, Holder, LockFile};
+use crate::ownership::{devices_of, lock_devices};
 use crate::rig::{open_camera, open_stage, HwError, Stage};
 use anyhow::{bail, Context};
 use std::path::PathBuf;
@@ -131,7 +131,7 @@ fn act_and_report(
     let st = s.status()?;
     println!(
         "{section}: {done}{} at {:.3} µm",
-        crate::cli::text::wire_name(&st.state),
+        crate::text::wire_name(&st.state),
         st.position_um
     );
     Ok(())
@@ -222,7 +222,7 @@ fn probe(cfg: &Config) -> anyhow::Result<()> {
     let mut report = |what: &str, r: anyhow::Result<String>| match r {
         Ok(s) => println!("{what:7} ok      {s}"),
         Err(e) => {
-            println!("{what:7} FAILED  {e:#}");
+            println!("{what:7} FAILED  {}", crate::text::error_chain(e.chain()));
             failed.push(what.to_string());
         }
     };
@@ -236,9 +236,9 @@ fn probe(cfg: &Config) -> anyhow::Result<()> {
                     let st = s.status()?;
                     Ok(format!(
                         "{} driver on {}: {} at {:.3} µm",
-                        crate::cli::text::wire_name(&c.driver),
+                        crate::text::wire_name(&c.driver),
                         c.port.as_deref().unwrap_or("-"),
-                        crate::cli::text::wire_name(&st.state),
+                        crate::text::wire_name(&st.state),
                         st.position_um
                     ))
                 })(),
@@ -316,5 +316,5 @@ fn cameras() -> anyhow::Result<()> {
 
 #[cfg(not(feature = "v4l2"))]
 fn cameras() -> anyhow::Result<()> {
-    bail!("this rigctl was built without V4L2 support: rebuild with `cargo build --release --features v4l2` (needs libclang-dev)")
+    bail!("this rigctl was built without V4L2 support: install it with V4L2 support, from the clone: `cargo install --locked --path . --features v4l2` (needs libclang-dev)")
 }

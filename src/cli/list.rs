@@ -2,10 +2,10 @@
 //! page of the daemon's paged `list`), as aligned tables; `--json` for machines.
 
 use crate::cli::client::{Client, SocketArg};
-use crate::cli::text::{duration, short_time, wire_name, Table};
-use crate::daemon::jobs::JobStatus;
+use crate::daemon::protocol::EtaBasis;
+use crate::daemon::protocol::JobStatus;
 use crate::daemon::protocol::{ListReply, Request, SessionSummary, LIST_MAX};
-use crate::daemon::timing::EtaBasis;
+use crate::text::{duration, short_time, wire_name, Table};
 
 #[derive(clap::Args, Debug)]
 pub struct ListArgs {
@@ -94,11 +94,20 @@ pub fn sessions_table(sessions: &[SessionSummary]) -> Table {
         "reason / label",
     ]);
     for s in sessions {
-        let note = match (&s.reason, &s.label) {
-            (Some(r), _) => r.clone(),
-            (None, Some(l)) => l.clone(),
-            (None, None) => String::new(),
+        let origin = match (&s.resumed_from, &s.replay_of) {
+            (Some(r), _) => Some(format!(
+                "resumes {} from frame {}",
+                r.session, r.first_index
+            )),
+            (None, Some(of)) => Some(format!("replay of {of}")),
+            (None, None) => None,
         };
+        let note = [origin.as_ref(), s.reason.as_ref().or(s.label.as_ref())]
+            .into_iter()
+            .flatten()
+            .cloned()
+            .collect::<Vec<_>>()
+            .join("; ");
         t.row(vec![
             s.name.clone(),
             s.job_id.to_string(),
@@ -135,4 +144,34 @@ pub fn run(a: ListArgs) -> anyhow::Result<()> {
         ),
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::session::{ResumedFrom, SessionState};
+
+    #[test]
+    fn a_resumed_session_names_the_one_it_resumes_and_its_first_frame() {
+        let s = SessionSummary {
+            name: "20261207T100000Z-job9".into(),
+            job_id: 9,
+            state: SessionState::Finished,
+            reason: None,
+            frames_captured: 14,
+            total_frames: 20,
+            replay_of: None,
+            resumed_from: Some(ResumedFrom {
+                session: "20261207T090000Z-job4".into(),
+                first_index: 6,
+            }),
+            label: Some("scan".into()),
+            timing: Default::default(),
+        };
+        let text = sessions_table(&[s]).render();
+        assert!(
+            text.contains("resumes 20261207T090000Z-job4 from frame 6; scan"),
+            "{text}"
+        );
+    }
 }

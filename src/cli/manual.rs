@@ -3,8 +3,8 @@
 
 use crate::acquisition::StageKind;
 use crate::cli::client::{Client, SocketArg};
-use crate::daemon::manual::{LaserReading, MoveReply, PositionReply, StageReading, StopReply};
 use crate::daemon::protocol::Request;
+use crate::daemon::protocol::{LaserReading, MoveReply, PositionReply, StageReading, StopReply};
 use anyhow::Context;
 use std::io::{IsTerminal, Read, Write};
 
@@ -26,10 +26,10 @@ pub struct MoveArgs {
     #[arg(long, value_enum, default_value_t = StageKind::Axis)]
     pub stage: StageKind,
     /// Absolute target, µm (negative numbers need no `=`).
-    #[arg(long, value_name = "UM", allow_negative_numbers = true)]
+    #[arg(long, value_name = "UM", allow_negative_numbers = true, value_parser = crate::cli::process::finite)]
     pub to_um: Option<f64>,
     /// Relative move, µm (negative: towards lower positions).
-    #[arg(long, value_name = "UM", allow_negative_numbers = true)]
+    #[arg(long, value_name = "UM", allow_negative_numbers = true, value_parser = crate::cli::process::finite)]
     pub by_um: Option<f64>,
 }
 
@@ -41,7 +41,7 @@ pub struct JogArgs {
     #[arg(long, value_enum, default_value_t = StageKind::Axis)]
     pub stage: StageKind,
     /// The first step, µm (`[` and `]` divide and multiply it by 10).
-    #[arg(long, value_name = "UM", default_value_t = 100.0)]
+    #[arg(long, value_name = "UM", default_value_t = 100.0, value_parser = crate::cli::process::finite)]
     pub step_um: f64,
 }
 

@@ -9,6 +9,8 @@ pub mod export;
 pub mod fetch;
 pub mod hw;
 pub mod index;
+pub mod info;
+pub mod interrupt;
 pub mod list;
 pub mod manual;
 pub mod pause;
@@ -23,12 +25,11 @@ pub mod schema;
 pub mod server_line;
 pub mod status;
 pub mod submit;
-pub mod text;
 pub mod view;
 pub mod watch;
 pub mod web;
 
-use crate::daemon::rig_state::RigAction;
+use crate::daemon::protocol::RigAction;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
@@ -53,6 +54,10 @@ pub enum Command {
     Watch(watch::WatchArgs),
     /// The daemon's state, or one job's.
     Status(status::StatusArgs),
+    /// The rig the daemon runs: mode, scale, frame size, limits, the axis controller's
+    /// settings, data root, versions.
+    #[command(alias = "hello")]
+    Info(info::InfoArgs),
     /// Cancel a job.
     Cancel(cancel::CancelArgs),
     /// Jobs and sessions.
@@ -61,7 +66,8 @@ pub enum Command {
     Fetch(fetch::FetchArgs),
     /// Run a recorded session again, optionally with other processing settings.
     Replay(replay::ReplayArgs),
-    /// Write a recorded session as OME-Zarr or OME-TIFF (units, positions, times), offline.
+    /// Write a recorded session as OME-Zarr, OME-TIFF or NeXus/HDF5 (feature `hdf5`) with
+    /// its units, positions and times, offline.
     Export(export::ExportArgs),
     /// Fit a calibration (local scale per target, field model) from a folder scan of known
     /// displacements (frames/*.png + steps.csv).
@@ -126,7 +132,7 @@ pub fn run() -> std::process::ExitCode {
         Ok(Ok(())) => ExitCode::SUCCESS,
         Ok(Err(e)) if is_broken_pipe(&e) && stdout_closed() => ExitCode::SUCCESS,
         Ok(Err(e)) => {
-            eprintln!("rigctl: {e:#}");
+            eprintln!("rigctl: {}", crate::text::error_chain(e.chain()));
             ExitCode::FAILURE
         }
         Err(p) if stdout_gone(p.as_ref()) => ExitCode::SUCCESS,
@@ -136,7 +142,7 @@ pub fn run() -> std::process::ExitCode {
 
 /// A panic of `print!`/`println!` on a closed stdout.
 fn stdout_gone(payload: &(dyn std::any::Any + Send)) -> bool {
-    let m = crate::acquisition::sink::panic_message(payload);
+    let m = crate::text::panic_message(payload);
     m.starts_with("failed printing to stdout") && m.contains("os error 32")
 }
 
@@ -167,6 +173,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Submit(a) => submit::run(a),
         Command::Watch(a) => watch::run(a),
         Command::Status(a) => status::run(a),
+        Command::Info(a) => info::run(a),
         Command::Cancel(a) => cancel::run(a),
         Command::List(a) => list::run(a),
         Command::Fetch(a) => fetch::run(a),

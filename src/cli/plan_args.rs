@@ -28,7 +28,7 @@ pub struct PlanArgs {
     pub plan_file: Option<ScanPlan>,
     /// Start each repeat this many seconds after the previous one started (a stability
     /// run; a repeat that takes longer is followed at once).
-    #[arg(long, value_name = "SECONDS")]
+    #[arg(long, value_name = "SECONDS", value_parser = crate::cli::process::finite)]
     pub interval_s: Option<f64>,
 }
 

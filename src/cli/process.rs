@@ -157,11 +157,17 @@ pub(crate) fn parse_k(s: &str) -> Result<u32, String> {
     Ok(k)
 }
 
+/// A finite number: `NaN` and `inf` parse as f64 but mean nothing as a distance or time.
+pub(crate) fn finite(s: &str) -> Result<f64, String> {
+    let x: f64 = s.trim().parse().map_err(|e| format!("`{s}`: {e}"))?;
+    match x.is_finite() {
+        true => Ok(x),
+        false => Err(format!("`{s}` is not a finite number")),
+    }
+}
+
 pub(crate) fn parse_dir(s: &str) -> Result<[f64; 2], String> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f64>().map_err(|e| format!("`{p}`: {e}")))
-        .collect::<Result<_, _>>()?;
+    let v: Vec<f64> = s.split(',').map(finite).collect::<Result<_, _>>()?;
     match v[..] {
         [x, y] => Ok([x, y]),
         _ => Err(format!("want two numbers \"x,y\", got `{s}`")),
@@ -170,7 +176,7 @@ pub(crate) fn parse_dir(s: &str) -> Result<[f64; 2], String> {
 
 /// Whether `dir` is a recorded session (it has a manifest).
 pub fn is_session(dir: &Path) -> bool {
-    dir.join(crate::daemon::session::MANIFEST).exists()
+    dir.join(crate::session::MANIFEST).exists()
 }
 
 pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
@@ -190,7 +196,7 @@ pub fn run(args: ProcessArgs) -> anyhow::Result<()> {
 /// A session: every run as the daemon processed it.
 fn run_session(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
     let ov = args.flags.overrides();
-    let s = crate::daemon::session::Session::open(&args.dir)?;
+    let s = crate::session::Session::open(&args.dir)?;
     let keep = args.out.is_some();
     let cal = args.flags.calibration()?;
     let decoders = decoders_for_one_run();
@@ -203,7 +209,7 @@ fn run_session(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
             overrides: ov,
             runs: done.runs.clone(),
             rigd: env!("CARGO_PKG_VERSION").into(),
-            processed_unix_s: crate::daemon::session::unix_s(std::time::SystemTime::now()),
+            processed_unix_s: crate::timestamps::unix_s(std::time::SystemTime::now()),
         };
         let registration = crate::offline::outputs::registration_name(&settings.overrides, &s);
         let result = &done.result;

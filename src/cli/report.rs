@@ -5,9 +5,9 @@
 
 use crate::acquisition::study::{tables, JobResult};
 use crate::atomic_file;
-use crate::cli::text::{fixed, Table};
-use crate::daemon::session::{Session, RESULT};
 use crate::figures;
+use crate::session::{Session, RESULT};
+use crate::text::{fixed, Table};
 use anyhow::Context;
 use std::path::{Path, PathBuf};
 

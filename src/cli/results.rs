@@ -1,15 +1,19 @@
-//! What `rigctl submit` prints when its job finishes: each target's offset per case, with
-//! its spread over repeats or the fit's own uncertainty, and where the session is on disk.
+//! What `rigctl submit` prints when its job finishes: each target's offset per case, its
+//! spread over repeats, its combined standard uncertainty `u` (GUM: the frames' scatter
+//! and the scale's or calibration's), the board's nominal and the bias from it, then which
+//! calibration converted the offsets and where the session is on disk.
 
 use crate::acquisition::study::{JobResult, RunResult};
-use crate::cli::text::{fixed, Table};
+use crate::text::{fixed, Table};
 
 /// One line per case and target, in the order they first appear: the mean offset over the
-/// runs that measured it, the standard deviation over them (`—` with one run), the fit's
-/// mean uncertainty when it gives one.
+/// runs that measured it, the standard deviation over them (`—` with one run), the mean of
+/// the runs' combined uncertainty `u_um`, the board's nominal and the mean's bias from it
+/// (`—` where unknown).
 pub fn results_table(r: &JobResult) -> Table {
     let mut t = Table::new(&[
-        "case", "target", ">runs", ">dx µm", ">dy µm", ">std dx", ">std dy", ">σ dx", ">σ dy",
+        "case", "target", ">runs", ">dx µm", ">dy µm", ">std dx", ">std dy", ">u dx", ">u dy",
+        ">nom dx", ">nom dy", ">bias dx", ">bias dy",
     ]);
     let mut keys: Vec<(String, String)> = Vec::new();
     for run in &r.runs {
@@ -33,24 +37,29 @@ pub fn results_table(r: &JobResult) -> Table {
             .map(|(_, o)| o)
             .collect();
         let axis = |a: usize| found.iter().map(|o| o.offset_um[a]).collect::<Vec<f64>>();
-        let sigma = |a: usize| {
-            let s: Vec<f64> = found
-                .iter()
-                .filter_map(|o| o.sigma_um.map(|s| s[a]))
-                .collect();
-            (!s.is_empty()).then(|| s.iter().sum::<f64>() / s.len() as f64)
+        let u = |a: usize| {
+            let s: Vec<f64> = found.iter().filter_map(|o| o.u_um.map(|u| u[a])).collect();
+            mean(&s)
         };
+        let nominal = found.iter().find_map(|o| o.nominal_um);
         let (x, y) = (axis(0), axis(1));
+        let (mx, my) = (mean(&x), mean(&y));
+        let nom = |a: usize| nominal.map(|n| n[a]);
+        let bias = |m: Option<f64>, a: usize| Some(m? - nom(a)?);
         t.row(vec![
             case.clone(),
             target,
             found.len().to_string(),
-            fixed(mean(&x), 1),
-            fixed(mean(&y), 1),
+            fixed(mx, 1),
+            fixed(my, 1),
             fixed(std(&x), 2),
             fixed(std(&y), 2),
-            fixed(sigma(0), 2),
-            fixed(sigma(1), 2),
+            fixed(u(0), 2),
+            fixed(u(1), 2),
+            fixed(nom(0), 1),
+            fixed(nom(1), 1),
+            fixed(bias(mx, 0), 2),
+            fixed(bias(my, 1), 2),
         ]);
     }
     t
@@ -80,7 +89,7 @@ mod tests {
     use super::*;
     use crate::pipeline::{ObjectResult, ProcessOptions, ProcessResult};
 
-    /// A target's name, offset and the fit's uncertainty.
+    /// A target's name, offset and combined uncertainty.
     type Found<'a> = (&'a str, [f64; 2], Option<[f64; 2]>);
 
     fn run(case: &str, offsets: &[Found<'_>]) -> RunResult {
@@ -98,13 +107,13 @@ mod tests {
                 height: 1,
                 objects: offsets
                     .iter()
-                    .map(|(n, off, sigma)| ObjectResult {
+                    .map(|(n, off, u)| ObjectResult {
                         name: Some((*n).into()),
                         centre_px: [0.0; 2],
                         offset_px: [0.0; 2],
                         offset_um: *off,
-                        sigma_um: *sigma,
-                        nominal_um: None,
+                        u_um: *u,
+                        nominal_um: (*n == "A").then_some([1000.0, 0.0]),
                         outer_radius_px: 1.0,
                         inner_radius_px: 1.0,
                         frames: 1,
@@ -122,7 +131,7 @@ mod tests {
     }
 
     #[test]
-    fn one_line_per_case_and_target_with_the_spread_over_repeats() {
+    fn one_line_per_case_and_target_with_spread_u_nominal_and_bias() {
         let r = JobResult {
             runs: vec![
                 run(
@@ -144,12 +153,17 @@ mod tests {
         let cells = |l: &str| l.split_whitespace().map(String::from).collect::<Vec<_>>();
         assert_eq!(
             cells(lines[1]),
-            ["scan", "A", "2", "1001.0", "-3.0", "1.41", "1.41", "1.00", "1.00"]
+            [
+                "scan", "A", "2", "1001.0", "-3.0", "1.41", "1.41", "1.00", "1.00", "1000.0",
+                "0.0", "1.00", "-3.00"
+            ]
         );
-        // One run of B: no spread, and no fit uncertainty given.
+        // One run of B: no spread, no uncertainty given, no nominal.
         assert_eq!(
             cells(lines[2]),
-            ["scan", "B", "1", "0.0", "500.0", "—", "—", "—", "—"]
+            [
+                "scan", "B", "1", "0.0", "500.0", "—", "—", "—", "—", "—", "—", "—", "—"
+            ]
         );
     }
 }

@@ -4,7 +4,7 @@
 use crate::acquisition::StageKind;
 use crate::cli::client::SocketArg;
 use crate::daemon::protocol::{Request, RigActionReply};
-use crate::daemon::rig_state::{RigAction, RigState};
+use crate::daemon::protocol::{RigAction, RigState};
 
 #[derive(clap::Args, Debug)]
 pub struct RigArgs {
@@ -29,7 +29,7 @@ pub fn run(action: RigAction, a: RigArgs) -> anyhow::Result<()> {
         "{} {}: {} at {:.3} µm; rig {}",
         r.stage,
         r.request.name(),
-        crate::cli::text::wire_name(&r.state),
+        crate::text::wire_name(&r.state),
         r.position_um,
         describe(&r.rig_state)
     );

@@ -4,6 +4,6 @@
 pub struct SchemaArgs {}
 
 pub fn run(_: SchemaArgs) -> anyhow::Result<()> {
-    print!("{}", crate::daemon::schema::document_text());
+    print!("{}", crate::daemon::protocol::schema_text());
     Ok(())
 }

@@ -4,7 +4,7 @@
 use crate::cli::client::SocketArg;
 use crate::cli::list::jobs_table;
 use crate::cli::rig::describe;
-use crate::daemon::jobs::JobStatus;
+use crate::daemon::protocol::JobStatus;
 use crate::daemon::protocol::{DaemonStatus, Request};
 
 #[derive(clap::Args, Debug)]

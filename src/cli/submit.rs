@@ -15,10 +15,10 @@ pub struct SubmitArgs {
     #[arg(long, value_enum, default_value = "axis")]
     pub stage: StageKind,
     /// Distance between frames (µm; negative steps backwards). Needed with --steps N > 1.
-    #[arg(long, value_name = "UM", allow_negative_numbers = true)]
+    #[arg(long, value_name = "UM", allow_negative_numbers = true, value_parser = crate::cli::process::finite)]
     pub step_um: Option<f64>,
     /// Number of frames of one scan (give it with --step-um, or give --study instead).
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", allow_negative_numbers = true)]
     pub steps: Option<u32>,
     /// Run these of the paper's cases instead of one scan (comma-separated: case1,case2,case3).
     #[arg(long, value_delimiter = ',', value_enum)]
@@ -33,17 +33,23 @@ pub struct SubmitArgs {
     pub plan: Box<crate::cli::plan_args::PlanArgs>,
     /// How many times the scan (or each study case) is run; each repeat is processed on its
     /// own, and with 2 or more the result gives each target's spread.
-    #[arg(long, value_name = "N", default_value_t = 1)]
+    #[arg(
+        long,
+        value_name = "N",
+        default_value_t = 1,
+        allow_negative_numbers = true
+    )]
     pub repeats: u32,
     /// Absolute start position (µm); default: the rig's.
-    #[arg(long, value_name = "UM", allow_negative_numbers = true)]
+    #[arg(long, value_name = "UM", allow_negative_numbers = true, value_parser = crate::cli::process::finite)]
     pub start_um: Option<f64>,
     /// Shift of each repeat's start (µm), for different sub-pixel phases.
     #[arg(
         long,
         value_name = "UM",
         default_value_t = 0.0,
-        allow_negative_numbers = true
+        allow_negative_numbers = true,
+        value_parser = crate::cli::process::finite
     )]
     pub repeat_shift_um: f64,
     /// Capture and record only.
@@ -99,6 +105,22 @@ impl ProcessingArgs {
     }
 }
 
+/// Which calibration converted the offsets (u includes its uncertainty), or why none did.
+pub fn calibration_line(n: &crate::calibration_note::CalibrationNote) -> String {
+    let id = n.id.as_deref().unwrap_or("?");
+    let mut line = match (n.applied, &n.reason) {
+        (true, _) => format!("calibration: {id} applied (u includes its field model's)"),
+        (false, Some(why)) => {
+            format!("calibration: none applied ({why}): offsets at the global scale")
+        }
+        (false, None) => "calibration: none applied: offsets at the global scale".into(),
+    };
+    for w in &n.warnings {
+        line.push_str(&format!("\nwarning: {w}"));
+    }
+    line
+}
+
 impl SubmitArgs {
     pub fn spec(&self) -> JobSpec {
         let p = self.processing.processing();
@@ -135,10 +157,17 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
     let r = c.request(&req)?;
     let id = r["job_id"].as_u64().unwrap_or_default();
     let total = r["total_frames"].as_u64().unwrap_or_default() as u32;
-    eprintln!(
-        "job {id} queued ({total} frames, {} ahead)",
-        r["queue_position"].as_u64().unwrap_or_default()
-    );
+    // A resumed session's job: the plan's frames before its first are the original's.
+    let before = r["resumed_from"]["first_index"].as_u64().unwrap_or(0) as u32;
+    let ahead = r["queue_position"].as_u64().unwrap_or_default();
+    match before {
+        0 => eprintln!("job {id} queued ({total} frames, {ahead} ahead)"),
+        _ => eprintln!(
+            "job {id} queued ({} frames: frames {before}..{} of the plan's {total}, {ahead} ahead)",
+            total.saturating_sub(before),
+            total.saturating_sub(1)
+        ),
+    }
     for w in r["warnings"].as_array().into_iter().flatten() {
         eprintln!("warning: {}", w.as_str().unwrap_or_default());
     }
@@ -146,8 +175,6 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
         println!("{id}");
         return Ok(id);
     }
-    // A resumed session's job: the plan's frames before its first are the original's.
-    let before = r["resumed_from"]["first_index"].as_u64().unwrap_or(0) as u32;
     if before > 0 {
         eprintln!(
             "resuming session {} from frame {before}",
@@ -155,7 +182,9 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
         );
     }
     let pace = crate::cli::client::Pace::default().taken_before(before);
+    let ctrl_c = crate::cli::interrupt::watch(socket.path(), id);
     let end = crate::cli::client::follow_from(&mut c, id, total, false, pace, before)?;
+    drop(ctrl_c);
     report_end(id, &end)?;
     print_results(&mut c, id)?;
     Ok(id)
@@ -171,9 +200,12 @@ pub fn print_results(c: &mut Client, id: u64) -> anyhow::Result<()> {
         true => None,
         false => Some(serde_json::from_value(r["result"].clone())?),
     };
-    match result.map(|r| results_table(&r)) {
+    match result.as_ref().map(results_table) {
         Some(t) if !t.is_empty() => print!("{}", t.render()),
         _ => println!("(no measurements: the job was not processed)"),
+    }
+    if let Some(note) = result.as_ref().and_then(|r| r.calibration.as_ref()) {
+        println!("{}", calibration_line(note));
     }
     println!("session: {}", data_root.join(session).display());
     Ok(())

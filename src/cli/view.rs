@@ -6,8 +6,8 @@
 
 use crate::atomic_file;
 use crate::cli::client::SocketArg;
-use crate::daemon::live_view::wire::{SnapReply, ViewFrame, ViewTarget, MAX_FPS, MIN_FPS};
 use crate::daemon::protocol::{EventBody, Request};
+use crate::daemon::protocol::{SnapReply, ViewFrame, ViewTarget, MAX_FPS, MIN_FPS};
 use anyhow::{bail, Context};
 use base64::Engine as _;
 use std::collections::HashMap;

@@ -82,10 +82,6 @@ impl Gate {
             .ok()
             .map(|_| Permit(self.open.clone()))
     }
-
-    pub fn open(&self) -> usize {
-        self.open.load(Ordering::Acquire)
-    }
 }
 
 /// The line a client over the limit gets before it is closed.

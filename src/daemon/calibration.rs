@@ -6,58 +6,11 @@
 use crate::acquisition::calibration_job::CalibrationScan;
 use crate::calibration::Calibration;
 use crate::calibration_file::Applied;
+use crate::calibration_note::{Calibrated, CalibrationNote};
 use crate::offline::calibrate::{fit_folder, FolderFit};
 use crate::rig::RigInfo;
-use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::time::SystemTime;
-
-/// `[daemon] calibration_max_age_days` when the config leaves it out.
-pub const DEFAULT_MAX_AGE_DAYS: f64 = 30.0;
-
-/// The calibration a job used, as its manifest, result and `calibration` event name it.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, schemars::JsonSchema)]
-pub struct CalibrationNote {
-    /// Whether the job's offsets are converted with it (false: the global scale).
-    pub applied: bool,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub id: Option<String>,
-    /// When it was made (RFC 3339).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub date: Option<String>,
-    /// `commanded` or `interferometer`.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub method: Option<String>,
-    /// The record's file.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub source: Option<String>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub age_days: Option<f64>,
-    /// Why none is applied, when none is.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub reason: Option<String>,
-    /// Stale, or fitted on another scale, board or frame size.
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub warnings: Vec<String>,
-}
-
-/// What a calibration job made: the record kept as the data root's current calibration.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
-pub struct Calibrated {
-    pub id: String,
-    pub date: String,
-    pub method: String,
-    /// The record's file (`<data_root>/calibrations/<id>.json`).
-    pub path: String,
-    pub session: String,
-    pub frames: usize,
-    pub step_um: f64,
-    pub targets: usize,
-    pub residual_rms_um: f64,
-    pub residual_max_um: f64,
-    /// `rigctl calibrate`'s summary of it, as text.
-    pub summary: String,
-}
 
 /// The calibration a job applies, and what it says of it.
 #[derive(Debug, Clone, Default)]
@@ -97,7 +50,8 @@ pub fn for_job(
             crate::calibration_store::dir(data_root).display()
         ))),
         Err(e) => Err(format!(
-            "the current calibration cannot be used: {e:#} (calibrate again, or remove {})",
+            "the current calibration cannot be used: {} (calibrate again, or remove {})",
+            crate::text::error_chain(e.chain()),
             crate::calibration_store::dir(data_root)
                 .join(crate::calibration_store::CURRENT)
                 .display()
@@ -140,7 +94,7 @@ fn checked(a: Applied, rig: &RigInfo, max_age_days: f64, now: SystemTime) -> Job
         applied,
         id: Some(cal.id.clone()),
         date: Some(cal.date.clone()),
-        method: Some(crate::cli::text::wire_name(&cal.method)),
+        method: Some(crate::text::wire_name(&cal.method)),
         source: Some(a.source.clone()),
         age_days,
         reason,
@@ -179,7 +133,7 @@ pub fn rig_description(rig: &RigInfo) -> String {
         .unwrap_or_else(|| "camera (unnamed model)".into());
     format!(
         "{} rig: {camera}, board {}, {} µm/px, {}x{} frames",
-        crate::cli::text::wire_name(&rig.mode),
+        crate::text::wire_name(&rig.mode),
         rig.board.as_ref().map_or("none", |b| b.name.as_str()),
         rig.scale_um_per_px,
         rig.frame_size.0,
@@ -211,7 +165,7 @@ pub fn fit_session(
         tracing::warn!(
             margin_s = m.margin_s,
             "{}",
-            crate::cli::calibrate::HALO_ADVICE
+            crate::calibration_note::HALO_ADVICE
         );
     }
     let path = crate::calibration_store::save_current(data_root, &cal)?;
@@ -222,7 +176,7 @@ fn made(cal: &Calibration, path: &Path, session: &str) -> Calibrated {
     Calibrated {
         id: cal.id.clone(),
         date: cal.date.clone(),
-        method: crate::cli::text::wire_name(&cal.method),
+        method: crate::text::wire_name(&cal.method),
         path: path.display().to_string(),
         session: session.to_string(),
         frames: cal.scan.frames,
@@ -230,7 +184,7 @@ fn made(cal: &Calibration, path: &Path, session: &str) -> Calibrated {
         targets: cal.targets.len(),
         residual_rms_um: cal.field.residual_rms_um,
         residual_max_um: cal.field.residual_max_um,
-        summary: crate::cli::calibrate::summary(cal),
+        summary: crate::calibration_note::summary(cal),
     }
 }
 

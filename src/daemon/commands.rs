@@ -14,9 +14,9 @@ use crate::daemon::protocol::{
 };
 use crate::daemon::replay::replay_job;
 use crate::daemon::resuming::{self, ResumeError};
-use crate::daemon::session::{self, Session};
 use crate::daemon::timing::{rfc3339_unix, JobTiming};
 use crate::daemon::Shared;
+use crate::session::{self, Session};
 use std::sync::atomic::Ordering;
 
 fn not_found(msg: String) -> ProtoError {
@@ -119,11 +119,29 @@ fn hello(shared: &Shared) -> HelloReply {
             frame_size: i.frame_size,
             job_defaults: i.job_defaults,
             axis_machine: i.axis_machine.clone(),
+            camera: camera_of(&i.config),
         },
         data_root: shared.settings.data_root.clone(),
         rig_state: shared.rig_state(),
         capabilities: Capabilities::this_daemon(),
     }
+}
+
+/// The camera as the rig's recorded config names it: the sim's profile, or the configured
+/// driver and device.
+fn camera_of(config: &serde_json::Value) -> Option<String> {
+    if config["sim"] == true {
+        return Some(match config["camera_profile"].as_str() {
+            Some(p) => format!("sim: {p}"),
+            None => "sim".into(),
+        });
+    }
+    let c = &config["camera"];
+    let driver = c["driver"].as_str()?;
+    Some(match c["device"].as_str() {
+        Some(d) => format!("{driver}: {d}"),
+        None => driver.to_string(),
+    })
 }
 
 /// Check a job against the rig and the disk, and queue it.

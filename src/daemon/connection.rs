@@ -37,7 +37,7 @@ enum LineRead {
 
 /// The next request line. An over-long line is refused as soon as it passes the limit and
 /// the codec then discards the rest of it; a line that is not UTF-8 is refused whole. After
-/// either error `FramedRead` yields one `None` before it reads on (tokio issue 3976):
+/// either error `FramedRead` yields one `None` before it reads on (tokio-rs/tokio#3976):
 /// `after_error` skips that one, so it is not taken for the end of the connection.
 async fn read_line<R: AsyncRead + Unpin>(
     lines: &mut FramedRead<R, LinesCodec>,
@@ -214,7 +214,7 @@ async fn guarded(line: &str, answer: impl Future<Output = Reply>) -> Result<Repl
 }
 
 fn panicked(line: &str, panic: &(dyn std::any::Any + Send)) -> Reply {
-    let what = crate::acquisition::sink::panic_message(panic);
+    let what = crate::text::panic_message(panic);
     let id = serde_json::from_str::<serde_json::Value>(line)
         .ok()
         .and_then(|v| v.get("id").cloned());

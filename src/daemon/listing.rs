@@ -7,7 +7,7 @@ use crate::daemon::jobs::JobStatus;
 use crate::daemon::protocol::{
     ErrorCode, ListReply, ProtoError, SessionSummary, LIST_DEFAULT, LIST_MAX,
 };
-use crate::daemon::session::{self, Session};
+use crate::session::{self, Session};
 use std::path::Path;
 
 /// Every session folder under `data_root` with its job id, newest (highest id) first; the
@@ -124,6 +124,7 @@ fn summary(s: &Session) -> SessionSummary {
         frames_captured: s.steps.len(),
         total_frames: m.plan.total_frames,
         replay_of: m.replay_of.clone(),
+        resumed_from: m.resumed_from.clone(),
         label: m.job.label.clone(),
         timing: crate::daemon::commands::session_timing(m),
     }

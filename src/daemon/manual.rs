@@ -1,4 +1,4 @@
-//! Manual control outside a job: `position`, `move`, `stop` (issue 13). `position` and
+//! Manual control outside a job: `position`, `move`, `stop`. `position` and
 //! `move` run on the worker like the other rig requests (`rig_commands`: the worker owns
 //! the rig); `stop` does not queue behind the move it stops: it sets a flag the move's
 //! wait polls, as a job's cancel does.
@@ -77,7 +77,7 @@ pub struct LaserReading {
 }
 
 impl LaserReading {
-    fn of(r: Result<crate::rig::devices::LogSample, String>) -> LaserReading {
+    fn of(r: Result<crate::hw::devices::LogSample, String>) -> LaserReading {
         match r {
             Ok(s) => LaserReading {
                 position_um: Some(s.position_um),

@@ -20,33 +20,30 @@
 //!
 //! The rig a job runs on is `crate::rig`; the daemon's settings are `config::DaemonSettings`.
 
-pub mod accept;
-pub mod calibration;
-pub mod commands;
-pub mod connection;
-pub mod events;
-pub mod frame_png;
-pub mod job_ids;
-pub mod jobs;
-pub mod listing;
+mod accept;
+mod calibration;
+mod commands;
+mod connection;
+mod events;
+mod job_ids;
+mod jobs;
+mod listing;
 pub mod live_view;
-pub mod manual;
+mod manual;
 pub mod notify;
-pub mod outbox;
-pub mod ownership;
-pub mod pausing;
+mod outbox;
+mod pausing;
 pub mod protocol;
-pub mod recorder;
-pub mod replay;
-pub mod resuming;
-pub mod rig_commands;
-pub mod rig_state;
+mod recorder;
+mod replay;
+mod resuming;
+mod rig_commands;
+mod rig_state;
 pub mod schema;
 pub mod server;
-pub mod session;
-pub mod strict_json;
-pub mod timing;
-pub mod worker;
+mod strict_json;
+mod timing;
+mod worker;
 
 use crate::config::DaemonSettings;
 use crate::rig::RigInfo;

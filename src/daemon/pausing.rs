@@ -1,4 +1,4 @@
-//! `pause` and `resume` (issue 13): a running job pauses at its next step boundary (the
+//! `pause` and `resume`: a running job pauses at its next step boundary (the
 //! engine takes the pause: `acquisition::pause`), a paused one goes on with its next frame.
 //! The engine tells the daemon through a listener installed for the job's run: the job's
 //! state becomes `paused` (and `running` again) and the `paused`/`resumed` events go out.

@@ -8,18 +8,24 @@
 use crate::acquisition::outcome::EndDetail;
 use crate::acquisition::record::{StepRecord, StepTimings};
 use crate::acquisition::{JobSpec, Processing, StageKind};
-use crate::daemon::jobs::JobStatus;
-use crate::daemon::live_view::wire::{PreviewReply, PreviewStopReply, SnapReply, ViewFrame};
-use crate::daemon::rig_state::{RigAction, RigState};
-use crate::daemon::session::SessionState;
+use crate::daemon::live_view::wire::{PreviewReply, PreviewStopReply};
 use crate::daemon::strict_json;
 use crate::hw::{MotionState, StageMachine};
 use crate::rig::RigMode;
+use crate::session::SessionState;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
-/// Version of this protocol; requests may carry `"v"` and must match it.
-pub const PROTOCOL_VERSION: u32 = 1;
+pub use crate::versions::PROTOCOL_VERSION;
+// The replies' types that live beside the code that makes them, named here for clients.
+pub use crate::daemon::jobs::JobStatus;
+pub use crate::daemon::live_view::wire::{SnapReply, ViewFrame, ViewTarget, MAX_FPS, MIN_FPS};
+pub use crate::daemon::manual::{
+    LaserReading, MoveReply, PositionReply, PositionSource, StageReading, StopReply,
+};
+pub use crate::daemon::rig_state::{RigAction, RigState};
+pub use crate::daemon::schema::document_text as schema_text;
+pub use crate::daemon::timing::EtaBasis;
 /// Longest request line the server reads; longer lines get a `line_too_long` error.
 pub const MAX_LINE_BYTES: usize = 64 * 1024;
 /// Jobs and sessions a `list` page holds when the request gives no `limit`.
@@ -208,7 +214,7 @@ pub enum ErrorCode {
 #[derive(
     Debug, Clone, PartialEq, Serialize, Deserialize, thiserror::Error, schemars::JsonSchema,
 )]
-#[error("{}: {message}", crate::cli::text::wire_name(code))]
+#[error("{}: {message}", crate::text::wire_name(code))]
 pub struct ProtoError {
     pub code: ErrorCode,
     pub message: String,
@@ -491,9 +497,9 @@ pub enum EventBody {
     },
     /// At the start of a job: the calibration it applies (or why none), with its warnings
     /// (stale, another scale, board or frame size).
-    Calibration(crate::daemon::calibration::CalibrationNote),
+    Calibration(crate::calibration_note::CalibrationNote),
     /// A calibration job fitted its scan: the record, now the data root's current one.
-    Calibrated(Box<crate::daemon::calibration::Calibrated>),
+    Calibrated(Box<crate::calibration_note::Calibrated>),
 }
 
 /// The event kinds this daemon sends, one per [`EventBody`] variant (`hello` lists them).
@@ -566,6 +572,9 @@ pub struct RigSummary {
     /// connect), when it tells them.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub axis_machine: Option<StageMachine>,
+    /// The camera: the sim's profile (`sim: webcam`), or the configured driver and device.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<String>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
@@ -619,7 +628,7 @@ pub struct SubmitReply {
     /// `resume_session`: the session resumed and the first frame this job takes (the
     /// frames before it are that session's; `total_frames` counts the whole plan).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub resumed_from: Option<crate::daemon::session::ResumedFrom>,
+    pub resumed_from: Option<crate::session::ResumedFrom>,
     /// What the job will do other than asked, though it runs (a step the axis' motor
     /// cannot make exactly, and the moves it makes instead).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -659,6 +668,9 @@ pub struct SessionSummary {
     pub frames_captured: usize,
     pub total_frames: u32,
     pub replay_of: Option<String>,
+    /// The session this one resumes, and the plan index of its own first frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub resumed_from: Option<crate::session::ResumedFrom>,
     pub label: Option<String>,
     /// started_at, ended_at, elapsed_s (from the manifest's times).
     #[serde(flatten)]

@@ -5,7 +5,7 @@
 use crate::acquisition::processor::Processor;
 use crate::acquisition::record::StepRecord;
 use crate::acquisition::sink::{SinkError, StepSink, Threaded};
-use crate::daemon::session::{unix_s, SessionError, SessionWriter, StepRow};
+use crate::session::{unix_s, SessionError, SessionWriter, StepRow};
 use std::sync::Arc;
 
 /// Called once a step is on disk.

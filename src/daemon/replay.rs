@@ -4,7 +4,7 @@
 
 use crate::acquisition::plan::{Plan, PlanError};
 use crate::acquisition::{JobSpec, Processing};
-use crate::daemon::session::Session;
+use crate::session::Session;
 
 /// The job and plan to replay a session with: the recorded job with processing
 /// overridden, cut to the frames the session holds (an incomplete session replays what it

@@ -18,10 +18,10 @@ use crate::acquisition::plan::{expand, Plan, RunPlan};
 use crate::acquisition::processor::{Prior, PriorFrame};
 use crate::acquisition::JobSpec;
 use crate::bounds;
-use crate::daemon::session::{frame_name, ResumedFrom, Session, SessionState, StepRow, MANIFEST};
+use crate::hw::devices::StageMachine;
 use crate::nofollow::{self, Access};
-use crate::rig::devices::StageMachine;
 use crate::rig::{RigInfo, RigMode};
+use crate::session::{frame_name, ResumedFrom, Session, SessionState, StepRow, MANIFEST};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -300,7 +300,7 @@ fn chain_of(data_root: &Path, dir: &Path) -> Result<Vec<(PathBuf, u32)>, ResumeE
 }
 
 /// The manifest of the session in `dir` (its steps not read).
-fn manifest(dir: &Path) -> Result<crate::daemon::session::Manifest, ResumeError> {
+fn manifest(dir: &Path) -> Result<crate::session::Manifest, ResumeError> {
     let name = dir.file_name().unwrap_or_default().to_string_lossy();
     Session::read_manifest(dir).map_err(|e| rejected(format!("session {name} cannot be read: {e}")))
 }

@@ -13,8 +13,8 @@ use crate::daemon::manual::{self, Target};
 use crate::daemon::protocol::{ErrorCode, ProtoError, ReplyBody, RigActionReply};
 use crate::daemon::rig_state::{probe, RigAction, RigFault, RigState};
 use crate::daemon::Shared;
+use crate::hw::devices::panic_free;
 use crate::hw::{HwError, MotionState, StageStatus};
-use crate::rig::devices::panic_free;
 use crate::rig::Rig;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -75,13 +75,13 @@ pub async fn send(
     if let Some((id, pause)) = running {
         return Err(busy(match pause {
             Some(crate::acquisition::PauseState::Paused) => format!(
-                "job {id} is paused and owns the stage: `{}` waits until it ends (resume it: \
-                 rigctl resume {id}, or cancel it: rigctl cancel {id})",
+                "`{}` is refused: job {id} is paused and owns the stage (resume it: \
+                 rigctl resume {id}, or cancel it: rigctl cancel {id}; then ask again)",
                 action.name()
             ),
             _ => format!(
-                "job {id} is running: `{}` waits until it ends (or cancel it: rigctl cancel \
-                 {id}, or pause it: rigctl pause {id})",
+                "`{}` is refused: job {id} is running (ask again when it ends, or cancel it: \
+                 rigctl cancel {id})",
                 action.name()
             ),
         }));

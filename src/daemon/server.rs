@@ -4,11 +4,11 @@
 //! the rig and its [`Ownership`] (the locks).
 
 use crate::config::DaemonSettings;
-use crate::daemon::ownership::{Ownership, OwnershipError};
 use crate::daemon::protocol::EventBody;
-use crate::daemon::session;
 use crate::daemon::{accept, connection, notify, worker, Shared};
+use crate::ownership::{Ownership, OwnershipError};
 use crate::rig::Rig;
+use crate::session;
 use std::os::unix::fs::PermissionsExt;
 use std::path::Path;
 use std::sync::atomic::Ordering;

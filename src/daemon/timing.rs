@@ -14,6 +14,7 @@
 //! the estimate follows the same rule from the current repeat's start. The interval that
 //! holds such a wait is not a frame's time and is not measured.
 
+pub use crate::timestamps::{rfc3339, rfc3339_unix};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 use std::time::{Duration, Instant, SystemTime};
@@ -62,22 +63,6 @@ pub struct JobTiming {
     pub frame_s: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub eta_basis: Option<EtaBasis>,
-}
-
-/// A time as RFC 3339 UTC, to the second (the epoch for one before it).
-pub fn rfc3339(t: SystemTime) -> String {
-    rfc3339_unix(crate::daemon::session::unix_s(t)).unwrap_or_else(|| "1970-01-01T00:00:00Z".into())
-}
-
-/// A time given in seconds since the epoch (as manifests record it); `None` outside
-/// `0 < unix_s <= MAX_UNIX_S` (a year the formatter cannot write is never formatted).
-pub fn rfc3339_unix(unix_s: f64) -> Option<String> {
-    if !(unix_s > 0.0 && unix_s <= crate::bounds::MAX_UNIX_S) {
-        return None;
-    }
-    let t = time::OffsetDateTime::from_unix_timestamp(unix_s.floor() as i64).ok()?;
-    t.format(&time::format_description::well_known::Rfc3339)
-        .ok()
 }
 
 /// The median of `v` (None when empty).
@@ -340,7 +325,7 @@ pub fn estimate(
             let starts_in = t;
             t += duration_s(p.total_frames, &p.repeats, f);
             JobTiming {
-                expected_start_at: rfc3339_unix(crate::daemon::session::unix_s(wall) + starts_in),
+                expected_start_at: rfc3339_unix(crate::timestamps::unix_s(wall) + starts_in),
                 starts_in_s: Some(starts_in),
                 eta_s: Some(t),
                 frame_s: Some(f),

@@ -5,7 +5,6 @@
 use crate::acquisition::interferometer::ReadLog;
 use crate::acquisition::outcome::{Stop, StopCause};
 use crate::acquisition::processor::{Image16, Processor, ProcessorEvent};
-use crate::acquisition::sink::panic_message;
 use crate::acquisition::study::{summarize, JobResult, RunResult};
 use crate::acquisition::{
     Devices, Engine, EngineSettings, JobError, Outcome, StageKind, StepSink, Threaded,
@@ -18,10 +17,11 @@ use crate::daemon::protocol::EventBody;
 use crate::daemon::recorder::{disk_error, Recorder};
 use crate::daemon::rig_commands::{self, RigRequest};
 use crate::daemon::rig_state::{probe, probe_all};
-use crate::daemon::session::{ReplayOf, Session, SessionState, SessionWriter};
 use crate::daemon::Shared;
 use crate::offline::index::SessionFacts;
 use crate::rig::Rig;
+use crate::session::{ReplayOf, Session, SessionState, SessionWriter};
+use crate::text::panic_message;
 use std::panic::AssertUnwindSafe;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -117,7 +117,7 @@ fn restart_after_panic(shared: &Shared, id: u64, what: &str) {
     let session = shared.jobs().get(id).and_then(|r| r.session.clone());
     if let Some(name) = &session {
         let dir = shared.settings.data_root.join(name);
-        if let Err(e) = crate::daemon::session::mark_failed(&dir, &message) {
+        if let Err(e) = crate::session::mark_failed(&dir, &message) {
             tracing::warn!(session = %name, "not marked failed: {e}");
         }
     }
@@ -319,7 +319,10 @@ fn fit_calibration(
             result.calibrated = Some(made);
             outcome
         }
-        Err(e) => failed(format!("calibration: {e:#}")),
+        Err(e) => failed(format!(
+            "calibration: {}",
+            crate::text::error_chain(e.chain())
+        )),
     }
 }
 
@@ -573,7 +576,7 @@ fn end(shared: &Shared, id: u64, session: Option<String>, outcome: Outcome) {
         ),
     };
     // Logged as people read them: `state=failed reason=…`, no `Some(..)`.
-    let (state_name, why) = (crate::cli::text::wire_name(&state), reason.as_deref());
+    let (state_name, why) = (crate::text::wire_name(&state), reason.as_deref());
     tracing::info!(job = id, state = %state_name, reason = why.unwrap_or("-"), "job ended");
     shared.jobs().finish(id, state, reason);
     shared.events.emit(id, body);

@@ -19,7 +19,7 @@ pub mod planes;
 pub mod tiff;
 pub mod zarr;
 
-use crate::daemon::session::{frame_name, Session, SessionError};
+use crate::session::{frame_name, Session, SessionError};
 use image::RgbImage;
 use std::path::{Path, PathBuf};
 
@@ -72,8 +72,9 @@ pub enum ExportError {
     Output { path: PathBuf, message: String },
     #[error(
         "--format nexus: this rigctl was built without the cargo feature `hdf5` (HDF5 needs \
-         the system's libhdf5): install it (Debian: apt-get install libhdf5-dev) and build \
-         with `cargo build --release --features hdf5` (docs/export.md)"
+         the system's libhdf5): install libhdf5 (Debian: apt-get install libhdf5-dev), then \
+         rigctl with it, from the clone: `cargo install --locked --path . --features hdf5` \
+         (docs/export.md)"
     )]
     NoHdf5,
 }

@@ -4,7 +4,7 @@
 //! steps.csv names them (µm, seconds since the epoch); `None` where the session has no
 //! value (no interferometer reading, no piezo).
 
-use crate::daemon::session::StepRow;
+use crate::session::StepRow;
 use serde::Serialize;
 
 /// Every plane's values, a column per quantity (JSON: one array per key).

@@ -27,7 +27,7 @@
 //!   is refused a move, since where it will end is unknown.
 //! - Waits scale with the move's planned time at the controller's rate and acceleration.
 //! - `unlock()` is `$X` (after a soft reset if GRBL requires one), confirmed by a report that
-//!   is no longer `Alarm`; `home()` is `$H` within `home_timeout_ms`.
+//!   is not `Alarm`; `home()` is `$H` within `home_timeout_ms`.
 
 use super::grbl_codes::{GrblAlarm, GrblErrorCode};
 use super::grbl_lines::{classify, Line};

@@ -10,7 +10,7 @@
 //! The plan checks it between a job's frames at submit; the drivers check every move.
 
 use super::HwError;
-use crate::rig::devices::short_um as um;
+use crate::text::short_um as um;
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -86,7 +86,7 @@ impl TravelLimits {
     pub fn check_move(&self, device: &str, from_um: f64, target_um: f64) -> Result<(), HwError> {
         self.check_abs(device, target_um)?;
         let dist = (target_um - from_um).abs();
-        // A NaN distance (an unknown start) is refused too.
+        // A NaN distance (an unknown start) is also refused.
         if dist.is_nan() || dist > self.max_step_um {
             return Err(HwError::Limit {
                 device: device.to_string(),

@@ -78,7 +78,7 @@ pub fn fit_folder(dir: &Path, fit: &FolderFit) -> anyhow::Result<Calibration> {
     });
     let opts = FitOptions {
         board: fit.board.clone(),
-        date: crate::daemon::timing::rfc3339(std::time::SystemTime::now()),
+        date: crate::timestamps::rfc3339(std::time::SystemTime::now()),
         rig: Some(rig),
         reference_rel_u: fit.reference_rel_u,
     };

@@ -103,7 +103,7 @@ pub struct SessionFacts {
 impl SessionFacts {
     /// The facts of a session read from its folder: filed under the folder's name (a copy
     /// of a session is its own session, whatever its manifest says it was called).
-    pub fn of_session(s: &crate::daemon::session::Session) -> SessionFacts {
+    pub fn of_session(s: &crate::session::Session) -> SessionFacts {
         let mut facts = SessionFacts::of(&s.manifest);
         if let Some(folder) = s.dir.file_name().and_then(|n| n.to_str()) {
             facts.session = folder.to_string();
@@ -111,10 +111,10 @@ impl SessionFacts {
         facts
     }
 
-    pub fn of(m: &crate::daemon::session::Manifest) -> SessionFacts {
+    pub fn of(m: &crate::session::Manifest) -> SessionFacts {
         SessionFacts {
             session: m.name.clone(),
-            date: crate::daemon::timing::rfc3339_unix(m.created_unix_s).unwrap_or_default(),
+            date: crate::timestamps::rfc3339_unix(m.created_unix_s).unwrap_or_default(),
             label: m.job.label.clone(),
         }
     }
@@ -298,14 +298,11 @@ pub fn write_csv(rows: &[Row], out: impl std::io::Write) -> Result<(), csv::Erro
 /// Every result file of the session in `dir`: its own `result.json` (settings
 /// [`RECORDED`]) and each `processed/<settings>/result.json`, as rows. Files that cannot be
 /// read are returned with why.
-pub fn session_rows(s: &crate::daemon::session::Session) -> (Vec<(String, Vec<Row>)>, Skipped) {
+pub fn session_rows(s: &crate::session::Session) -> (Vec<(String, Vec<Row>)>, Skipped) {
     let facts = SessionFacts::of_session(s);
     let mut out = Vec::new();
     let mut bad = Vec::new();
-    let mut files = vec![(
-        RECORDED.to_string(),
-        PathBuf::from(crate::daemon::session::RESULT),
-    )];
+    let mut files = vec![(RECORDED.to_string(), PathBuf::from(crate::session::RESULT))];
     let processed = s.dir.join(super::outputs::PROCESSED);
     if let Ok(rd) = std::fs::read_dir(&processed) {
         let mut names: Vec<String> = rd
@@ -350,7 +347,7 @@ pub fn rebuild(data_root: &Path, into: &Path) -> Result<(usize, usize, Skipped),
     ));
     let _ = std::fs::remove_file(&tmp);
     let mut index = Index::open(&tmp)?;
-    let (sessions, mut skipped) = crate::daemon::session::scan(data_root);
+    let (sessions, mut skipped) = crate::session::scan(data_root);
     let mut rows = 0;
     for s in &sessions {
         let (files, bad) = session_rows(s);

@@ -58,12 +58,12 @@ impl From<AtomicWriteError> for OutputError {
 /// name (`commanded`, `interferometer`: the pipeline's `positions`).
 pub fn registration_name(
     overrides: &Overrides,
-    session: &crate::daemon::session::Session,
+    session: &crate::session::Session,
 ) -> Option<String> {
     overrides
         .registration
         .or(session.manifest.job.registration)
-        .map(|r| crate::cli::text::wire_name(&r))
+        .map(|r| crate::text::wire_name(&r))
 }
 
 /// `session/processed/<name>`, made if missing (never through a symlink).
@@ -125,7 +125,7 @@ pub fn write_outputs(
         &csv_path,
         &crate::results_csv::to_bytes(&rows),
     )?);
-    let result_path = out.join(crate::daemon::session::RESULT);
+    let result_path = out.join(crate::session::RESULT);
     let bytes = serde_json::to_vec_pretty(result).map_err(|e| encode(&result_path, &e))?;
     staged.push(atomic_file::stage(&result_path, &bytes)?);
     let written = staged

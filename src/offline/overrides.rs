@@ -80,7 +80,7 @@ impl Overrides {
     /// `k5`, `paper-commanded`); `recorded` when nothing is overridden. The same flags give
     /// the same name in any order; `settings.json` beside the result holds them in full.
     pub fn settings_name(&self) -> String {
-        use crate::cli::text::wire_name as wire;
+        use crate::text::wire_name as wire;
         let mut parts: Vec<String> = Vec::new();
         if let Some(e) = &self.estimator {
             parts.push(wire(e));

@@ -8,7 +8,7 @@ use super::outputs::{registration_name, settings_dir, write_outputs, Settings};
 use super::overrides::Overrides;
 use super::session_runs::process_session;
 use crate::board::Board;
-use crate::daemon::session::{unix_s, Session};
+use crate::session::{unix_s, Session};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -66,7 +66,8 @@ pub fn reprocess(
         sessions
             .par_iter()
             .map(|dir| {
-                let outcome = one(dir, how, &indexes).map_err(|e| format!("{e:#}"));
+                let outcome =
+                    one(dir, how, &indexes).map_err(|e| crate::text::error_chain(e.chain()));
                 let d = Done {
                     session: dir.clone(),
                     outcome,

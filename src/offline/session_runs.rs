@@ -15,9 +15,9 @@ use crate::acquisition::study::{summarize, JobResult, RunResult};
 use crate::acquisition::JobRegistration;
 use crate::board::Board;
 use crate::calibration_file::Applied;
-use crate::daemon::session::{Session, StepRow};
 use crate::folder::FrameFile;
 use crate::pipeline::{Pipeline, ValidOptions};
+use crate::session::{Session, StepRow};
 
 /// Why a session cannot be processed at all (a run the pipeline refuses is not this: it is
 /// recorded in the result with its error, as the daemon records it).
@@ -155,6 +155,21 @@ pub fn process_session(
     decoders: usize,
 ) -> Result<Processed, SessionProcessError> {
     let runs = session_runs(s, ov, limit)?;
+    if let Some(k) = ov.k {
+        if runs
+            .iter()
+            .all(|r| r.options.combine == crate::pipeline::Combine::Mean)
+        {
+            return Err(SessionProcessError::Setup {
+                session: s.dir.display().to_string(),
+                message: format!(
+                    "--k {k} changes nothing: its runs combine by `mean` (each frame \
+                     measured, the estimates averaged; no reconstruction). Add \
+                     --combine interp (or splat) to reconstruct at k = {k}"
+                ),
+            });
+        }
+    }
     let settings = runs
         .iter()
         .map(|r| RunSettings {

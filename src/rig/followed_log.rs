@@ -18,8 +18,8 @@
 //! poll says nothing (it may be an old file), so until the log has grown under observation
 //! the offset is 0: the date is taken as written.
 
-use super::devices::{LogSample, LogSource, PositionLog};
-use crate::daemon::session::unix_s;
+use crate::hw::devices::{LogSample, LogSource, PositionLog};
+use crate::timestamps::unix_s;
 use crate::xl80::Follower;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant, SystemTime};

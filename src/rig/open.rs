@@ -4,11 +4,11 @@
 //! driver is "sim" the devices are one simulated rig (`rig::sim`), so the camera sees the
 //! stages move.
 
-use super::devices::{Camera, HwError, PositionLog, Stage};
 use super::{FollowedLog, Rig, RigInfo, RigMode};
 use crate::acquisition::Processing;
 use crate::board::Board;
 use crate::config::{CameraConfig, CameraDriver, Config, PipelineConfig, StageConfig, StageDriver};
+use crate::hw::devices::{Camera, HwError, PositionLog, Stage};
 use crate::hw::gcs::GcsStage;
 use crate::hw::grbl::GrblStage;
 use std::path::Path;
@@ -235,6 +235,6 @@ fn open_v4l2(cfg: &CameraConfig) -> Result<Box<dyn Camera>, HwError> {
 fn open_v4l2(cfg: &CameraConfig) -> Result<Box<dyn Camera>, HwError> {
     Err(HwError::Other {
         device: cfg.v4l2_options().device,
-        message: "this rigd was built without V4L2 support: rebuild with `cargo build --release --features v4l2` (needs libclang-dev)".into(),
+        message: "this rigd was built without V4L2 support: install it with V4L2 support, from the clone: `cargo install --locked --path . --features v4l2` (needs libclang-dev)".into(),
     })
 }

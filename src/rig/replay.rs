@@ -3,12 +3,12 @@
 //! job recorded them, so a replayed job gets the same result (or another, with other
 //! processing settings: `daemon::replay`).
 
-use super::devices::{
+use super::{Rig, RigInfo, RigMode};
+use crate::hw::devices::{
     Camera, Frame, HwError, LogSample, LogSource, MotionState, PositionLog, Stage, StageMachine,
     StageStatus,
 };
-use super::{Rig, RigInfo, RigMode};
-use crate::daemon::session::{Session, SessionError, StepRow, INTERFEROMETER};
+use crate::session::{Session, SessionError, StepRow, INTERFEROMETER};
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
@@ -200,7 +200,7 @@ impl PositionLog for ReplayLog {
     fn begin(&mut self, _from: SystemTime) {}
 
     fn position_at(&mut self, t: SystemTime) -> Option<f64> {
-        let t = crate::daemon::session::unix_s(t);
+        let t = crate::timestamps::unix_s(t);
         // Hand on the samples up to the first one at or after the frame, as the live job
         // had read them.
         while let Some(s) = self.samples.pop_front() {

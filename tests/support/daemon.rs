@@ -8,10 +8,10 @@ use rigd::config::Config;
 use rigd::config::DaemonSettings;
 use rigd::daemon::protocol::{EventBody, Request};
 use rigd::daemon::server::Background;
-use rigd::daemon::session::{Session, SessionState};
 use rigd::rig::from_config;
 use rigd::rig::Rig;
 use rigd::rig::SimSettings;
+use rigd::session::{Session, SessionState};
 use rigd::sim::grbl::{GrblSim, GrblSimOptions};
 use rigd::sim::motion::{Axis, AxisParams};
 use rigd::sim::CameraModel;
@@ -277,7 +277,7 @@ impl RigdProcess {
         child
     }
 
-    /// The child, no longer killed on drop.
+    /// The child, taken out: dropping `self` then kills nothing.
     pub fn take(&mut self) -> Child {
         self.0.take().expect("rigd is running")
     }

@@ -124,7 +124,7 @@ impl Measurer {
     /// measured one plus the positions' change since, turned and scaled as frame j's
     /// measured displacement is to its commanded one (once that is 2 px or more: a
     /// misconfigured scale or axis direction then costs a long step no more than a short
-    /// one). `None` while frame j is not recorded (or no longer: far behind the last one).
+    /// one). `None` while frame j is not recorded (or not kept: far behind the last one).
     pub fn predicted(&self, index: usize, at: At) -> Option<[f64; 2]> {
         let dirs = &self.0.dirs;
         let (from_px, from_at) = match self.0.registration {

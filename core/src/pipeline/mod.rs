@@ -98,7 +98,8 @@ pub struct ObjectResult {
     /// The same in micrometres on the board: `offset_px` x `scale_um_per_px`, or, when a
     /// calibration was applied (`ProcessResult::calibration`), converted by its field model.
     pub offset_um: [f64; 2],
-    /// One-sigma uncertainty of `offset_um` (from the fit, or the frame-to-frame scatter).
+    /// One-sigma uncertainty of `offset_um` (from the fit, or the frame-to-frame scatter), in
+    /// the same scale: through the calibration when one converted the offset.
     pub sigma_um: Option<[f64; 2]>,
     /// Nominal offset from the board file.
     pub nominal_um: Option<[f64; 2]>,

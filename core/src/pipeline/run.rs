@@ -871,7 +871,12 @@ impl Pipeline {
                     ([[s, 0.0], [0.0, s]], [UNCALIBRATED_SCALE_REL_U * len; 2])
                 }
             };
-            o.u_a_um = a.map(|a| std::array::from_fn(|i| (m[i][0] * a[0]).hypot(m[i][1] * a[1])));
+            let through = |q: [f64; 2]| -> [f64; 2] {
+                std::array::from_fn(|i| (m[i][0] * q[0]).hypot(m[i][1] * q[1]))
+            };
+            o.u_a_um = a.map(through);
+            // σ in the offset's own scale: the calibration's local one when it converted.
+            o.sigma_um = o.sigma_um.map(|q| through([q[0] / s, q[1] / s]));
             // The ink's: a length in any direction, through the local scale of each axis.
             o.u_ink_um = u
                 .ink_px

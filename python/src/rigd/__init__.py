@@ -9,6 +9,7 @@ from .client import Client, connect
 from .errors import (
     BadRequest,
     Busy,
+    CannotConnect,
     ConnectionClosed,
     Hardware,
     Internal,
@@ -47,7 +48,7 @@ from .session import Session
 __version__ = "0.1.0"
 
 __all__ = [
-    "Accepted", "AsyncClient", "BadRequest", "Busy", "Calibrated", "Calibration", "Cancelled", "Client", "ConnectionClosed",
+    "Accepted", "AsyncClient", "BadRequest", "Busy", "Calibrated", "Calibration", "Cancelled", "CannotConnect", "Client", "ConnectionClosed",
     "Event", "Failed", "Finished", "Hardware", "Internal", "JobFailed", "LineTooLong",
     "Malformed", "NotFound", "Paused", "Preview", "Processed", "ProtocolError", "Rejected",
     "Result", "Resumed", "RigdError", "Session", "Started", "Step", "Timings", "Unavailable",

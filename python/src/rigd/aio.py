@@ -8,7 +8,14 @@ import asyncio
 import os
 from typing import Any, AsyncIterator, Mapping, Optional
 
-from .errors import ConnectionClosed, JobFailed, ProtocolError, RigdError, error_from_wire
+from .errors import (
+    CannotConnect,
+    ConnectionClosed,
+    JobFailed,
+    ProtocolError,
+    RigdError,
+    error_from_wire,
+)
 from .events import Event, parse_event
 from .paths import resolve_socket
 from .wire import ENDED_STATES, OWN_IDLESS_CODES, Json, decode_line, encode_request, notice_of
@@ -37,9 +44,11 @@ class AsyncClient:
 
     @classmethod
     async def connect(cls, path: str | os.PathLike[str] | None = None) -> "AsyncClient":
-        reader, writer = await asyncio.open_unix_connection(
-            str(resolve_socket(path)), limit=LINE_LIMIT
-        )
+        where = resolve_socket(path)
+        try:
+            reader, writer = await asyncio.open_unix_connection(str(where), limit=LINE_LIMIT)
+        except OSError as e:
+            raise CannotConnect(where, e) from e
         return cls(reader, writer)
 
     async def close(self) -> None:

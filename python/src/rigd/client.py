@@ -8,7 +8,7 @@ import socket
 from collections import deque
 from typing import Any, Iterator, Mapping, Optional
 
-from .errors import ConnectionClosed, JobFailed, error_from_wire
+from .errors import CannotConnect, ConnectionClosed, JobFailed, error_from_wire
 from .events import Event, parse_event
 from .paths import resolve_socket
 from .wire import ENDED_STATES, OWN_IDLESS_CODES, Json, decode_line, encode_request, notice_of
@@ -30,9 +30,9 @@ class Client:
         self._sock.settimeout(timeout)
         try:
             self._sock.connect(str(self.path))
-        except OSError:
+        except OSError as e:
             self._sock.close()
-            raise
+            raise CannotConnect(self.path, e) from e
         self._file = self._sock.makefile("rwb")
         self._next_id = 1
         self._pending: deque[Event] = deque()

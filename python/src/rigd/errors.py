@@ -81,6 +81,22 @@ def error_from_wire(error: Any) -> RigdError:
     return _BY_CODE.get(code, RigdError)(code, message)
 
 
+class CannotConnect(ConnectionError):
+    """No rigd answers at the socket: `path` is where the client looked."""
+
+    def __init__(self, path: Any, error: OSError) -> None:
+        why = error.strerror or str(error)
+        super().__init__(
+            error.errno,
+            f"cannot connect to rigd at {path} (is it running? `rigd --sim` starts one; "
+            f"$RIGD_SOCKET names another socket): {why}",
+        )
+        self.path = path
+
+    def __str__(self) -> str:
+        return str(self.args[1])
+
+
 class ProtocolError(Exception):
     """The daemon sent something this client cannot read (not JSON, a known event without
     a field it requires, ...)."""

@@ -20,8 +20,9 @@ Frames = npt.NDArray[np.uint8]
 
 #: The offsets table's columns, in order.
 OFFSET_COLUMNS = [
-    "run", "case", "repeat", "k", "target", "dx_um", "dy_um", "sigma_x_um", "sigma_y_um",
-    "nominal_x_um", "nominal_y_um", "dx_px", "dy_px", "centre_x_px", "centre_y_px", "frames",
+    "run", "case", "repeat", "k", "target", "dx_um", "dy_um", "u_dx_um", "u_dy_um",
+    "u_a_dx_um", "u_a_dy_um", "nominal_dx_um", "nominal_dy_um", "dx_px", "dy_px",
+    "centre_x_px", "centre_y_px", "frames",
 ]  # fmt: skip
 
 #: results.csv's columns (docs/sessions.md), in order: offsets and their standard
@@ -132,7 +133,10 @@ class Session:
     @cached_property
     def offsets(self) -> pd.DataFrame:
         """Every target measured in every run, one row each (OFFSET_COLUMNS): the offset
-        of the inner centre from the outer one, µm and px, its σ and the nominal offset."""
+        of the inner centre from the outer one, µm and px; its combined standard
+        uncertainty `u_*` (result.json's `u_um`) and the frames' share of it `u_a_*`
+        (`u_a_um`), both in the offset's own scale; the nominal offset, named as
+        results.csv names it."""
         rows: list[Json] = []
         for run in (self.result or {}).get("runs", []):
             for obj in (run.get("result") or {}).get("objects", []):
@@ -177,6 +181,11 @@ class Session:
 
     def frame(self, index: int) -> Frames:
         """Frame `index` (the job's numbering) as an (h, w, 3) uint8 array."""
+        if not self.frames_dir.is_dir():
+            raise FileNotFoundError(
+                f"{self.path}: its frames are gone ({self.frames_dir} is missing): "
+                "`rigctl demo` removes them unless run with --keep"
+            )
         with Image.open(self.frame_path(index)) as im:
             return np.asarray(im.convert("RGB"), dtype=np.uint8)
 
@@ -244,14 +253,16 @@ def _pair(v: Any) -> tuple[float, float]:
 
 def _offset_row(run: Json, obj: Json) -> Json:
     dx, dy = _pair(obj.get("offset_um"))
-    sx, sy = _pair(obj.get("sigma_um"))
+    ux, uy = _pair(obj.get("u_um"))
+    ax, ay = _pair(obj.get("u_a_um"))
     nx, ny = _pair(obj.get("nominal_um"))
     px, py = _pair(obj.get("offset_px"))
     cx, cy = _pair(obj.get("centre_px"))
     return {
         "run": run.get("run"), "case": run.get("case"), "repeat": run.get("repeat"),
         "k": run.get("k"), "target": obj.get("name"), "dx_um": dx, "dy_um": dy,
-        "sigma_x_um": sx, "sigma_y_um": sy, "nominal_x_um": nx, "nominal_y_um": ny,
+        "u_dx_um": ux, "u_dy_um": uy, "u_a_dx_um": ax, "u_a_dy_um": ay,
+        "nominal_dx_um": nx, "nominal_dy_um": ny,
         "dx_px": px, "dy_px": py, "centre_x_px": cx, "centre_y_px": cy,
         "frames": obj.get("frames"),
     }  # fmt: skip

@@ -33,7 +33,7 @@ pub async fn serve(mut ws: WebSocket, daemon: Daemon) {
     let mut link = match open(&daemon).await {
         Ok(l) => l,
         Err(e) => {
-            let msg = json!({"type": "gateway", "daemon": "down", "error": format!("{e:#}")});
+            let msg = json!({"type": "gateway", "daemon": "down", "error": crate::text::error_chain(e.chain())});
             let _ = send(&mut ws, msg.to_string()).await;
             return;
         }
@@ -43,7 +43,7 @@ pub async fn serve(mut ws: WebSocket, daemon: Daemon) {
         return;
     }
     if let Err(e) = pump(&mut ws, &mut link).await {
-        let msg = json!({"type": "gateway", "daemon": "lost", "error": format!("{e:#}")});
+        let msg = json!({"type": "gateway", "daemon": "lost", "error": crate::text::error_chain(e.chain())});
         let _ = send(&mut ws, msg.to_string()).await;
     }
 }

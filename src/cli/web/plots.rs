@@ -36,7 +36,11 @@ pub async fn list(State(app): State<App>, UrlPath(name): UrlPath<String>) -> Res
     };
     match tokio::task::spawn_blocking(move || stems(&dir)).await {
         Ok(Ok(v)) => Json(serde_json::json!({"charts": v})).into_response(),
-        Ok(Err(e)) => error(StatusCode::NOT_FOUND, "not_found", format!("{e:#}")),
+        Ok(Err(e)) => error(
+            StatusCode::NOT_FOUND,
+            "not_found",
+            crate::text::error_chain(e.chain()),
+        ),
         Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()),
     }
 }
@@ -71,7 +75,11 @@ pub async fn chart(
             "not_found",
             format!("session {name} has no chart {file:?}"),
         ),
-        Ok(Err(e)) => error(StatusCode::NOT_FOUND, "not_found", format!("{e:#}")),
+        Ok(Err(e)) => error(
+            StatusCode::NOT_FOUND,
+            "not_found",
+            crate::text::error_chain(e.chain()),
+        ),
         Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()),
     }
 }

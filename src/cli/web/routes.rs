@@ -92,7 +92,11 @@ async fn request(State(app): State<App>, Json(req): Json<Value>) -> Response {
     }
     match app.daemon.ask(&req).await {
         Ok(reply) => Json(reply).into_response(),
-        Err(e) => error(StatusCode::BAD_GATEWAY, "unavailable", format!("{e:#}")),
+        Err(e) => error(
+            StatusCode::BAD_GATEWAY,
+            "unavailable",
+            crate::text::error_chain(e.chain()),
+        ),
     }
 }
 
@@ -110,11 +114,13 @@ pub async fn session_dir(app: &App, name: &str) -> Result<PathBuf, Response> {
             format!("session {name:?}: not a session name (letters, digits, - _ .)"),
         ));
     }
-    let root = app
-        .daemon
-        .data_root()
-        .await
-        .map_err(|e| error(StatusCode::BAD_GATEWAY, "unavailable", format!("{e:#}")))?;
+    let root = app.daemon.data_root().await.map_err(|e| {
+        error(
+            StatusCode::BAD_GATEWAY,
+            "unavailable",
+            crate::text::error_chain(e.chain()),
+        )
+    })?;
     Ok(root.join(name))
 }
 
@@ -160,7 +166,13 @@ async fn targets(State(app): State<App>, UrlPath(name): UrlPath<String>) -> Resp
 async fn calibration(State(app): State<App>) -> Response {
     let root = match app.daemon.data_root().await {
         Ok(r) => r,
-        Err(e) => return error(StatusCode::BAD_GATEWAY, "unavailable", format!("{e:#}")),
+        Err(e) => {
+            return error(
+                StatusCode::BAD_GATEWAY,
+                "unavailable",
+                crate::text::error_chain(e.chain()),
+            )
+        }
     };
     match crate::calibration_store::current(&root) {
         Ok(None) => Json(json!({"current": null})).into_response(),
@@ -181,7 +193,8 @@ async fn calibration(State(app): State<App>) -> Response {
             }}))
             .into_response()
         }
-        Err(e) => Json(json!({"current": null, "error": format!("{e:#}")})).into_response(),
+        Err(e) => Json(json!({"current": null, "error": crate::text::error_chain(e.chain())}))
+            .into_response(),
     }
 }
 

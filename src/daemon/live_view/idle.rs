@@ -78,7 +78,7 @@ pub async fn grab(live: &std::sync::Arc<crate::daemon::Shared>, rig: Rig) -> Rig
     let handle = tokio::task::spawn_blocking(move || {
         let mut rig = rig;
         let r =
-            crate::rig::devices::panic_free("camera", || grab_now(&mut rig, not_before, timeout));
+            crate::hw::devices::panic_free("camera", || grab_now(&mut rig, not_before, timeout));
         (rig, r)
     });
     let (rig, result) = match handle.await {

@@ -261,5 +261,5 @@ fn shutting_down() -> ProtoError {
 }
 
 fn unix_s(t: SystemTime) -> f64 {
-    crate::daemon::session::unix_s(t)
+    crate::timestamps::unix_s(t)
 }

@@ -37,7 +37,8 @@ pub struct ViewTarget {
     /// The outer ring's centre, frame px, and that times the rig's scale, µm.
     pub centre_px: [f64; 2],
     pub centre_um: [f64; 2],
-    /// Inner centre minus outer centre, µm.
+    /// Inner centre minus outer centre, µm at the global scale (`scale_um_per_px`): one
+    /// frame, no calibration applied, unlike a job's `offset_um`.
     pub offset_um: [f64; 2],
     pub outer_radius_px: f64,
     pub inner_radius_px: f64,

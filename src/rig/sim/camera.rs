@@ -5,7 +5,7 @@
 //! `not_before` and waits for the first one exposed at or after it — the fresh-frame rule.
 //! After a timeout the stream is restarted on the next grab, as the V4L2 driver does.
 
-use crate::rig::devices::{Camera, Frame, HwError};
+use crate::hw::devices::{Camera, Frame, HwError};
 use rigd_sim::camera_clock::{ClockError, FrameClockCamera, SimFrame};
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};

@@ -3,8 +3,8 @@
 
 use super::{SimCamera, SimRigCamera, SimStage, SimXl80};
 use crate::config::{CameraConfig, Config, StageConfig};
+use crate::hw::devices::{Camera, HwError, Stage};
 use crate::hw::limits::TravelLimits;
-use crate::rig::devices::{Camera, HwError, Stage};
 use crate::rig::open::Devices;
 use crate::xl80::Xl80Format;
 use std::path::Path;

@@ -23,8 +23,8 @@ pub use from_config::{open_sim_rig, SimHardware};
 pub use stage::SimStage;
 pub use xl80::SimXl80;
 
-use super::devices::{HwError, Stage, StageMachine, StageStatus};
 use super::{Rig, RigInfo, RigMode};
+use crate::hw::devices::{HwError, Stage, StageMachine, StageStatus};
 use crate::hw::gcs::{GcsOptions, GcsStage};
 use crate::hw::grbl::{GrblOptions, GrblStage};
 use crate::hw::limits::TravelLimits;
@@ -125,6 +125,25 @@ impl Default for SimSettings {
             faults: Vec::new(),
             camera_profile: None,
         }
+    }
+}
+
+impl SimSettings {
+    /// The sim with the camera of `profile` (`ideal`, `webcam`, `stress`) on a fast frame
+    /// clock (5 ms frames; an exposure the profile's own), so a study takes about a minute.
+    /// `rigd --sim --camera` and `rigctl demo --camera` both start their rig from it.
+    pub fn for_camera(profile: &str) -> Result<SimSettings, rigd_sim::camera::CameraError> {
+        let mut camera = CameraModel::profile(profile)?;
+        camera.supersample = 4;
+        match profile {
+            "ideal" => (camera.frame_period_ms, camera.exposure_ms) = (5.0, 2.0),
+            _ => camera.frame_period_ms = (camera.exposure_ms + 2.0).max(5.0),
+        }
+        Ok(SimSettings {
+            camera,
+            camera_profile: Some(profile.to_string()),
+            ..SimSettings::default()
+        })
     }
 }
 

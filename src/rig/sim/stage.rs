@@ -2,8 +2,8 @@
 //! logic. The motion is the same `Axis` the emulators drive (finite speed, positioning error,
 //! hard limits), so a camera or interferometer watching it sees the same thing.
 
+use crate::hw::devices::{HwError, MotionState, Stage, StageStatus};
 use crate::hw::limits::TravelLimits;
-use crate::rig::devices::{HwError, MotionState, Stage, StageStatus};
 use rigd_sim::motion::{Axis, MotionError};
 use std::sync::Arc;
 use std::time::{Duration, Instant};

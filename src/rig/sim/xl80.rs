@@ -5,7 +5,7 @@
 //! test, and finished when the job ends, so the file holds one job and does not grow while
 //! the daemon idles (it grew ~24 kB/s at 1 kHz before).
 
-use crate::rig::devices::{HwError, LogSample, LogSource, PositionLog};
+use crate::hw::devices::{HwError, LogSample, LogSource, PositionLog};
 use crate::rig::FollowedLog;
 use crate::xl80::{Follower, Xl80Format};
 use rigd_sim::motion::TruePosition;
@@ -197,7 +197,7 @@ impl PositionLog for SimXl80 {
         let t = SystemTime::now();
         let los_um = self.source.true_position_um(std::time::Instant::now());
         Ok(LogSample {
-            t_unix_s: crate::daemon::session::unix_s(t),
+            t_unix_s: crate::timestamps::unix_s(t),
             position_um: self.one_shot.read_um(los_um),
             sample: 0,
         })

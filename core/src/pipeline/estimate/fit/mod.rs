@@ -236,7 +236,7 @@ pub(super) fn estimate(
         _ => {
             // (The even-ink model holds the gradients where they start: at 0.)
             let p = seed.map_or_else(|| first_guess(g, k, paper, ink_level), |s| s.even_ink().p);
-            // The even-ink model first (as fast as the fit before the planes); the planes
+            // The even-ink model first (as fast as a fit without the planes); the planes
             // only when a score test at its minimum shows uneven ink: one more pass on
             // evenly printed targets.
             let even = solve(&prob, p, k, g, Steps::ToMinimum, Some(&uneven))?;
@@ -542,7 +542,7 @@ fn solve(
                 cur_wide = next_wide;
                 lambda = (lambda * 0.3).max(1e-9);
                 // Converged: the centres move by less than 1e-4 px (0.08 µm at the
-                // paper's scale, far below the noise) and the cost no longer falls.
+                // paper's scale, far below the noise) and the cost stops falling.
                 if step_centres < 1e-4 * k && gain <= 1e-6 * cur.cost {
                     converged = true;
                     break;

@@ -10,7 +10,7 @@
 //! faster to write; a session is written once and read by every reprocessing
 //! (docs/performance.md, "Frames measured where they are decoded").
 
-use crate::daemon::session::StepRow;
+use crate::session::StepRow;
 use image::RgbImage;
 
 /// The `tEXt` keywords a frame carries, in the order written.

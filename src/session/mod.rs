@@ -18,13 +18,15 @@ use crate::acquisition::study::JobResult;
 use crate::acquisition::JobSpec;
 use crate::atomic_file::{self, AtomicWriteError};
 use crate::bounds;
-use crate::cli::text::wire_name;
-use crate::daemon::frame_png;
-use crate::daemon::protocol::PROTOCOL_VERSION;
+use crate::text::wire_name;
+pub mod frame_png;
+
+use crate::acquisition::rig::RigInfo;
+use crate::hw::devices::StageMachine;
+use crate::hw::{LogSample, LogSource};
 use crate::nofollow::{self, Access};
 use crate::results_csv;
-use crate::rig::devices::StageMachine;
-use crate::rig::{LogSample, LogSource, RigInfo};
+use crate::versions::PROTOCOL_VERSION;
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use std::fs;
@@ -41,6 +43,7 @@ pub const RESULT: &str = "result.json";
 pub const INTERFEROMETER_HEADER: &str = "t_unix_s,position_um,sample\n";
 
 pub use crate::acquisition::processor::Image16;
+pub use crate::timestamps::unix_s;
 
 /// Columns of `steps.csv`, the `rigctl process` contract (`index,position_um`) first; the
 /// piezo's last (empty unless the plan moves it besides the axis), so readers of the
@@ -135,7 +138,7 @@ pub struct Manifest {
     /// The calibration the job applied, or why none (absent from sessions recorded before
     /// the daemon kept calibrations).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub calibration: Option<crate::daemon::calibration::CalibrationNote>,
+    pub calibration: Option<crate::calibration_note::CalibrationNote>,
 }
 
 /// One row of `steps.csv`: the `rigctl process` contract (`index,position_um`) first.
@@ -219,12 +222,6 @@ impl StepRow {
             m.reached_um(self.position_um, self.axis_um)
         })
     }
-}
-
-pub fn unix_s(t: SystemTime) -> f64 {
-    t.duration_since(SystemTime::UNIX_EPOCH)
-        .map(|d| d.as_secs_f64())
-        .unwrap_or(0.0)
 }
 
 impl From<AtomicWriteError> for SessionError {
@@ -388,7 +385,7 @@ impl SessionWriter {
     /// Name the calibration the job applies (or why none) in the manifest.
     pub fn note_calibration(
         &mut self,
-        note: crate::daemon::calibration::CalibrationNote,
+        note: crate::calibration_note::CalibrationNote,
     ) -> Result<(), SessionError> {
         self.manifest.calibration = Some(note);
         self.write_manifest()

@@ -8,6 +8,7 @@
 //! motion): the drivers in `hw` implement it (and re-export it), the rig builders assemble it.
 
 pub use super::stage_machine::StageMachine;
+use crate::text::short_um;
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use std::time::{Duration, SystemTime};
@@ -56,16 +57,6 @@ pub enum HwError {
     },
     #[error("{device}: {message}")]
     Other { device: String, message: String },
-}
-
-/// A length for a message: plain up to a kilometre, scientific beyond (a refusal of `1e308`
-/// says `1e308`, not 309 digits).
-pub fn short_um(v: f64) -> String {
-    if v.is_finite() && v.abs() < 1e9 {
-        format!("{v}")
-    } else {
-        format!("{v:e}")
-    }
 }
 
 /// Motion state as the controller reports it.
@@ -154,7 +145,7 @@ pub fn panic_free<T>(device: &str, f: impl FnOnce() -> Result<T, HwError>) -> Re
     match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
         Ok(r) => r,
         Err(p) => {
-            let message = crate::acquisition::sink::panic_message(p.as_ref());
+            let message = crate::text::panic_message(p.as_ref());
             tracing::error!(device, panic = %message, "a device call panicked");
             Err(HwError::Other {
                 device: device.to_string(),

@@ -1,5 +1,6 @@
-//! How rigctl prints values to people: enums by their wire names, vectors as `(x, y)`,
-//! durations, rates and times without Rust's Debug forms, and tables whose columns line up.
+//! How rigd prints values to people: enums by their wire names, vectors as `(x, y)`,
+//! durations, rates and times without Rust's Debug forms, numbers that stay short, and
+//! tables whose columns line up.
 
 use serde::Serialize;
 
@@ -153,6 +154,47 @@ impl Table {
     }
 }
 
+/// A length for a message: plain up to a kilometre, scientific beyond (a refusal of `1e308`
+/// says `1e308`, not 309 digits).
+pub fn short_um(v: f64) -> String {
+    if v.is_finite() && v.abs() < 1e9 {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
+
+/// The text of a panic payload.
+pub fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
+    if let Some(s) = p.downcast_ref::<&str>() {
+        s.to_string()
+    } else if let Some(s) = p.downcast_ref::<String>() {
+        s.clone()
+    } else {
+        "a panic without a message".into()
+    }
+}
+
+/// An error and its causes as one line, `a: b: c`, leaving out a cause whose text the line
+/// already holds (an error that quotes its source, as most of ours do, would otherwise
+/// print it twice).
+pub fn error_chain<'a>(
+    chain: impl IntoIterator<Item = &'a (dyn std::error::Error + 'static)>,
+) -> String {
+    let mut line = String::new();
+    for e in chain {
+        let text = e.to_string();
+        if line.contains(&text) {
+            continue;
+        }
+        if !line.is_empty() {
+            line.push_str(": ");
+        }
+        line.push_str(&text);
+    }
+    line
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -225,5 +267,19 @@ mod tests {
         let at = |l: &str| l.find("s2").or(l.find('-')).or(l.find("session"));
         assert_eq!(at(lines[0]), at(lines[1]));
         assert_eq!(at(lines[1]), at(lines[2]));
+    }
+
+    #[test]
+    fn an_error_chain_names_each_cause_once() {
+        #[derive(Debug, thiserror::Error)]
+        #[error("session s: {source}")]
+        struct Quoting {
+            source: std::io::Error,
+        }
+        let io = || std::io::Error::new(std::io::ErrorKind::NotFound, "gone");
+        let e = anyhow::Error::new(Quoting { source: io() }).context("export");
+        assert_eq!(error_chain(e.chain()), "export: session s: gone");
+        let e = anyhow::Error::new(io()).context("reading x");
+        assert_eq!(error_chain(e.chain()), "reading x: gone");
     }
 }
