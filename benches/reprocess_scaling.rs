@@ -141,6 +141,7 @@ fn main() {
             },
             board: None,
             calibration: None,
+            no_calibration: false,
             threads: th,
             index: IndexTarget::File(root.path().join(format!("index-{th}.sqlite"))),
         };

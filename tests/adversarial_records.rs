@@ -334,7 +334,7 @@ fn a_reprocessed_copy_of_a_session_is_indexed_under_its_own_name() {
     let out = Command::new(env!("CARGO_BIN_EXE_rigctl"))
         .arg("reprocess")
         .arg(&copy)
-        .args(["--k", "2"])
+        .args(["--k", "2", "--combine", "interp"])
         .output()
         .unwrap();
     assert!(
@@ -348,7 +348,7 @@ fn a_reprocessed_copy_of_a_session_is_indexed_under_its_own_name() {
         .output()
         .unwrap();
     let csv = String::from_utf8_lossy(&out.stdout).into_owned();
-    let rows: Vec<&str> = csv.lines().filter(|l| l.contains(",k2,")).collect();
+    let rows: Vec<&str> = csv.lines().filter(|l| l.contains(",interp-k2,")).collect();
     assert_eq!(rows.len(), 2, "two targets: {csv}");
     assert!(
         rows.iter().all(|r| r.starts_with("copy-of-it,")),

@@ -156,6 +156,13 @@ fn wrong_values_name_the_key() {
     assert!(e.contains("key `axis.max_step_um`"), "{e}");
     let e = err(&format!("{AXIS}reply_timeout_ms = 0\n"));
     assert!(e.contains("key `axis.reply_timeout_ms`"), "{e}");
+    for hz in ["0", "20", "nan"] {
+        let e = err(&format!("{AXIS}status_poll_hz = {hz}\n"));
+        assert!(
+            e.contains("key `axis.status_poll_hz`") && e.contains("at most 10"),
+            "{e}"
+        );
+    }
     let e = err("[camera]\ndriver = \"v4l2\"\n");
     assert!(e.contains("key `camera.device`"), "{e}");
     let e = err("[camera]\ndriver = \"sim\"\nformat = \"H264\"\n");
@@ -218,6 +225,7 @@ fn stage_sections_map_to_the_driver_options() {
     assert_eq!(g.port, "/dev/ttyUSB0");
     assert_eq!(g.banner_timeout_ms, 2_500);
     assert_eq!(g.feed_um_s, 10_000.0);
+    assert_eq!(g.status_poll_hz, 5.0);
     assert_eq!(
         (g.limits.min_um, g.limits.max_um, g.limits.max_step_um),
         (0.0, 250_000.0, 50_000.0)

@@ -136,6 +136,54 @@ fn a_calibration_job_is_kept_in_the_data_root_and_applied_by_the_next_job() {
         most > 5.0,
         "calibrated and global offsets differ by at most {most} µm"
     );
+
+    // `rigctl process SESSION` applies the calibration the daemon did, and says so.
+    let dir = session_of(&d.data, &ev).dir;
+    let offline = |extra: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_rigctl"))
+            .arg("process")
+            .arg(&dir)
+            .args(extra)
+            .arg("--json")
+            .output()
+            .unwrap()
+    };
+    let out = offline(&[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        said.contains(&format!(
+            "calibration {} applied, as the daemon did",
+            cal.id
+        )),
+        "{said}"
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let again = &v["runs"][0]["result"];
+    assert_eq!(again["calibration"]["id"], cal.id.as_str());
+    for (o, a) in objects.iter().zip(again["objects"].as_array().unwrap()) {
+        for i in 0..2 {
+            let (x, y) = (
+                o["offset_um"][i].as_f64().unwrap(),
+                a["offset_um"][i].as_f64().unwrap(),
+            );
+            assert!((x - y).abs() < 1e-6, "{o} vs {a}");
+        }
+    }
+    // --no-calibration: the global scale; a record gone: an error naming the ways on.
+    let v: Value = serde_json::from_slice(&offline(&["--no-calibration"]).stdout).unwrap();
+    assert!(v["runs"][0]["result"]["calibration"].is_null(), "{v}");
+    std::fs::rename(&made.path, d.data.join("moved.json")).unwrap();
+    let out = offline(&[]);
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && e.contains(&cal.id) && e.contains("--calibration FILE"),
+        "{e}"
+    );
 }
 
 /// A calibration record for `frame_size` frames dated `date`, fitted on `board`: the

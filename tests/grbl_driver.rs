@@ -477,7 +477,11 @@ fn fault_port_gone_is_reported_then_reopened_on_next_use() {
 #[ignore]
 fn study_time_per_50um_step() {
     let r = rig();
-    let mut s = GrblStage::connect("axis", r.opts.clone()).unwrap();
+    // The emulator's budget, as `rigd --sim` polls it; at the default 5 Hz back-to-back
+    // steps would wait for the budget (200 ms a step).
+    let mut opts = r.opts.clone();
+    opts.status_poll_hz = rigd::hw::grbl::EMULATOR_POLL_HZ;
+    let mut s = GrblStage::connect("axis", opts).unwrap();
     let n = 50;
     let per = time_per_step(&mut s, 50.0, n, SETTLE);
     let motion = Duration::from_secs_f64(2.0 * (50.0f64 / 500_000.0).sqrt());

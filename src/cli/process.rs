@@ -64,6 +64,10 @@ pub struct ProcessingFlags {
     /// another frame size is refused (docs/calibration.md).
     #[arg(long, value_name = "FILE")]
     pub calibration: Option<PathBuf>,
+    /// Convert at the global scale, even a session whose job applied a calibration (without
+    /// it, `process SESSION` applies the calibration the daemon did).
+    #[arg(long, conflicts_with = "calibration")]
+    pub no_calibration: bool,
 }
 
 fn k_help() -> String {
@@ -198,7 +202,18 @@ fn run_session(args: &ProcessArgs, board: Option<Board>) -> anyhow::Result<()> {
     let ov = args.flags.overrides();
     let s = crate::session::Session::open(&args.dir)?;
     let keep = args.out.is_some();
-    let cal = args.flags.calibration()?;
+    let cal = match args.flags.calibration()? {
+        Some(c) => Some(c),
+        None if args.flags.no_calibration => None,
+        None => {
+            let cal = crate::offline::session_runs::recorded_calibration(&s)?;
+            if let Some(c) = &cal {
+                let id = &c.calibration.id;
+                eprintln!("calibration {id} applied, as the daemon did ({})", c.source);
+            }
+            cal
+        }
+    };
     let decoders = decoders_for_one_run();
     let done = process_session(&s, &ov, board, cal.as_ref(), args.frames, keep, decoders)?;
     if let Some(out) = &args.out {

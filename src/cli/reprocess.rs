@@ -59,6 +59,7 @@ pub fn run(a: ReprocessArgs) -> anyhow::Result<()> {
         overrides: a.flags.overrides(),
         board,
         calibration: a.flags.calibration()?,
+        no_calibration: a.flags.no_calibration,
         threads,
         index: match (&a.index, a.no_index) {
             (_, true) => IndexTarget::None,

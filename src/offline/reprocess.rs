@@ -20,7 +20,10 @@ pub struct Reprocess {
     /// A board overriding each session's rig board.
     pub board: Option<Board>,
     /// A calibration converting every run's offsets (its id joins the settings' name).
+    /// Without one, each session's job's own (`recorded_calibration`), unless
+    /// `no_calibration`: the global scale.
     pub calibration: Option<crate::calibration_file::Applied>,
+    pub no_calibration: bool,
     /// Sessions processed at once (rayon threads); the pipeline shares the pool.
     pub threads: usize,
     /// Where rows go: one index for every session, else `<session's parent>/index.sqlite`;
@@ -87,7 +90,12 @@ fn one(
     indexes: &Mutex<Vec<(PathBuf, Index)>>,
 ) -> anyhow::Result<Summary> {
     let s = Session::open(dir)?;
-    let name = match &how.calibration {
+    let calibration = match (&how.calibration, how.no_calibration) {
+        (Some(c), _) => Some(c.clone()),
+        (None, true) => None,
+        (None, false) => super::session_runs::recorded_calibration(&s)?,
+    };
+    let name = match &calibration {
         Some(c) => format!("{}-{}", how.overrides.settings_name(), c.calibration.id),
         None => how.overrides.settings_name(),
     };
@@ -96,7 +104,7 @@ fn one(
         &s,
         &how.overrides,
         how.board.clone(),
-        how.calibration.as_ref(),
+        calibration.as_ref(),
         None,
         true,
         1,

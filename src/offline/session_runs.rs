@@ -263,3 +263,58 @@ fn process_run(
 fn frame_index(file: &FrameFile) -> Option<u32> {
     file.path().file_stem()?.to_str()?.parse().ok()
 }
+
+/// The calibration the daemon applied to the session's job, read where the daemon read it
+/// (or from the data root the session sits in, if it moved); none if it applied none. A
+/// record that cannot be read is an error naming it and the ways on.
+pub fn recorded_calibration(s: &Session) -> anyhow::Result<Option<Applied>> {
+    use std::path::PathBuf;
+    let Some(note) = s.manifest.calibration.as_ref().filter(|n| n.applied) else {
+        return Ok(None);
+    };
+    let id = note.id.as_deref().unwrap_or_default();
+    let beside = crate::bounds::one_component("calibration id", id)
+        .ok()
+        .and_then(|id| {
+            Some(
+                s.dir
+                    .parent()?
+                    .join(crate::calibration_store::DIR)
+                    .join(format!("{id}.json")),
+            )
+        });
+    let places: Vec<PathBuf> = note
+        .source
+        .iter()
+        .map(PathBuf::from)
+        .chain(beside)
+        .collect();
+    let mut why = Vec::new();
+    for p in &places {
+        match Applied::load(p) {
+            Ok(a) if a.calibration.id == id => {
+                eprintln!(
+                    "calibration {id} applied, as the daemon did ({})",
+                    p.display()
+                );
+                return Ok(Some(a));
+            }
+            Ok(a) => why.push(format!(
+                "{} holds calibration {}",
+                p.display(),
+                a.calibration.id
+            )),
+            Err(e) => why.push(crate::text::error_chain(e.chain())),
+        }
+    }
+    anyhow::bail!(
+        "{}: its job applied calibration {id:?}, which cannot be read here ({}): give it with \
+         --calibration FILE, or --no-calibration for the global scale",
+        s.dir.display(),
+        if why.is_empty() {
+            "no record file named".into()
+        } else {
+            why.join("; ")
+        }
+    )
+}

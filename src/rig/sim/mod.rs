@@ -240,6 +240,7 @@ fn emulated_axis(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError
         limits("axis", s.axis_limits_um)?,
     );
     go.feed_um_s = s.axis.max_speed_um_s;
+    go.status_poll_hz = crate::hw::grbl::EMULATOR_POLL_HZ;
     let axis = GrblStage::connect("axis", go)?;
     Ok(EmulatedStage {
         faults: grbl.faults().clone(),
