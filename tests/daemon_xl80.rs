@@ -55,7 +55,13 @@ fn check_log(s: &Session, rate_hz: f64) -> Vec<LogSample> {
         .windows(2)
         .map(|w| w[1].t_unix_s - w[0].t_unix_s)
         .collect();
-    assert!(dts.iter().all(|&d| d > 0.0), "sample times must increase");
+    if let Some(i) = dts.iter().position(|&d| d <= 0.0) {
+        let around = &samples[i.saturating_sub(2)..(i + 3).min(samples.len())];
+        panic!(
+            "sample times must increase: at sample {i} of {}: {around:?}",
+            samples.len()
+        );
+    }
     let period = 1.0 / rate_hz;
     let mean_dt = dts.iter().sum::<f64>() / dts.len() as f64;
     assert!(

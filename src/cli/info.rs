@@ -45,6 +45,9 @@ pub fn describe(h: &HelloReply) -> String {
         ),
         ("default start", format!("{} µm", num(r.default_start_um))),
     ];
+    if let Some(c) = &r.camera {
+        lines.push(("camera", c.clone()));
+    }
     if let Some(m) = &r.axis_machine {
         lines.push((
             "axis controller",

@@ -17,6 +17,11 @@
 //! up to 1 s off otherwise) and a log written in local time. The backlog read on the first
 //! poll says nothing (it may be an old file), so until the log has grown under observation
 //! the offset is 0: the date is taken as written.
+//!
+//! While a job records, the offset in use is held: a bound that tightens mid-job is kept for
+//! the next job. Re-timing samples mid-job would step the recorded times back (by the few ms
+//! the estimate gained), and the session's log must stay in time order with every frame's
+//! reading recomputable from it.
 
 use crate::hw::devices::{LogSample, LogSource, PositionLog};
 use crate::timestamps::unix_s;
@@ -41,8 +46,12 @@ pub struct FollowedLog {
     max_wait: Duration,
     /// Log clock minus PC clock (s): the estimate, once the log has grown under observation.
     log_minus_pc_s: Option<f64>,
+    /// The tightest bound seen, applied when no job records.
+    best_bound_s: Option<f64>,
     /// Growth observations behind the estimate.
     growths: usize,
+    /// A job records samples: the offset in use is held.
+    recording: bool,
     restarts: usize,
     /// Recent samples, oldest first, for interpolation.
     recent: VecDeque<LogSample>,
@@ -65,7 +74,9 @@ impl FollowedLog {
             poll,
             max_wait: (poll * 5).max(Duration::from_secs(1)),
             log_minus_pc_s: None,
+            best_bound_s: None,
             growths: 0,
+            recording: false,
             restarts: 0,
             recent: VecDeque::new(),
             pending: Vec::new(),
@@ -81,12 +92,22 @@ impl FollowedLog {
         self.log_minus_pc_s.unwrap_or(0.0)
     }
 
-    /// Take a lower bound of the clock offset; re-time the samples held in memory.
+    /// Take a lower bound of the clock offset; apply it unless a job records.
     fn bound_offset(&mut self, bound_s: f64) {
-        let old = self.log_minus_pc_s();
-        let new = self.log_minus_pc_s.map_or(bound_s, |o| o.max(bound_s));
-        self.log_minus_pc_s = Some(new);
+        self.best_bound_s = Some(self.best_bound_s.map_or(bound_s, |o| o.max(bound_s)));
         self.growths += 1;
+        if !self.recording || self.log_minus_pc_s.is_none() {
+            self.apply_best_bound();
+        }
+    }
+
+    /// Use the tightest bound seen; re-time the samples held in memory.
+    fn apply_best_bound(&mut self) {
+        let Some(new) = self.best_bound_s else {
+            return;
+        };
+        let old = self.log_minus_pc_s();
+        self.log_minus_pc_s = Some(new);
         let shift = old - new;
         if shift != 0.0 {
             for x in self.recent.iter_mut().chain(self.pending.iter_mut()) {
@@ -119,6 +140,7 @@ impl FollowedLog {
             // A new capture replaced the file: a new date, a new offset.
             self.restarts = self.follower.restarts();
             self.log_minus_pc_s = None;
+            self.best_bound_s = None;
             self.growths = 0;
             self.recent.clear();
         }
@@ -198,6 +220,8 @@ pub fn interpolate(samples: &VecDeque<LogSample>, t: f64) -> Option<f64> {
 
 impl PositionLog for FollowedLog {
     fn begin(&mut self, from: SystemTime) {
+        self.recording = false;
+        self.apply_best_bound();
         self.from_unix_s = unix_s(from);
         self.pending.clear();
         self.catch_up();
@@ -210,6 +234,7 @@ impl PositionLog for FollowedLog {
         }
         let from = self.from_unix_s;
         self.pending.retain(|s| s.t_unix_s >= from);
+        self.recording = true;
     }
 
     fn position_at(&mut self, t: SystemTime) -> Option<f64> {
@@ -245,6 +270,8 @@ impl PositionLog for FollowedLog {
         // Samples read between jobs (by `reading_now`) belong to no session.
         self.from_unix_s = f64::INFINITY;
         self.pending.clear();
+        self.recording = false;
+        self.apply_best_bound();
     }
 
     fn reading_now(&mut self) -> Result<LogSample, String> {
@@ -272,7 +299,7 @@ impl PositionLog for FollowedLog {
             log_minus_pc_s: self.log_minus_pc_s(),
             clock: if self.log_minus_pc_s.is_some() {
                 format!(
-                    "estimated from {} growths of the log under observation",
+                    "estimated from {} growths of the log under observation (held while a job records)",
                     self.growths
                 )
             } else {
@@ -288,6 +315,7 @@ impl PositionLog for FollowedLog {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::path::Path;
 
     fn s(t: f64, p: f64) -> LogSample {
         LogSample {
@@ -345,5 +373,25 @@ mod tests {
         let at = std::time::UNIX_EPOCH + Duration::from_secs(secs) + Duration::from_millis(4_505);
         let x = log.position_at(at).unwrap();
         assert!((x - 450.5).abs() < 1.0, "{x}");
+    }
+
+    #[test]
+    fn a_bound_found_while_a_job_records_waits_for_the_jobs_end() {
+        let f = Follower::new(
+            Path::new("/nonexistent/xl80.csv"),
+            crate::xl80::Xl80Format::Csv,
+        );
+        let mut log = FollowedLog::new(f, Duration::from_millis(1));
+        log.bound_offset(-0.010);
+        assert_eq!(log.log_minus_pc_s(), -0.010);
+        log.recording = true;
+        log.recent.push_back(s(100.0, 1.0));
+        log.bound_offset(-0.008);
+        // Held: the recorded samples keep one clock for the job.
+        assert_eq!(log.log_minus_pc_s(), -0.010);
+        assert_eq!(log.recent[0].t_unix_s, 100.0);
+        log.end();
+        assert_eq!(log.log_minus_pc_s(), -0.008);
+        assert!((log.recent[0].t_unix_s - 99.998).abs() < 1e-9);
     }
 }
