@@ -76,9 +76,49 @@ pub fn summary(cal: &Calibration) -> String {
             t.residual_rms_um
         );
     }
+    s += &model_check_line(cal);
     s += &ink_line(cal);
     s += &ink_margin_line(cal);
     s += &lateral_line(cal);
+    s
+}
+
+/// The field model against targets it was not fitted to, and the u every conversion carries
+/// for what it cannot know.
+fn model_check_line(cal: &Calibration) -> String {
+    let c = cal.model_check();
+    let pct = |x: f64| format!("{:.3} %", 100.0 * x);
+    let verdict = if c.holds {
+        format!(
+            "holds: the targets' rates match it to {} / {} (along / across) against the noise's {} / {}",
+            pct(c.rms_rel[0]), pct(c.rms_rel[1]), pct(c.noise_rel[0]), pct(c.noise_rel[1])
+        )
+    } else {
+        format!(
+            "DOES NOT describe this rig: the targets' rates miss it by {} / {} (along / across) against the noise's {} / {}",
+            pct(c.rms_rel[0]), pct(c.rms_rel[1]), pct(c.noise_rel[0]), pct(c.noise_rel[1])
+        )
+    };
+    let mut s = format!(
+        "  field model checked ({}, {} targets): {verdict}; every offset carries a model u of {} of its length\n",
+        c.method, c.targets, pct(c.model_rel_u)
+    );
+    match (cal.field.layout.as_str(), cal.field.zoom_per_um) {
+        ("free", _) => s += &format!(
+            "  no board: the scan cannot tell a rail out of the board's plane from a tilt; offsets carry up to {} more at the frame's edge along the stage (calibrate with --board to fit it)\n",
+            pct(crate::calibration::validation::gauge_rel_u(
+                &cal.field.model,
+                cal.field.stage_dir_rad,
+                [cal.field.model.centre_px[0] * 2.0, cal.field.model.centre_px[1]],
+            ))
+        ),
+        (_, Some(z)) => s += &format!(
+            "  the rail zooms the image by {:.2e} per mm of travel ({:+.3} % over the scan): it is out of the board's plane, and the fit allows for it\n",
+            z * 1000.0,
+            -100.0 * z * cal.scan.travel_um
+        ),
+        _ => {}
+    }
     s
 }
 

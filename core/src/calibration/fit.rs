@@ -93,6 +93,9 @@ pub(crate) struct FieldProblem<'a> {
 pub(crate) struct Ix {
     pub stage_dir: usize,
     pub piezo_dir: Option<usize>,
+    /// The rail's zoom per µm of stage travel (board layout only): the rail out of the
+    /// board's plane changes the board's distance, and the image zooms about its centre.
+    pub zoom: Option<usize>,
     pub layout: usize,
 }
 
@@ -106,11 +109,43 @@ impl FieldProblem<'_> {
 
     pub fn ix(&self) -> Ix {
         let m = self.model_len();
+        let piezo_dir = self.piezo.then_some(m + 1);
+        let after_dirs = m + 1 + self.piezo as usize;
+        // With no board a 1-D scan cannot tell the zoom from the perspective (both make a
+        // radial flow): it is not fitted, and `validation::gauge_rel_u` allows for it.
+        let zoom = matches!(self.layout, Layout::Board { .. }).then_some(after_dirs);
         Ix {
             stage_dir: m,
-            piezo_dir: self.piezo.then_some(m + 1),
-            layout: m + 1 + self.piezo as usize,
+            piezo_dir,
+            zoom,
+            layout: after_dirs + zoom.is_some() as usize,
         }
+    }
+
+    /// The rail's zoom per µm of stage travel in `p` (0 where it is not fitted).
+    pub fn zoom(&self, p: &[f64]) -> f64 {
+        self.ix().zoom.map_or(0.0, |k| p[k])
+    }
+
+    /// Image point of fitted target `j` in frame `i`: the model's, zoomed about the centre
+    /// by the stage's travel.
+    pub fn image(&self, p: &[f64], m: &FieldModel, j: usize, i: usize) -> [f64; 2] {
+        let x = m.forward(self.point(p, j, i));
+        let z = 1.0 - self.zoom(p) * self.scan.travel_um(i)[0];
+        let c = m.centre_px;
+        [c[0] + z * (x[0] - c[0]), c[1] + z * (x[1] - c[1])]
+    }
+
+    /// Image velocity (px per µm of stage travel) of the board point `b` after `s` µm of
+    /// stage travel.
+    pub fn velocity(&self, p: &[f64], b: [f64; 2], s: f64) -> Vector2<f64> {
+        let m = self.model(p);
+        let (d, _) = self.dirs(p);
+        let at = [b[0] + s * d[0], b[1] + s * d[1]];
+        let x = m.forward(at);
+        let k = self.zoom(p);
+        let flow = Vector2::new(x[0] - m.centre_px[0], x[1] - m.centre_px[1]);
+        (1.0 - k * s) * (m.jacobian(at) * Vector2::new(d[0], d[1])) - k * flow
     }
 
     /// The field model of parameter vector `p`.
@@ -160,7 +195,7 @@ impl FieldProblem<'_> {
         for (j, &t) in self.targets.iter().enumerate() {
             for (i, c) in self.scan.targets[t].centres_px.iter().enumerate() {
                 let Some(c) = c else { continue };
-                let x = m.forward(self.point(p, j, i));
+                let x = self.image(p, &m, j, i);
                 r.push(c[0] - x[0]);
                 r.push(c[1] - x[1]);
             }
@@ -220,6 +255,9 @@ impl FieldProblem<'_> {
                     p.push(angle(mi * w));
                     typ.push(1.0);
                 }
+                // The zoom, per µm like the perspective and of its size.
+                p.push(0.0);
+                typ.push(g_typ);
                 let o = mi * (Vector2::new(c[0], c[1]) - t);
                 p.extend([o[0], o[1], sigma]);
                 typ.extend([1e5, 1e5, 1.0]);

@@ -28,6 +28,7 @@
 //! | `fit` | each target's line, the field model's parameterisation and start |
 //! | `outliers` | centres off their target's line, targets off the model: left out, recorded |
 //! | `ink`, `ink_field`, `ink_margin` | the print's ink: its statistics, each target's map, how near the edges they read |
+//! //! | `validation` | the field model against targets it was not fitted to; the model error every conversion carries |
 //! | `record` | the [`Calibration`] record, its fit, its check and [`Calibration::convert`] |
 
 mod fit;
@@ -41,6 +42,7 @@ mod record;
 pub mod scan;
 #[cfg(test)]
 mod tests;
+pub mod validation;
 
 pub use ink::{InkMap, InkStatistics};
 pub use ink_field::InkField;
@@ -52,6 +54,7 @@ pub use record::{
     TargetCalibration, CALIBRATION_VERSION, MIN_STEPS, MIN_TARGETS, MIN_TRAVEL_PX,
 };
 pub use scan::{CalibrationError, Reference, Scan, TargetTrack};
+pub use validation::ModelCheck;
 
 /// Relative standard uncertainty of the global scale when no calibration is applied: a
 /// board up to ~2° off parallel and a webcam's barrel distortion change the local scale by

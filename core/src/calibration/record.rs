@@ -9,6 +9,7 @@ use super::lm::LmResult;
 use super::model::{FieldModel, PARAM_NAMES};
 use super::outliers::{self, Rejected};
 use super::scan::{CalibrationError, Reference, Scan};
+use super::validation::{self, ModelCheck};
 use crate::board::Board;
 use crate::pipeline::lateral::LateralColourFit;
 use nalgebra::{DMatrix, DVector, Matrix2, Vector2};
@@ -98,6 +99,11 @@ pub struct TargetCalibration {
     pub residual_max_um: f64,
     /// RMS of the field model's residuals at this target, µm.
     pub model_residual_rms_um: f64,
+    /// Its own rate against the rate the model fitted without it predicts here, relative,
+    /// along and across the axis (`validation`'s leave-one-out; absent with too few
+    /// targets).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub left_out_rel_error: Option<[f64; 2]>,
 }
 
 /// The field model as fitted.
@@ -114,9 +120,20 @@ pub struct FieldFit {
     pub stage_dir_rad: f64,
     /// The print's scale against the stage (board layout only; 1 = as designed).
     pub print_scale: Option<f64>,
+    /// The image's zoom per µm of stage travel about the frame's centre (board layout
+    /// only): the rail out of the board's plane, ~sin(angle)/distance. `model` is the field
+    /// at the scan's first frame; a job elsewhere on the rail sees it zoomed by
+    /// `1 − zoom·travel`, which the conversion carries as a type B over the scan's travel.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub zoom_per_um: Option<f64>,
     pub residual_rms_px: f64,
     pub residual_rms_um: f64,
     pub residual_max_um: f64,
+    /// The model against what it was not fitted to, and its error carried into every
+    /// conversion (`validation`). Absent in records made before it was checked: their
+    /// residuals give it ([`Calibration::model_check`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub check: Option<ModelCheck>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -178,6 +195,9 @@ pub struct Converted {
     pub um_per_px: [[f64; 2]; 2],
     /// The apparent-centre correction applied (inner minus outer), µm.
     pub ellipse_correction_um: [f64; 2],
+    /// Part of `u_b_um` on each axis: what the field model cannot know (its checked error,
+    /// and the free layout's gauge), µm.
+    pub model_u_um: f64,
 }
 
 impl Calibration {
@@ -238,12 +258,20 @@ impl Calibration {
         let reference_rel_u = opts
             .reference_rel_u
             .unwrap_or(scan.reference.default_rel_u());
-        let field = field_fit(&problem, &sol.p, &sol.cov, &sol.residuals);
-        let targets = used
+        let mut field = field_fit(&problem, &sol.p, &sol.cov, &sol.residuals);
+        let mut targets: Vec<TargetCalibration> = used
             .iter()
             .enumerate()
             .map(|(j, (t, l))| target_record(&problem, &sol, j, *t, l, reference_rel_u))
             .collect();
+        field.check = Some(check_model(
+            scan,
+            &used,
+            opts,
+            min_steps,
+            &mut targets,
+            &summary,
+        ));
         let mut cal = Calibration {
             version: CALIBRATION_VERSION,
             id: String::new(),
@@ -406,6 +434,7 @@ impl Calibration {
             })
             .collect();
         let cov = &self.field.covariance;
+        let model_u_um = self.model_rel_u(centre_px) * o[0].hypot(o[1]);
         let u_b_um = std::array::from_fn(|axis| {
             let mut v = 0.0;
             for i in 0..8 {
@@ -414,14 +443,50 @@ impl Calibration {
                 }
             }
             let reference = self.reference_rel_u * o[axis];
-            (v.max(0.0) + reference * reference).sqrt()
+            (v.max(0.0) + reference * reference + model_u_um * model_u_um).sqrt()
         });
         Converted {
             offset_um: o,
             u_b_um,
             um_per_px,
             ellipse_correction_um: corr,
+            model_u_um,
         }
+    }
+
+    /// The field model against its scan: the record's check, or for a record made before
+    /// checks were recorded, its targets' residuals read as one.
+    pub fn model_check(&self) -> ModelCheck {
+        if let Some(c) = &self.field.check {
+            return c.clone();
+        }
+        let per_target: Vec<_> = (self.targets.iter())
+            .map(|t| {
+                validation::residual_mismatch(
+                    t.model_residual_rms_um,
+                    t.residual_rms_um,
+                    self.scan.travel_um,
+                    t.steps,
+                )
+            })
+            .collect();
+        validation::summarise("residuals", &per_target)
+    }
+
+    /// The relative standard uncertainty a conversion at `centre_px` carries for what the
+    /// field model cannot know: its checked error, and with no board the gauge a 1-D scan
+    /// leaves open.
+    pub fn model_rel_u(&self, centre_px: [f64; 2]) -> f64 {
+        let checked = self.model_check().model_rel_u;
+        let gauge = match self.field.layout.as_str() {
+            "free" => {
+                validation::gauge_rel_u(&self.field.model, self.field.stage_dir_rad, centre_px)
+            }
+            _ => 0.0,
+        };
+        // A job anywhere on the calibrated travel: the zoom there, rectangular.
+        let zoom = self.field.zoom_per_um.unwrap_or(0.0).abs() * self.scan.travel_um / 3f64.sqrt();
+        (checked * checked + gauge * gauge + zoom * zoom).sqrt()
     }
 }
 
@@ -619,6 +684,9 @@ fn field_fit(pr: &FieldProblem, p: &[f64], cov: &DMatrix<f64>, res: &[f64]) -> F
     if let Some(k) = ix.piezo_dir {
         named("piezo_dir_rad", k);
     }
+    if let Some(k) = ix.zoom {
+        named("rail_zoom_per_um", k);
+    }
     let print_scale = match pr.layout {
         Layout::Board { .. } => {
             named("board_ox_um", ix.layout);
@@ -640,10 +708,12 @@ fn field_fit(pr: &FieldProblem, p: &[f64], cov: &DMatrix<f64>, res: &[f64]) -> F
         covariance,
         parameters,
         stage_dir_rad: p[ix.stage_dir],
+        zoom_per_um: ix.zoom.map(|k| p[k]),
         print_scale,
         residual_rms_px: rms,
         residual_rms_um: rms * scale,
         residual_max_um: max * scale,
+        check: None,
     }
 }
 
@@ -683,9 +753,10 @@ fn target_record(
     // The model here, at the middle of the travel; its uncertainty from the fit's.
     let frames = pr.scan.positions_um.len();
     let model_v = |p: &[f64]| -> Vector2<f64> {
+        let s = pr.scan.travel_um(frames / 2)[0];
         let b = pr.point(p, j, frames / 2);
         let (d, _) = pr.dirs(p);
-        pr.model(p).jacobian(b) * Vector2::new(d[0], d[1])
+        pr.velocity(p, [b[0] - s * d[0], b[1] - s * d[1]], s)
     };
     let v0 = model_v(&sol.p);
     let (grad_s, grad_a) = model_gradients(&sol.p, &sol.typ, &model_v, v0);
@@ -708,7 +779,79 @@ fn target_record(
         residual_rms_um: rms,
         residual_max_um: max,
         model_residual_rms_um: model_res,
+        left_out_rel_error: None,
     }
+}
+
+/// Check the field model fitted over `used` (`validation`): each target left out in turn
+/// and predicted by the others when there are enough, else the residuals. Records each
+/// target's mismatch in `targets` (in `used`'s order).
+fn check_model(
+    scan: &Scan,
+    used: &[(usize, LineFit)],
+    opts: &FitOptions,
+    min_steps: usize,
+    targets: &mut [TargetCalibration],
+    summary: &ScanSummary,
+) -> ModelCheck {
+    let left_out: Option<Vec<_>> = (used.len() >= validation::MIN_LEAVE_ONE_OUT)
+        .then(|| {
+            (0..used.len())
+                .map(|j| predict_left_out(scan, used, j, opts, min_steps))
+                .collect()
+        })
+        .flatten();
+    let per_target: Vec<_> = (targets.iter())
+        .map(|t| {
+            let (m, l) = (t.model_residual_rms_um, t.residual_rms_um);
+            validation::residual_mismatch(m, l, summary.travel_um, t.steps)
+        })
+        .collect();
+    let residuals = validation::summarise("residuals", &per_target);
+    let Some(left_out) = left_out else {
+        return residuals;
+    };
+    for (t, (e, _)) in targets.iter_mut().zip(&left_out) {
+        t.left_out_rel_error = Some(*e);
+    }
+    validation::summarise("leave-one-out", &left_out).and(residuals)
+}
+
+/// Target `j` of `used` against the model fitted without it: (mismatch, noise), relative.
+fn predict_left_out(
+    scan: &Scan,
+    used: &[(usize, LineFit)],
+    j: usize,
+    opts: &FitOptions,
+    min_steps: usize,
+) -> Option<([f64; 2], [f64; 2])> {
+    let others: Vec<(usize, LineFit)> = (used.iter().enumerate())
+        .filter(|(k, _)| *k != j)
+        .map(|(_, u)| u.clone())
+        .collect();
+    let (pr, sol) = solve_field(scan, &others, opts, min_steps).ok()?;
+    let line = &used[j].1;
+    // The line's slope is the rate at the middle of its travel (its path curves where the
+    // scale changes): predict it there.
+    let mid = scan.travel_um(scan.positions_um.len() / 2);
+    // (The piezo's travel does not move the point's rate along the stage: stage only.)
+    let predict = |p: &[f64]| -> Option<Vector2<f64>> {
+        let b = pr.model(p).inverse(line.x0_px)?;
+        Some(pr.velocity(p, b, mid[0]))
+    };
+    let v0 = predict(&sol.p)?;
+    // The prediction's own variance: the left-out fit's covariance through it.
+    let (along, across) = validation::axes(v0);
+    let (mut ga, mut gc) = (DVector::zeros(sol.p.len()), DVector::zeros(sol.p.len()));
+    for k in 0..sol.p.len() {
+        let h = 1e-6 * sol.typ[k];
+        let mut q = sol.p.clone();
+        q[k] += h;
+        let dv = (predict(&q)? - v0) / (h * v0.norm());
+        (ga[k], gc[k]) = (dv.dot(&along), dv.dot(&across));
+    }
+    let var = |g: &DVector<f64>| (g.transpose() * &sol.cov * g)[0].max(0.0);
+    Some(validation::rate_mismatch(line, v0, [var(&ga), var(&gc)]))
 }
 
 /// Gradients over the fit's parameters of ln|v| and of v's angle.

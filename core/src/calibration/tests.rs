@@ -51,8 +51,26 @@ impl Noise {
 /// 30 steps of 500 µm, the scene moving −x on the board (the camera rides +x), each
 /// centre with `noise_px` of Gaussian noise.
 fn scan(m: &FieldModel, noise_px: f64, seed: u64) -> Scan {
+    scan_zooming(m, noise_px, seed, 0.0)
+}
+
+/// [`scan`] on a rig whose rail is out of the board's plane: the board's distance changes
+/// over the scan and the image zooms about the centre by `1 − zoom_per_um·s`.
+fn scan_zooming(m: &FieldModel, noise_px: f64, seed: u64, zoom_per_um: f64) -> Scan {
+    scan_by(&|b| m.forward(b), m, noise_px, seed, zoom_per_um)
+}
+
+/// [`scan_zooming`] through the camera `forward` (board µm to image px) about `m`'s centre.
+fn scan_by(
+    forward: &dyn Fn([f64; 2]) -> [f64; 2],
+    m: &FieldModel,
+    noise_px: f64,
+    seed: u64,
+    zoom_per_um: f64,
+) -> Scan {
     let mut n = Noise(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1);
     let positions_um: Vec<f64> = (0..30).map(|i| 500.0 * i as f64).collect();
+    let c = m.centre_px;
     let targets = places_um()
         .iter()
         .enumerate()
@@ -61,8 +79,12 @@ fn scan(m: &FieldModel, noise_px: f64, seed: u64) -> Scan {
             centres_px: positions_um
                 .iter()
                 .map(|s| {
-                    let x = m.forward([b[0] - s, b[1]]);
-                    Some([x[0] + noise_px * n.normal(), x[1] + noise_px * n.normal()])
+                    let x = forward([b[0] - s, b[1]]);
+                    let z = 1.0 - zoom_per_um * s;
+                    Some([
+                        c[0] + z * (x[0] - c[0]) + noise_px * n.normal(),
+                        c[1] + z * (x[1] - c[1]) + noise_px * n.normal(),
+                    ])
                 })
                 .collect(),
             outer_radius_px: 22.0,
@@ -80,6 +102,54 @@ fn scan(m: &FieldModel, noise_px: f64, seed: u64) -> Scan {
         ink_maps: Vec::new(),
         lateral_colour: None,
     }
+}
+
+/// The rings and disks of every target here.
+const RADII: Radii = Radii {
+    outer_um: [13_000.0, 17_000.0],
+    inner_um: [6_000.0; 2],
+};
+
+/// What the camera of `m` measures of a target at board point `b` whose inner circle is
+/// `o` from its outer: the outer circle's apparent centre and the apparent offset, px.
+fn imaged(m: &FieldModel, b: [f64; 2], o: [f64; 2]) -> ([f64; 2], [f64; 2]) {
+    imaged_by(&|b| m.forward(b), m, b, o)
+}
+
+/// [`imaged`] through the camera `forward`, the circles' apparent shifts `m`'s.
+fn imaged_by(
+    forward: &dyn Fn([f64; 2]) -> [f64; 2],
+    m: &FieldModel,
+    b: [f64; 2],
+    o: [f64; 2],
+) -> ([f64; 2], [f64; 2]) {
+    let shift = |p: [f64; 2], r: [f64; 2]| {
+        let (a, c) = (m.apparent_shift_px(p, r[0]), m.apparent_shift_px(p, r[1]));
+        [(a[0] + c[0]) / 2.0, (a[1] + c[1]) / 2.0]
+    };
+    let (xo, so) = (forward(b), shift(b, RADII.outer_um));
+    let bi = [b[0] + o[0], b[1] + o[1]];
+    let (xi, si) = (forward(bi), shift(bi, RADII.inner_um));
+    let centre = [xo[0] + so[0], xo[1] + so[1]];
+    (
+        centre,
+        [xi[0] + si[0] - centre[0], xi[1] + si[1] - centre[1]],
+    )
+}
+
+/// The 4 x 3 grid as a board file's print (centres shifted to positive µm).
+fn grid_board() -> Board {
+    let mut text = String::from("name = \"grid\"\n");
+    for (k, b) in places_um().iter().enumerate() {
+        text += &format!(
+            "[[targets]]\nname = \"T{k}\"\ncentre_um = [{}, {}]\noffset_um = [0.0, 0.0]\n\
+             outer = {{ kind = \"ring\", inner_radius_um = 13000.0, outer_radius_um = 17000.0 }}\n\
+             inner = {{ kind = \"disk\", radius_um = 6000.0 }}\n",
+            b[0] + 500_000.0,
+            b[1] + 300_000.0
+        );
+    }
+    Board::parse(&text, "grid.toml").unwrap()
 }
 
 fn param(c: &Calibration, name: &str) -> Estimate {
@@ -184,20 +254,14 @@ fn a_5_mm_offset_converts_through_the_field_not_the_global_scale() {
     let cal = Calibration::fit(&scan(&m, 0.01, 3), &FitOptions::default()).unwrap();
     // The bottom right target, its inner disk 5 mm to the right.
     let (b, o) = ([330.0 * 774.0, 190.0 * 774.0], [5000.0, 0.0]);
-    let radii = Radii {
-        outer_um: [13_000.0, 17_000.0],
-        inner_um: [6_000.0; 2],
-    };
     let shift = |p: [f64; 2], r: [f64; 2]| {
         let (a, c) = (m.apparent_shift_px(p, r[0]), m.apparent_shift_px(p, r[1]));
         [(a[0] + c[0]) / 2.0, (a[1] + c[1]) / 2.0]
     };
-    let (xo, so) = (m.forward(b), shift(b, radii.outer_um));
-    let bi = [b[0] + o[0], b[1] + o[1]];
-    let (xi, si) = (m.forward(bi), shift(bi, radii.inner_um));
-    let centre = [xo[0] + so[0], xo[1] + so[1]];
-    let offset_px = [xi[0] + si[0] - centre[0], xi[1] + si[1] - centre[1]];
-    let c = cal.convert(centre, offset_px, radii);
+    let so = shift(b, RADII.outer_um);
+    let si = shift([b[0] + o[0], b[1] + o[1]], RADII.inner_um);
+    let (centre, offset_px) = imaged(&m, b, o);
+    let c = cal.convert(centre, offset_px, RADII);
     let global = offset_px[0] * 774.0;
     eprintln!(
         "global {global:.1} µm, calibrated {:?}, u_b {:?}",
@@ -207,10 +271,19 @@ fn a_5_mm_offset_converts_through_the_field_not_the_global_scale() {
         (global - 5000.0).abs() > 80.0,
         "the global scale is off here: {global}"
     );
+    // The fit's own part of u_b (covariance, reference) is under 3 µm and covers the error;
+    // with no board the gauge a 1-D scan leaves open adds ~1 % of the length here.
     for (a, want) in [(0, 5000.0), (1, 0.0)] {
         let e = c.offset_um[a] - want;
-        assert!(e.abs() < 3.0 * c.u_b_um[a] && c.u_b_um[a] < 3.0, "{c:?}");
+        let fit_u = (c.u_b_um[a].powi(2) - c.model_u_um.powi(2)).sqrt();
+        assert!(e.abs() < 3.0 * fit_u && fit_u < 3.0, "{c:?}");
     }
+    assert!(c.model_u_um > 30.0 && c.model_u_um < 60.0, "{c:?}");
+    let check = cal.field.check.as_ref().unwrap();
+    assert!(
+        check.holds && check.method.starts_with("leave-one-out"),
+        "{check:?}"
+    );
     // The ellipse's centre moves the ring's more than the disk's (tilt and distortion:
     // -12.8, -8.0 µm here); the fitted model's correction is the truth's to 0.5 µm.
     let ji = m.jacobian(b).try_inverse().unwrap();
@@ -222,6 +295,106 @@ fn a_5_mm_offset_converts_through_the_field_not_the_global_scale() {
         );
     }
     assert!(c.ellipse_correction_um[0] < -5.0, "{c:?}");
+}
+
+/// Over every target and three 5 mm offsets: the largest |error| / u_b, and the same
+/// without the model's part of u_b.
+fn worst_error_over_u(cal: &Calibration, m: &FieldModel) -> (f64, f64) {
+    worst_error_over_u_by(cal, &|b| m.forward(b), m)
+}
+
+/// [`worst_error_over_u`] through the camera `forward`.
+fn worst_error_over_u_by(
+    cal: &Calibration,
+    forward: &dyn Fn([f64; 2]) -> [f64; 2],
+    m: &FieldModel,
+) -> (f64, f64) {
+    let (mut worst, mut without) = (0.0f64, 0.0f64);
+    for b in places_um() {
+        for o in [[5000.0, 0.0], [0.0, 5000.0], [3500.0, -3500.0]] {
+            let (centre, offset_px) = imaged_by(forward, m, b, o);
+            let c = cal.convert(centre, offset_px, RADII);
+            for a in 0..2 {
+                let e = (c.offset_um[a] - o[a]).abs();
+                let fit_u = (c.u_b_um[a].powi(2) - c.model_u_um.powi(2)).sqrt();
+                worst = worst.max(e / c.u_b_um[a]);
+                without = without.max(e / fit_u);
+            }
+        }
+    }
+    (worst, without)
+}
+
+/// The rail 1.5° out of the board's plane zooms the image by ~5e-4 over the scan. With the
+/// board's layout the fit measures the zoom; with no board it cannot (the perspective makes
+/// the same flow), and the gauge's allowance covers what it leaves.
+#[test]
+fn a_rail_out_of_the_boards_plane_is_fitted_with_a_board_and_allowed_for_without() {
+    let m = truth();
+    let zoom_per_um = 1.5f64.to_radians().sin() / (1000.0 * 774.0);
+    let scan = scan_zooming(&m, 0.01, 7, zoom_per_um);
+    let opts = FitOptions {
+        board: Some(grid_board()),
+        ..FitOptions::default()
+    };
+    let board = Calibration::fit(&scan, &opts).unwrap();
+    let zoom = param(&board, "rail_zoom_per_um");
+    eprintln!(
+        "zoom {zoom:?} (truth {zoom_per_um:.3e}); check {:?}",
+        board.model_check()
+    );
+    assert!((zoom.value - zoom_per_um).abs() < 3.0 * zoom.u, "{zoom:?}");
+    assert!(zoom.u < 0.1 * zoom_per_um, "{zoom:?}");
+    assert!(board.model_check().holds, "{:?}", board.model_check());
+    let (worst, _) = worst_error_over_u(&board, &m);
+    eprintln!("board: worst |e|/u_b {worst:.2}");
+    assert!(worst <= 2.0, "{worst}");
+
+    let free = Calibration::fit(&scan, &FitOptions::default()).unwrap();
+    let (worst, without) = worst_error_over_u(&free, &m);
+    eprintln!(
+        "free: worst |e|/u_b {worst:.2} ({without:.2} without the model's part); check {:?}",
+        free.model_check()
+    );
+    assert!(worst <= 2.0, "{worst}");
+    assert!(
+        without > 2.0,
+        "the fit's covariance alone covers it: {without}"
+    );
+}
+
+/// A lens with a third distortion term, which the field model (two terms) cannot fit.
+/// A small one is below what the leave-one-out check resolves, and that resolution covers
+/// it; a large one fails the check, and the excess covers it.
+#[test]
+fn a_field_the_model_cannot_fit_is_covered_by_the_check() {
+    let m = truth();
+    let opts = FitOptions {
+        board: Some(grid_board()),
+        ..FitOptions::default()
+    };
+    // The third term in the half diagonal's units: 0.005 moves the corners 3.7 px.
+    for (k3, caught) in [(0.005, false), (0.05, true)] {
+        let bent = |b: [f64; 2]| {
+            let x = m.forward(b);
+            let rel = [x[0] - m.centre_px[0], x[1] - m.centre_px[1]];
+            let r2 = (rel[0] * rel[0] + rel[1] * rel[1]) / m.norm_radius_px.powi(2);
+            let f = 1.0 + k3 * r2 * r2 * r2;
+            [m.centre_px[0] + rel[0] * f, m.centre_px[1] + rel[1] * f]
+        };
+        let cal = Calibration::fit(&scan_by(&bent, &m, 0.01, 9, 0.0), &opts).unwrap();
+        let check = cal.model_check();
+        let (worst, without) = worst_error_over_u_by(&cal, &bent, &m);
+        eprintln!(
+            "k3 {k3}: {check:?}\nworst |e|/u_b {worst:.2} ({without:.2} without the model's part)"
+        );
+        assert_eq!(check.holds, !caught, "{check:?}");
+        assert!(worst <= 2.0, "k3 {k3}: {worst}");
+        assert!(
+            without > 2.0,
+            "k3 {k3}: the covariance alone covers it: {without}"
+        );
+    }
 }
 
 #[test]
