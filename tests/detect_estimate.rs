@@ -90,6 +90,7 @@ fn finds_the_twelve_paper_targets_under_vignetting_gradient_and_noise() {
     let rolled = View {
         camera_um: [0.11 * 774.0, 0.64 * 774.0],
         roll_rad: 1f64.to_radians(),
+        depth_um: 0.0,
     };
     let img = render_frame(&board, &cam, &rolled, 0.7, 15);
     assert_finds_all(&board, &cam, &rolled, &img, 0.3);

@@ -400,7 +400,8 @@ fn reprocess_writes_only_processed_settings_and_reports_a_broken_session() {
 }
 
 /// A calibration record written by hand for the sessions' 300x200 frames: no tilt or
-/// distortion, `um_per_px` everywhere, a commanded reference of 1e-4.
+/// distortion, `um_per_px` everywhere, a commanded reference of 1e-4. Its layout is a
+/// board's, whose print fixes the perspective, so a conversion carries no gauge allowance.
 fn hand_calibration(id: &str, um_per_px: f64) -> serde_json::Value {
     let a = 1.0 / um_per_px;
     serde_json::json!({
@@ -409,7 +410,7 @@ fn hand_calibration(id: &str, um_per_px: f64) -> serde_json::Value {
         "fingerprint": {"frame_size": [300, 200], "scale_um_per_px": 774.0, "board": null},
         "scan": {"frames": 30, "step_um": 500.0, "travel_um": 14500.0, "piezo_travel_um": null},
         "reference_rel_u": 1e-4, "targets": [],
-        "field": {"layout": "free", "model": {"centre_px": [149.5, 99.5],
+        "field": {"layout": "board", "model": {"centre_px": [149.5, 99.5],
             "norm_radius_px": 180.3, "a_px_per_um": [[a, 0.0], [0.0, a]],
             "g_per_um": [0.0, 0.0], "k1": 0.0, "k2": 0.0},
             "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.0,

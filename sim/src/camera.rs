@@ -120,6 +120,11 @@ pub struct CameraModel {
     pub tilt_x_deg: f64,
     /// Board tilt about the image y axis, degrees: positive puts the right edge farther.
     pub tilt_y_deg: f64,
+    /// How the stage's rail lies: 0 moves the board in its own plane (the rail parallel to
+    /// the board), 1 moves the camera parallel to its sensor, so a tilted board's distance
+    /// changes over the travel (a zoom of `tan(tilt)/distance` per µm); in between, a rail
+    /// between the two.
+    pub rail_along_sensor: f64,
     /// Brown radial distortion `r_d = r_u (1 + k1 r² + k2 r⁴)`, r normalised by the focal
     /// length (k1 < 0: barrel).
     pub distortion_k1: f64,
@@ -200,6 +205,7 @@ impl Default for CameraModel {
             focal_length_px: 1000.0,
             tilt_x_deg: 0.0,
             tilt_y_deg: 0.0,
+            rail_along_sensor: 0.0,
             distortion_k1: 0.0,
             distortion_k2: 0.0,
             lateral_colour_r: 0.0,
@@ -298,6 +304,20 @@ impl CameraModel {
                 message: "must be one of \"ideal\", \"webcam\", \"stress\"",
             }),
         }
+    }
+
+    /// Where the stage's travel `travel_um` (µm along the image's x and y) puts the camera:
+    /// the board point it moves the line of sight by, and how much farther the board is.
+    /// A rail along the sensor moves the axis' point on a board tilted by `t` by
+    /// `travel / cos t` and its distance by `travel · tan t`; a rail along the board, by
+    /// `travel` and nothing.
+    pub fn rail_pose(&self, travel_um: [f64; 2]) -> ([f64; 2], f64) {
+        let f = self.rail_along_sensor;
+        let (tx, ty) = (self.tilt_x_deg.to_radians(), self.tilt_y_deg.to_radians());
+        let along = |p: f64, t: f64| p * (1.0 - f + f / t.cos());
+        let board = [along(travel_um[0], ty), along(travel_um[1], tx)];
+        let depth = f * (travel_um[0] * ty.tan() + travel_um[1] * tx.tan());
+        (board, depth)
     }
 
     /// Whether the scene's geometry or print departs from the ideal (tilt, distortion,
@@ -520,6 +540,13 @@ impl CameraModel {
             0.0,
             30.0,
             "must be in (-30, 30)",
+        )?;
+        within(
+            "rail_along_sensor",
+            self.rail_along_sensor,
+            0.0,
+            1.0 + 1e-12,
+            "must be in [0, 1]",
         )?;
         within(
             "distortion_k1",

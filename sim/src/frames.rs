@@ -164,13 +164,12 @@ impl FrameRenderer {
         let fx = FrameEffects::draw(self.camera(), self.seed, sequence);
         let still = los_um.windows(2).all(|w| w[0] == w[1]);
         let los = if still { &los_um[..1] } else { los_um };
+        let origin = [
+            self.origin_um[0] + fx.jitter_um[0],
+            self.origin_um[1] + fx.jitter_um[1],
+        ];
         los.iter()
-            .map(|p| {
-                View::at([
-                    self.origin_um[0] + p[0] + fx.jitter_um[0],
-                    self.origin_um[1] + p[1] + fx.jitter_um[1],
-                ])
-            })
+            .map(|p| View::on_rail(self.camera(), origin, *p))
             .collect()
     }
 

@@ -27,6 +27,11 @@ pub struct Lens {
 impl Lens {
     /// The lens of `cam`.
     pub fn new(cam: &CameraModel) -> Lens {
+        Lens::at_depth(cam, 0.0)
+    }
+
+    /// The lens of `cam` with the board `depth_um` farther than at the rail's origin.
+    pub fn at_depth(cam: &CameraModel, depth_um: f64) -> Lens {
         let f = cam.focal_length_px;
         let (tx, ty) = (cam.tilt_x_deg.to_radians(), cam.tilt_y_deg.to_radians());
         // The board's +x (+y) side recedes from the camera for a positive tilt about y (x).
@@ -55,7 +60,7 @@ impl Lens {
         let r = ry * rx;
         // The board plane cuts the optical axis at a distance where 1 px at the centre is
         // scale_um_per_px (before the tilt's foreshortening).
-        let z0 = f * cam.scale_um_per_px;
+        let z0 = f * cam.scale_um_per_px + depth_um;
         let k = Matrix3::new(f, 0.0, 0.0, 0.0, f, 0.0, 0.0, 0.0, 1.0);
         let rt = Matrix3::from_columns(&[
             r.column(0).into_owned(),
@@ -216,6 +221,40 @@ mod tests {
         assert!(
             (p[0] - 3.5).abs() < 1e-12 && (p[1] + 2.0).abs() < 1e-12,
             "{p:?}"
+        );
+    }
+
+    /// A rail along the sensor takes a board tilted 1.5° about y 20 mm × tan 1.5° farther
+    /// after 20 mm of travel along x: the image shrinks by that over the distance; a rail
+    /// along the board changes nothing.
+    #[test]
+    fn a_rail_along_the_sensor_zooms_a_tilted_board_over_the_travel() {
+        use crate::render::View;
+        let mut c = CameraModel {
+            tilt_y_deg: 1.5,
+            ..CameraModel::default()
+        };
+        let spread = |c: &CameraModel, travel: f64| {
+            let v = View::on_rail(c, [0.0, 0.0], [travel, 0.0]);
+            let (a, b) = (
+                v.project(c, 1, [travel, 0.0]),
+                v.project(c, 1, [travel, 300_000.0]),
+            );
+            (b[1] - a[1]).abs()
+        };
+        let still = spread(&c, 20_000.0) / spread(&c, 0.0);
+        assert!((still - 1.0).abs() < 1e-9, "{still}");
+        c.rail_along_sensor = 1.0;
+        let (board, depth) = c.rail_pose([20_000.0, 0.0]);
+        let t = 1.5f64.to_radians();
+        assert!((depth - 20_000.0 * t.tan()).abs() < 1e-9, "{depth}");
+        assert!((board[0] - 20_000.0 / t.cos()).abs() < 1e-9, "{board:?}");
+        let z0 = c.focal_length_px * c.scale_um_per_px;
+        let zoom = spread(&c, 20_000.0) / spread(&c, 0.0);
+        assert!(
+            (zoom - z0 / (z0 + depth)).abs() < 2e-5,
+            "{zoom} vs {}",
+            z0 / (z0 + depth)
         );
     }
 }

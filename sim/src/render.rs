@@ -21,6 +21,9 @@ use std::sync::Arc;
 pub struct View {
     pub camera_um: [f64; 2],
     pub roll_rad: f64,
+    /// How much farther the board is than at the rail's origin, µm along the optical axis
+    /// (a rail along the sensor: `CameraModel::rail_pose`).
+    pub depth_um: f64,
 }
 
 impl View {
@@ -28,6 +31,17 @@ impl View {
         View {
             camera_um,
             roll_rad: 0.0,
+            depth_um: 0.0,
+        }
+    }
+
+    /// The view from `origin_um` after the stage's travel `travel_um`, on `cam`'s rail.
+    pub fn on_rail(cam: &CameraModel, origin_um: [f64; 2], travel_um: [f64; 2]) -> View {
+        let (b, depth_um) = cam.rail_pose(travel_um);
+        View {
+            camera_um: [origin_um[0] + b[0], origin_um[1] + b[1]],
+            roll_rad: 0.0,
+            depth_um,
         }
     }
 

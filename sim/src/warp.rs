@@ -169,7 +169,7 @@ impl WarpInk {
         let (cx, cy) = (cam.width as f64 / 2.0, cam.height as f64 / 2.0);
         let (sn, cs) = view.roll_rad.sin_cos();
         let mut w = WarpInk {
-            lens: Lens::new(cam),
+            lens: Lens::at_depth(cam, view.depth_um),
             print,
             disks: Vec::new(),
             rects: Vec::new(),

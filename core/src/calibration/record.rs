@@ -18,6 +18,13 @@ use std::sync::Arc;
 
 /// The record's format; a reader refuses any other.
 pub const CALIBRATION_VERSION: u32 = 1;
+/// Relative standard uncertainty of the apparent-centre correction: it rests on the fitted
+/// field's derivatives (the tilt's and the distortion's second-order effect on a circle's
+/// image), which a scan measures less well than the field itself. On the sim's webcam,
+/// rendered, the correction (3–16 µm) is off by up to 15 % of itself (docs/calibration.md).
+/// With no board (free layout) the perspective is as open as the gauge, and the correction's
+/// u is its whole size.
+pub const APPARENT_CENTRE_REL_U: f64 = 0.25;
 /// Fewest frames a scan needs (a line through each target's centres and its scatter).
 pub const MIN_STEPS: usize = 5;
 /// Fewest targets the field model needs (scale, perspective, distortion, direction: 6
@@ -195,9 +202,10 @@ pub struct Converted {
     pub um_per_px: [[f64; 2]; 2],
     /// The apparent-centre correction applied (inner minus outer), µm.
     pub ellipse_correction_um: [f64; 2],
-    /// Part of `u_b_um` on each axis: what the field model cannot know (its checked error,
-    /// and the free layout's gauge), µm.
-    pub model_u_um: f64,
+    /// Part of `u_b_um` per axis: what the field model cannot know (its checked error, the
+    /// free layout's gauge and the rail's zoom over the travel, relative to the offset's
+    /// length; a quarter of the apparent-centre correction, all of it with no board), µm.
+    pub model_u_um: [f64; 2],
 }
 
 impl Calibration {
@@ -270,7 +278,7 @@ impl Calibration {
             opts,
             min_steps,
             &mut targets,
-            &summary,
+            (&problem, &sol),
         ));
         let mut cal = Calibration {
             version: CALIBRATION_VERSION,
@@ -434,7 +442,13 @@ impl Calibration {
             })
             .collect();
         let cov = &self.field.covariance;
-        let model_u_um = self.model_rel_u(centre_px) * o[0].hypot(o[1]);
+        let length_u = self.model_rel_u(centre_px) * o[0].hypot(o[1]);
+        // With no board the perspective the correction rests on is as open as the gauge.
+        let corr_rel_u = match self.field.layout.as_str() {
+            "free" => 1.0,
+            _ => APPARENT_CENTRE_REL_U,
+        };
+        let model_u_um = corr.map(|c| length_u.hypot(corr_rel_u * c));
         let u_b_um = std::array::from_fn(|axis| {
             let mut v = 0.0;
             for i in 0..8 {
@@ -443,7 +457,8 @@ impl Calibration {
                 }
             }
             let reference = self.reference_rel_u * o[axis];
-            (v.max(0.0) + reference * reference + model_u_um * model_u_um).sqrt()
+            let model = model_u_um[axis];
+            (v.max(0.0) + reference * reference + model * model).sqrt()
         });
         Converted {
             offset_um: o,
@@ -792,7 +807,7 @@ fn check_model(
     opts: &FitOptions,
     min_steps: usize,
     targets: &mut [TargetCalibration],
-    summary: &ScanSummary,
+    (problem, sol): (&FieldProblem, &LmResult),
 ) -> ModelCheck {
     let left_out: Option<Vec<_>> = (used.len() >= validation::MIN_LEAVE_ONE_OUT)
         .then(|| {
@@ -801,11 +816,8 @@ fn check_model(
                 .collect()
         })
         .flatten();
-    let per_target: Vec<_> = (targets.iter())
-        .map(|t| {
-            let (m, l) = (t.model_residual_rms_um, t.residual_rms_um);
-            validation::residual_mismatch(m, l, summary.travel_um, t.steps)
-        })
+    let per_target: Vec<_> = (0..used.len())
+        .map(|j| residual_parts(problem, sol, used, j))
         .collect();
     let residuals = validation::summarise("residuals", &per_target);
     let Some(left_out) = left_out else {
@@ -815,6 +827,56 @@ fn check_model(
         t.left_out_rel_error = Some(*e);
     }
     validation::summarise("leave-one-out", &left_out).and(residuals)
+}
+
+/// Fitted target `j`'s model residuals split into a ramp over the travel and a constant:
+/// (mismatch, noise) with the ramp read as a rate error (relative to the rate) and the
+/// constant as a scale error over the distance to the nearest other target (a misplaced
+/// print moves one target; a field the model misdescribes moves them by their distances).
+fn residual_parts(
+    pr: &FieldProblem,
+    sol: &LmResult,
+    used: &[(usize, LineFit)],
+    j: usize,
+) -> ([f64; 2], [f64; 2]) {
+    let m = pr.model(&sol.p);
+    let line = &used[j].1;
+    let pts: Vec<(f64, Vector2<f64>)> = (pr.scan.targets[pr.targets[j]].centres_px.iter())
+        .enumerate()
+        .filter_map(|(i, c)| {
+            let c = (*c)?;
+            let x = pr.image(&sol.p, &m, j, i);
+            Some((
+                pr.scan.travel_um(i)[0],
+                Vector2::new(c[0] - x[0], c[1] - x[1]),
+            ))
+        })
+        .collect();
+    let n = pts.len().max(1) as f64;
+    let s_mean = pts.iter().map(|p| p.0).sum::<f64>() / n;
+    let r_mean = pts.iter().map(|p| p.1).sum::<Vector2<f64>>() / n;
+    let s_var = pts.iter().map(|p| (p.0 - s_mean).powi(2)).sum::<f64>() / n;
+    let slope = pts
+        .iter()
+        .map(|p| (p.1 - r_mean) * (p.0 - s_mean))
+        .sum::<Vector2<f64>>()
+        / (n * s_var.max(1e-300));
+    // The line's own scatter per component, px.
+    let sigma = (line.residuals_px.iter())
+        .map(|(_, r)| (r[0] * r[0] + r[1] * r[1]) / 2.0)
+        .sum::<f64>()
+        .sqrt()
+        / n.sqrt();
+    let speed = line.v.norm();
+    let spacing = (used.iter().enumerate())
+        .filter(|(k, _)| *k != j)
+        .map(|(_, (_, l))| (Vector2::from(l.x0_px) - Vector2::from(line.x0_px)).norm())
+        .fold(f64::INFINITY, f64::min);
+    let ramp = slope.norm() / speed;
+    let ramp_noise = sigma / (s_var.sqrt() * n.sqrt() * speed);
+    let place = r_mean.norm() / spacing;
+    let place_noise = sigma / (n.sqrt() * spacing);
+    ([ramp, place], [ramp_noise, place_noise])
 }
 
 /// Target `j` of `used` against the model fitted without it: (mismatch, noise), relative.

@@ -54,6 +54,10 @@ pub struct ModelCheck {
     /// Whether the mismatch is what the noise gives (a chi-square test at 99 %): when not,
     /// the model does not describe this rig, and `model_rel_u` says by how much.
     pub holds: bool,
+    /// The checks that failed (`leave-one-out`, `residuals`): the rates failing says the
+    /// field is not the model's; the residuals alone may also be a print off its design.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub failed: Vec<String>,
 }
 
 impl ModelCheck {
@@ -64,6 +68,7 @@ impl ModelCheck {
             method: format!("{} and {}", self.method, residuals.method),
             model_rel_u: self.model_rel_u.max(residuals.model_rel_u),
             holds: self.holds && residuals.holds,
+            failed: [self.failed, residuals.failed].concat(),
             ..self
         }
     }
@@ -95,10 +100,13 @@ pub(crate) fn axes(v: Vector2<f64>) -> (Vector2<f64>, Vector2<f64>) {
     (along, Vector2::new(-along[1], along[0]))
 }
 
+/// A target's (mismatch, noise), relative, two components.
+pub(crate) type Mismatch = ([f64; 2], [f64; 2]);
+
 /// The check from per-target (mismatch, noise) pairs.
-pub(crate) fn summarise(method: &str, per_target: &[([f64; 2], [f64; 2])]) -> ModelCheck {
+pub(crate) fn summarise(method: &str, per_target: &[Mismatch]) -> ModelCheck {
     let n = per_target.len().max(1) as f64;
-    let ms = |f: &dyn Fn(&([f64; 2], [f64; 2])) -> f64| per_target.iter().map(f).sum::<f64>() / n;
+    let ms = |f: &dyn Fn(&Mismatch) -> f64| per_target.iter().map(f).sum::<f64>() / n;
     let mis = [ms(&|t| t.0[0].powi(2)), ms(&|t| t.0[1].powi(2))];
     let noise = [ms(&|t| t.1[0].powi(2)), ms(&|t| t.1[1].powi(2))];
     let excess = (mis[0] - noise[0]).max(0.0) + (mis[1] - noise[1]).max(0.0);
@@ -111,13 +119,25 @@ pub(crate) fn summarise(method: &str, per_target: &[([f64; 2], [f64; 2])]) -> Mo
         .iter()
         .flat_map(|(e, s)| (0..2).map(move |k| (e[k] / s[k].max(1e-300)).powi(2)))
         .sum();
+    let holds = chi2 <= dof + 2.33 * (2.0 * dof).sqrt();
+    // A model that fails is wrong by different amounts at different places: the worst
+    // target's excess, not the typical one, is what a conversion may meet.
+    let worst = (per_target.iter())
+        .map(|(e, s)| {
+            (0..2)
+                .map(|k| (e[k] * e[k] - s[k] * s[k]).max(0.0))
+                .sum::<f64>()
+        })
+        .fold(0.0, f64::max);
+    let excess = if holds { excess } else { excess.max(worst) };
     ModelCheck {
         method: method.into(),
         targets: per_target.len(),
         rms_rel: mis.map(f64::sqrt),
         noise_rel: noise.map(f64::sqrt),
         model_rel_u: excess.max(resolution).sqrt(),
-        holds: chi2 <= dof + 2.33 * (2.0 * dof).sqrt(),
+        holds,
+        failed: if holds { vec![] } else { vec![method.into()] },
     }
 }
 
