@@ -34,6 +34,7 @@ fn expected_checksum(cam: &CameraModel) -> u64 {
     let view = View {
         camera_um: [1500.0, 800.0],
         roll_rad: 0.01,
+        depth_um: 0.0,
     };
     let e = expected_rgb(&board, cam, &view, [0, 0, cam.width, cam.height], 1.0);
     let bytes: Vec<u8> = e.iter().flat_map(|v| v.to_le_bytes()).collect();

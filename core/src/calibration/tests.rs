@@ -314,8 +314,8 @@ fn worst_error_over_u_by(
         for o in [[5000.0, 0.0], [0.0, 5000.0], [3500.0, -3500.0]] {
             let (centre, offset_px) = imaged_by(forward, m, b, o);
             let c = cal.convert(centre, offset_px, RADII);
-            for a in 0..2 {
-                let e = (c.offset_um[a] - o[a]).abs();
+            for (a, want) in o.iter().enumerate() {
+                let e = (c.offset_um[a] - want).abs();
                 let fit_u = (c.u_b_um[a].powi(2) - c.model_u_um[a].powi(2)).sqrt();
                 worst = worst.max(e / c.u_b_um[a]);
                 without = without.max(e / fit_u);
