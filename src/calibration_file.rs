@@ -82,7 +82,32 @@ pub fn check(cal: &Calibration) -> Result<(), String> {
             ));
         }
     }
-    check_model(&cal.field.model)
+    check_model(&cal.field.model)?;
+    check_model_error(cal)
+}
+
+/// The numbers every conversion's model u is made of (`Calibration::model_rel_u`).
+fn check_model_error(cal: &Calibration) -> Result<(), String> {
+    use bounds::in_range;
+    let f = &cal.field;
+    in_range("field.stage_dir_rad", f.stage_dir_rad, -1e3, 1e3)?;
+    if let Some(z) = f.zoom_per_um {
+        in_range("field.zoom_per_um", z, -1e-2, 1e-2)?;
+    }
+    if let Some(c) = &f.check {
+        in_range("field.check.model_rel_u", c.model_rel_u, 0.0, 1.0)?;
+    }
+    in_range("scan.travel_um", cal.scan.travel_um, 0.0, 1e9)?;
+    for t in &cal.targets {
+        in_range("targets[].residual_rms_um", t.residual_rms_um, 0.0, 1e9)?;
+        in_range(
+            "targets[].model_residual_rms_um",
+            t.model_residual_rms_um,
+            0.0,
+            1e9,
+        )?;
+    }
+    Ok(())
 }
 
 /// The field model's numbers: those a run converts every offset with.

@@ -139,7 +139,7 @@ fn a_webcam_scan_calibrates_the_local_scale_and_removes_the_offsets_bias() {
         spread.1 / spread.0 - 1.0 > 0.02,
         "the webcam's scale varies: {spread:?}"
     );
-    // Measured: 4.3e-4 and 3.3e-4 (seed 11), the reported u_rel 1.3-1.4e-4.
+    // Measured: 4.1e-4 and 4.3e-4 (seed 11), the reported u_rel 1.3-1.6e-4.
     assert!(worst_model < 8e-4, "model scale off by {worst_model:.1e}");
     assert!(worst_own < 8e-4, "own scale off by {worst_own:.1e}");
 
@@ -290,8 +290,8 @@ fn a_webcam_scan_calibrates_the_local_scale_and_removes_the_offsets_bias() {
         global_worst > 150.0,
         "the global scale's error on webcam frames: {global_worst:.1}"
     );
-    // Measured: the global scale 200 µm off (F), the calibration 0.9 µm; the bias left is
-    // the estimator's own to 0.3 µm (measured 4-5 mm RMS 94.0 -> 47.9 µm).
+    // Measured: the global scale 200 µm off (F), the calibration 1.1 µm; the bias left is
+    // the estimator's own to 0.4 µm (measured 4-5 mm RMS 105.9 -> 34.6 µm).
     assert!(
         conv_worst < 2.0,
         "the calibration converts the sim's true offsets to {conv_worst:.1} µm"

@@ -409,6 +409,11 @@ fn hostile_calibration_records_fail_the_job_naming_the_field_in_a_short_reason()
             "field.model.norm_radius_px 0 is outside",
         ),
         (
+            "zoom_per_um",
+            serde_json::json!(1e308),
+            "field.zoom_per_um 1e308 is outside",
+        ),
+        (
             "id",
             serde_json::json!("q/../../x"),
             "id \"q/../../x\" is not a plain file name",
@@ -424,6 +429,7 @@ fn hostile_calibration_records_fail_the_job_naming_the_field_in_a_short_reason()
         match field {
             "id" => bad["id"] = value,
             "targets" => bad["targets"] = value,
+            "zoom_per_um" => bad["field"]["zoom_per_um"] = value,
             f => bad["field"]["model"][f] = value,
         }
         install(&d.data, "cal-bad", &bad.to_string());

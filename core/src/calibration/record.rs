@@ -492,7 +492,9 @@ impl Calibration {
     /// field model cannot know: its checked error, and with no board the gauge a 1-D scan
     /// leaves open.
     pub fn model_rel_u(&self, centre_px: [f64; 2]) -> f64 {
-        let checked = self.model_check().model_rel_u;
+        // The recorded check without a copy (this runs per converted offset).
+        let checked = (self.field.check.as_ref())
+            .map_or_else(|| self.model_check().model_rel_u, |c| c.model_rel_u);
         let gauge = match self.field.layout.as_str() {
             "free" => {
                 validation::gauge_rel_u(&self.field.model, self.field.stage_dir_rad, centre_px)

@@ -43,8 +43,9 @@ pub struct ModelCheck {
     pub method: String,
     /// Targets checked.
     pub targets: usize,
-    /// RMS relative mismatch of the targets' rates against the model's, along and across
-    /// the stage's axis.
+    /// RMS relative mismatch of the targets against the model: with `leave-one-out` first,
+    /// its rates along and across the stage's axis; from `residuals` alone, the ramp (a
+    /// rate error) and the misplacement (a scale error over the nearest target's distance).
     pub rms_rel: [f64; 2],
     /// The RMS the line fits' own noise gives (their relative standard uncertainties).
     pub noise_rel: [f64; 2],
