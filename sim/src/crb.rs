@@ -150,7 +150,7 @@ impl PrintUnknown {
         }
         PrintUnknown {
             fisher: fisher.expect("a view"),
-            modes: modes.map_or(0, |m| m.weights.len()),
+            modes: modes.map_or(0, |m| m.len()),
         }
     }
 
@@ -327,25 +327,9 @@ fn information(
         derivs.extend(m.derivatives(&depth, (roi, to_board), observe));
     }
 
-    let n = derivs.len();
-    let mut fisher = DMatrix::<f64>::zeros(n, n);
-    let mut row = vec![0.0; n];
-    for (i, &m) in mu.iter().enumerate() {
-        let w = 1.0 / var(m);
-        for (r, d) in row.iter_mut().zip(&derivs) {
-            *r = d[i];
-        }
-        for a in 0..n {
-            if row[a] == 0.0 {
-                continue;
-            }
-            for b in a..n {
-                fisher[(a, b)] += w * row[a] * row[b];
-            }
-        }
-    }
-    fisher.fill_lower_triangle_with_upper_triangle();
-    fisher
+    // F = Dᵀ·W·D: each sample's derivatives scaled by its noise's 1/σ, one matrix product.
+    let d = DMatrix::from_fn(mu.len(), derivs.len(), |i, j| derivs[j][i] / var(mu[i]).sqrt());
+    d.transpose() * d
 }
 
 /// `eᵀ J⁻¹ e` per axis, e = inner − outer centre (θ's first four entries).
@@ -370,11 +354,21 @@ fn offset_bound(j: DMatrix<f64>) -> [f64; 2] {
 /// variance and extended between grid points by the covariance (kriging). The pipeline's
 /// prior (`fit::prior`) builds its own, coarser basis: the bound shares no code with the
 /// estimator it judges.
+///
+/// The Gaussian covariance on a square grid is separable, `rms²·K ⊗ K` with `K` the 1-D
+/// grid's: its modes are products of the 1-D modes, `v_a ⊗ v_b` with variance
+/// `rms²·μ_a·μ_b`, and a mode extended to a board point p is `rms·X_a(p_x)·X_b(p_y)`,
+/// `X_a(x) = Σ_i exp(−(x − g_i)²/2ℓ²)·v_a(i)/√μ_a`. So the decomposition is of the 1-D
+/// grid's small matrix, and each pixel costs a few hundred operations, not the full grid's.
 struct DensityModes {
-    /// Grid points (µm on the board).
-    grid: Vec<[f64; 2]>,
-    /// Per mode, the weights of the covariance to each grid point: `v_j / √λ_j`.
-    weights: Vec<DVector<f64>>,
+    /// The target's centre on the board (µm); the grid is `centre + (i, j)·spacing`.
+    centre_um: [f64; 2],
+    /// The 1-D grid's offsets from the centre (µm), the same along x and y.
+    axis_um: Vec<f64>,
+    /// The 1-D modes' kriging weights `v_a / √μ_a`, one per kept 1-D mode.
+    axis_weights: Vec<DVector<f64>>,
+    /// The kept 2-D modes: pairs (x mode, y mode) of the 1-D ones.
+    pairs: Vec<(usize, usize)>,
     rms: f64,
     corr_um: f64,
 }
@@ -387,7 +381,6 @@ impl DensityModes {
             return None;
         }
         let target = &board.targets[t];
-        let c = target.centre_um;
         // The grid covers every ROI of the target (`target_roi`: the rim grown by the lens,
         // 5 blur widths and 5 px), the same on every view, and half a correlation length.
         let reach = 1.1 * target.outer.outer_radius_um()
@@ -395,25 +388,49 @@ impl DensityModes {
             + corr_um / 2.0;
         let spacing = corr_um / 2.0;
         let k = (reach / spacing).ceil() as i64;
-        let grid: Vec<[f64; 2]> = (-k..=k)
-            .flat_map(|i| (-k..=k).map(move |j| [i as f64, j as f64]))
-            .map(|[i, j]| [c[0] + i * spacing, c[1] + j * spacing])
+        let axis_um: Vec<f64> = (-k..=k).map(|i| i as f64 * spacing).collect();
+        let n = axis_um.len();
+        let kernel = DMatrix::from_fn(n, n, |a, b| gauss(axis_um[a] - axis_um[b], corr_um));
+        let eig = kernel.symmetric_eigen();
+        let mu = &eig.eigenvalues;
+        let top = mu.max();
+        // A 1-D mode that no pair keeps (μ_a·top < 10⁻⁶·top²) is dropped at once.
+        let kept: Vec<usize> = (0..n).filter(|&a| mu[a] >= 1e-6 * top).collect();
+        let axis_weights = kept
+            .iter()
+            .map(|&a| eig.eigenvectors.column(a) / mu[a].sqrt())
             .collect();
-        let cov = DMatrix::from_fn(grid.len(), grid.len(), |a, b| {
-            covariance(rms, corr_um, grid[a], grid[b])
-        });
-        let eig = cov.symmetric_eigen();
-        let top = eig.eigenvalues.max();
-        let weights = (0..grid.len())
-            .filter(|&j| eig.eigenvalues[j] >= 1e-6 * top)
-            .map(|j| eig.eigenvectors.column(j) / eig.eigenvalues[j].sqrt())
+        let pairs = (0..kept.len())
+            .flat_map(|a| (0..kept.len()).map(move |b| (a, b)))
+            .filter(|&(a, b)| mu[kept[a]] * mu[kept[b]] >= 1e-6 * top * top)
             .collect();
         Some(DensityModes {
-            grid,
-            weights,
+            centre_um: target.centre_um,
+            axis_um,
+            axis_weights,
+            pairs,
             rms,
             corr_um,
         })
+    }
+
+    /// How many 2-D modes the basis keeps.
+    fn len(&self) -> usize {
+        self.pairs.len()
+    }
+
+    /// Each kept 1-D mode's kriged value and derivative at offset `x` (µm) from the centre.
+    fn along(&self, x: f64) -> (Vec<f64>, Vec<f64>) {
+        let l2 = self.corr_um * self.corr_um;
+        let n = self.axis_um.len();
+        let (mut e, mut de) = (DVector::zeros(n), DVector::zeros(n));
+        for (i, &g) in self.axis_um.iter().enumerate() {
+            let k = gauss(x - g, self.corr_um);
+            (e[i], de[i]) = (k, -(x - g) / l2 * k);
+        }
+        (self.axis_weights.iter())
+            .map(|w| (e.dot(w), de.dot(w)))
+            .unzip()
     }
 
     /// Each mode's derivative column: the RGB of pixel q changes by
@@ -429,23 +446,17 @@ impl DensityModes {
     ) -> Vec<Vec<f64>> {
         let [x0, y0, w, h] = roi;
         let n = (w * h) as usize;
-        let mut cols = vec![vec![0.0f32; 3 * n]; self.weights.len()];
+        let mut cols = vec![vec![0.0f32; 3 * n]; self.len()];
         // The image gradient of a function of the board point: Aᵀ·∇_board.
         let at = to_board.a.transpose();
-        let l2 = self.corr_um * self.corr_um;
         for px in 0..n {
             let (x, y) = (px % w as usize, px / w as usize);
             let p = to_board.board([(x0 as usize + x) as f64, (y0 as usize + y) as f64]);
-            // The covariance to each grid point, and its derivative along x and y.
-            let g = self.grid.len();
-            let (mut c, mut cx, mut cy) = (DVector::zeros(g), DVector::zeros(g), DVector::zeros(g));
-            for (i, &q) in self.grid.iter().enumerate() {
-                let k = covariance(self.rms, self.corr_um, p, q);
-                (c[i], cx[i], cy[i]) = (k, -(p[0] - q[0]) / l2 * k, -(p[1] - q[1]) / l2 * k);
-            }
-            for (col, wts) in cols.iter_mut().zip(&self.weights) {
-                let phi = c.dot(wts);
-                let gb = nalgebra::Vector2::new(cx.dot(wts), cy.dot(wts));
+            let (fx, dfx) = self.along(p[0] - self.centre_um[0]);
+            let (fy, dfy) = self.along(p[1] - self.centre_um[1]);
+            for (col, &(a, b)) in cols.iter_mut().zip(&self.pairs) {
+                let phi = self.rms * fx[a] * fy[b];
+                let gb = nalgebra::Vector2::new(dfx[a] * fy[b], fx[a] * dfy[b]) * self.rms;
                 let gi = at * gb;
                 for ch in 0..3 {
                     let gd = depth.grad[3 * px + ch];
@@ -503,10 +514,10 @@ impl InkDepth {
     }
 }
 
-/// The sim's covariance of the density between two board points.
-fn covariance(rms: f64, corr_um: f64, a: [f64; 2], b: [f64; 2]) -> f64 {
-    let d2 = (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2);
-    rms * rms * (-d2 / (2.0 * corr_um * corr_um)).exp()
+/// The sim's correlation of the density at two points `d` µm apart along one axis: the
+/// 2-D covariance is `rms²·gauss(dx)·gauss(dy)`.
+fn gauss(d: f64, corr_um: f64) -> f64 {
+    (-d * d / (2.0 * corr_um * corr_um)).exp()
 }
 
 /// The lens's local affine map from the image to the board about a board point `c`:
@@ -705,9 +716,10 @@ mod tests {
             );
         }
         let raw = offset_crb_um_raw(&board, &webcam, 6, view);
+        let unknown = PrintUnknown::new(&board, &webcam, 6, &[view]);
         let per_n: Vec<[f64; 2]> = [1, 10, 20, 200]
             .iter()
-            .map(|&n| offset_hcrb_um_raw(&board, &webcam, 6, &[view], n))
+            .map(|&n| unknown.offset_um(n))
             .collect();
         let ratio: Vec<f64> = per_n
             .iter()
