@@ -25,7 +25,8 @@ use rigd::sim::board::Target;
 use rigd::sim::crb::{offset_crb_um_raw, PrintUnknown};
 use rigd::sim::frames::FrameRenderer;
 use rigd::sim::{Board, CameraModel};
-use std::sync::Arc;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, OnceLock};
 
 /// A case of the paper's study: frames, step, k.
 #[derive(Debug, Clone, Copy)]
@@ -173,10 +174,36 @@ fn measure(
         .collect()
 }
 
+/// The calibration of `frames`' camera and board from frame `sequence` on ([`scan`]), made
+/// once per test binary: several tests calibrate the same layout through the same camera,
+/// and the scan is deterministic. Moves `sequence` past the scan's frames.
+fn calibrate(frames: &FrameRenderer, sequence: &mut u64) -> Arc<Calibration> {
+    type Cache = Mutex<HashMap<String, Arc<OnceLock<Arc<Calibration>>>>>;
+    static CACHE: OnceLock<Cache> = OnceLock::new();
+    let key = format!(
+        "{:?} {:?} {} {}",
+        frames.camera(),
+        frames.scene().board(),
+        frames.seed(),
+        *sequence
+    );
+    let cell = (CACHE.get_or_init(Default::default).lock().unwrap())
+        .entry(key)
+        .or_default()
+        .clone();
+    let mut after = *sequence;
+    let cal = cell.get_or_init(|| scan(frames, &mut after)).clone();
+    *sequence += SCAN_FRAMES;
+    cal
+}
+
+/// The calibration scan's frame count.
+const SCAN_FRAMES: u64 = 21;
+
 /// Calibration from the stage as a user makes it (docs/calibration.md): 21 frames 1000 µm
 /// apart, commanded positions, the board's layout; the scan measured twice
 /// (`Calibration::fit_twice`, as `rigctl calibrate` does).
-fn calibrate(frames: &FrameRenderer, sequence: &mut u64) -> Arc<Calibration> {
+fn scan(frames: &FrameRenderer, sequence: &mut u64) -> Arc<Calibration> {
     let board = frames.scene().board().clone();
     let opts = ProcessOptions {
         axis_dir: [-1.0, 0.0],
@@ -184,7 +211,7 @@ fn calibrate(frames: &FrameRenderer, sequence: &mut u64) -> Arc<Calibration> {
         calibration_ink: false,
         ..ProcessOptions::default()
     };
-    let positions_um: Vec<f64> = (0..21).map(|i| i as f64 * 1000.0).collect();
+    let positions_um: Vec<f64> = (0..SCAN_FRAMES).map(|i| i as f64 * 1000.0).collect();
     let imgs: Vec<RgbImage> = (positions_um.iter())
         .map(|&x_um| {
             *sequence += 1;

@@ -328,7 +328,9 @@ fn information(
     }
 
     // F = Dᵀ·W·D: each sample's derivatives scaled by its noise's 1/σ, one matrix product.
-    let d = DMatrix::from_fn(mu.len(), derivs.len(), |i, j| derivs[j][i] / var(mu[i]).sqrt());
+    let d = DMatrix::from_fn(mu.len(), derivs.len(), |i, j| {
+        derivs[j][i] / var(mu[i]).sqrt()
+    });
     d.transpose() * d
 }
 
