@@ -19,6 +19,7 @@ use std::path::Path;
 use support::daemon::{
     assert_finished, events_until_end, job_id, run_job, session_of, small_board_sim, submit, Daemon,
 };
+use support::schema::{closed, errors, validator};
 
 /// The calibration note of a job's `calibration` event.
 fn note(events: &[EventBody]) -> CalibrationNote {
@@ -44,6 +45,14 @@ fn measure() -> JobSpec {
 
 fn result(d: &Daemon, id: u64) -> Value {
     d.client().request(&Request::Result { job_id: id }).unwrap()["result"].clone()
+}
+
+/// `result.json` validates against the protocol schema's `JobResult`, closed: every field,
+/// the calibration's and the uncertainty's among them, is in the schema.
+fn typed_as_the_schema_says(result: &Value) {
+    let doc = closed(&rigd::daemon::schema::document());
+    let e = errors(&validator(&doc, "JobResult"), result);
+    assert!(e.is_empty(), "{e:?}");
 }
 
 #[test]
@@ -72,6 +81,7 @@ fn a_calibration_job_is_kept_in_the_data_root_and_applied_by_the_next_job() {
         .expect("a calibrated event");
     // The record, where the result says, loads as `rigctl process --calibration` reads it.
     let r = result(&d, id);
+    typed_as_the_schema_says(&r);
     assert_eq!(r["calibrated"]["id"], made.id.as_str());
     let cal = rigd::calibration_file::load(Path::new(&made.path)).unwrap();
     assert_eq!(cal.id, made.id);
@@ -116,6 +126,7 @@ fn a_calibration_job_is_kept_in_the_data_root_and_applied_by_the_next_job() {
     assert_eq!(named.id.as_deref(), Some(cal.id.as_str()));
     assert_eq!(named.source.as_deref(), Some(made.path.as_str()));
     let r = result(&d, id);
+    typed_as_the_schema_says(&r);
     assert_eq!(r["calibration"]["id"], cal.id.as_str());
     let run = &r["runs"][0]["result"];
     assert_eq!(run["calibration"]["id"], cal.id.as_str());

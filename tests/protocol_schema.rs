@@ -10,7 +10,7 @@
 mod support;
 
 use rigd::daemon::protocol::{EVENT_KINDS, REQUEST_KINDS};
-use rigd::daemon::schema::{definition, document, document_text};
+use rigd::daemon::schema::{document, document_text};
 use rigd::rig::simulated;
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, BTreeSet};
@@ -18,6 +18,7 @@ use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
 use std::path::Path;
 use support::daemon::Daemon;
+use support::schema::{closed, errors, validator};
 
 const REGENERATE: &str = "cargo run --bin rigctl -- schema > docs/protocol.schema.json";
 
@@ -155,6 +156,13 @@ fn traffic(tap: &mut Tap) {
     let session = end["session"].clone();
     tap.ok(json!({"kind": "status", "job_id": id}));
     tap.ok(json!({"kind": "result", "job_id": id}));
+    // A study of two cases, twice: its `result.json` holds the study's summary.
+    let study = json!({"study": ["case1", "case2"], "repeats": 2, "settle_ms": 0});
+    let study = tap.ok(json!({"kind": "submit", "job": study}))["job_id"]
+        .as_u64()
+        .unwrap();
+    assert_eq!(tap.until_end(study)["event"], "finished");
+    tap.ok(json!({"kind": "result", "job_id": study}));
     tap.ok(json!({"kind": "list", "limit": 5}));
     tap.ok(json!({"kind": "subscribe", "job_id": id}));
     let replay = json!({"kind": "replay", "session": session, "processing": {"combine": "mean"}});
@@ -213,52 +221,10 @@ fn at_the_rig(tap: &mut Tap) {
     tap.until_end(long);
 }
 
-/// `doc` with every object closed where that is sound: `unevaluatedProperties: false` on
-/// each definition, but those a `$ref` completes with its own properties (internally
-/// tagged newtype variants: `Reply` and `Event` under `ServerLine`), which the referrer's
-/// closing covers.
-fn closed(doc: &Value) -> Value {
-    fn completed(v: &Value, out: &mut BTreeSet<String>) {
-        match v {
-            Value::Object(m) => {
-                if let (Some(Value::String(r)), true) =
-                    (m.get("$ref"), m.contains_key("properties"))
-                {
-                    out.insert(r.trim_start_matches("#/$defs/").to_string());
-                }
-                m.values().for_each(|x| completed(x, out));
-            }
-            Value::Array(a) => a.iter().for_each(|x| completed(x, out)),
-            _ => {}
-        }
-    }
-    let mut skip = BTreeSet::new();
-    completed(doc, &mut skip);
-    assert!(skip.contains("Event") && skip.contains("Reply"), "{skip:?}");
-    let mut doc = doc.clone();
-    for (name, def) in doc["$defs"].as_object_mut().unwrap() {
-        if !skip.contains(name) {
-            def["unevaluatedProperties"] = false.into();
-        }
-    }
-    doc
-}
-
 /// A `rigd --sim` rig whose small frames show the small board's two targets, so frames are
 /// processed (`processed` events).
 fn small_sim_rig(dir: &Path) -> rigd::rig::Rig {
     simulated(&support::daemon::small_board_sim(dir)).unwrap()
-}
-
-fn validator(doc: &Value, name: &str) -> jsonschema::Validator {
-    let s = definition(doc, name).unwrap_or_else(|| panic!("no `{name}` in the schema"));
-    jsonschema::draft202012::new(&s).unwrap_or_else(|e| panic!("schema `{name}`: {e}"))
-}
-
-fn errors(v: &jsonschema::Validator, instance: &Value) -> Vec<String> {
-    v.iter_errors(instance)
-        .map(|e| format!("{e} at {}", e.instance_path()))
-        .collect()
 }
 
 #[test]
@@ -303,6 +269,38 @@ fn a_daemons_traffic_validates_against_the_schema() {
         bodies.keys()
     );
     assert!(tap.got.iter().any(|l| l["ok"] == false), "no error reply");
+
+    // `result.json` is typed to its leaves: a scan's runs with their measured objects and a
+    // study's summary validated above, and a field the schema lacks inside either is refused.
+    let results: Vec<&Value> = (tap.results.iter())
+        .filter(|(req, _)| req["kind"] == "result")
+        .map(|(_, r)| r)
+        .collect();
+    let scan = results
+        .iter()
+        .find(|r| r["result"]["runs"][0]["result"]["objects"][0].is_object())
+        .expect("a result with a measured object");
+    let study = results
+        .iter()
+        .find(|r| {
+            r["result"]["study"]["cases"]
+                .as_array()
+                .is_some_and(|c| c.len() == 2)
+        })
+        .expect("a study's result");
+    let reply = &bodies["ResultReply"];
+    for (body, at) in [
+        (scan, "/result/runs/0/result/objects/0"),
+        (study, "/result/study/cases/0"),
+        (study, "/result/study/stats/cases/0/targets/0"),
+    ] {
+        let mut with = (*body).clone();
+        with.pointer_mut(at).unwrap()["extra_um"] = 1.into();
+        assert!(
+            !reply.is_valid(&with),
+            "the closed schema took a field at {at}"
+        );
+    }
 
     // The closed copy is strict: an unknown field anywhere is refused. The committed
     // schema lets it through (clients ignore what they do not know).

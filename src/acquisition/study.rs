@@ -7,7 +7,7 @@ use crate::pipeline::ProcessResult;
 use serde::{Deserialize, Serialize};
 
 /// One run's outcome as the job records it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct RunResult {
     pub run: u32,
     pub case: String,
@@ -23,7 +23,7 @@ pub struct RunResult {
 
 /// What a job produced: every run's measurement (runs that finished before a fault are
 /// kept) and, for a study, its summary. The session's `result.json`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct JobResult {
     pub runs: Vec<RunResult>,
     pub study: Option<StudySummary>,
@@ -37,7 +37,7 @@ pub struct JobResult {
 }
 
 /// One line of the study's summary (what `rigctl demo --json` lists as `cases`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct CaseLine {
     pub name: String,
     pub frames: u32,
@@ -46,6 +46,7 @@ pub struct CaseLine {
     /// RMS over targets of the per-target standard deviation over repeats (null, NaN in
     /// memory, with a single repeat).
     #[serde(deserialize_with = "crate::pipeline::stats::nan_if_null")]
+    #[schemars(with = "Option<f64>")]
     pub rms_std_um: f64,
     /// rms_std_um of the single-frame case over this case's.
     pub improvement: Option<f64>,
@@ -54,6 +55,7 @@ pub struct CaseLine {
     /// RMS over targets of |bias| (mean minus the board's nominal offset: the truth on the
     /// sim), µm; null when no target has a nominal.
     #[serde(default, deserialize_with = "crate::pipeline::stats::nan_if_null")]
+    #[schemars(with = "Option<f64>")]
     pub rms_bias_um: f64,
     /// With a calibration applied: the same two figures at the global scale
     /// (`offset_global_um`), the uncalibrated measurement of the same frames.
@@ -63,7 +65,7 @@ pub struct CaseLine {
     pub rms_bias_global_um: Option<f64>,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct StudySummary {
     pub cases: Vec<CaseLine>,
     pub stats: StudyStats,

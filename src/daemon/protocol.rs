@@ -705,7 +705,8 @@ pub struct ResultReply {
     pub session: String,
     pub state: SessionState,
     pub reason: Option<String>,
-    /// The session's `result.json`, as recorded.
+    /// The session's `result.json`, as recorded (`JobResult`).
+    #[schemars(with = "Option<crate::acquisition::study::JobResult>")]
     pub result: Option<serde_json::Value>,
 }
 

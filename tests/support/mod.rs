@@ -8,6 +8,7 @@ pub mod daemon;
 pub mod emulated;
 pub mod firmware;
 pub mod instances;
+pub mod schema;
 pub mod skip;
 
 use image::RgbImage;

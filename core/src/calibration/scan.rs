@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 
 /// Which positions are the length reference.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum Reference {
     /// The commanded positions (`steps.csv`'s `position_um`).

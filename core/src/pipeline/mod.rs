@@ -88,6 +88,7 @@ pub enum Registration {
 
 /// One measured target.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct ObjectResult {
     /// Board name of the target when a board was given and the target matched.
     pub name: Option<String>,
@@ -134,6 +135,7 @@ pub struct ObjectResult {
 
 /// The calibration a result was converted with.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct CalibrationUsed {
     pub id: String,
     pub date: String,
@@ -158,6 +160,7 @@ fn is_zero(n: &usize) -> bool {
 
 /// A target candidate that was found but not measured, and why.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct Skipped {
     pub centre_px: [f64; 2],
     pub reason: String,
@@ -165,6 +168,7 @@ pub struct Skipped {
 
 /// Per step: the displacement measured in the image against the one the positions predict.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct StepResidual {
     pub index: usize,
     pub position_um: f64,
@@ -180,6 +184,7 @@ pub struct StepResidual {
 /// Every step's residual in brief (`ProcessResult::steps` lists only the first
 /// [`register::MAX_LISTED_STEPS`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct StepSummary {
     /// Steps the run had.
     pub frames: usize,
@@ -190,6 +195,7 @@ pub struct StepSummary {
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct ProcessResult {
     pub options: ProcessOptions,
     pub frames: usize,

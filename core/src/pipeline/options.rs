@@ -24,6 +24,7 @@ pub const MAX_K: u32 = *K_RANGE.end();
 pub(crate) const WINDOW_MARGIN_PX: f64 = 6.0;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[serde(default, deny_unknown_fields)]
 pub struct ProcessOptions {
     pub scale_um_per_px: f64,
@@ -62,6 +63,7 @@ fn is_true(v: &bool) -> bool {
 /// `density_rms` (relative) with a Gaussian correlation of length `corr_um` on the board
 /// (measured once on a print: docs/calibration.md).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields)]
 pub struct InkPrior {
     pub density_rms: f64,

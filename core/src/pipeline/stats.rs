@@ -19,34 +19,43 @@ pub struct CaseRuns {
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct TargetStats {
     pub name: String,
     #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub nominal_um: f64,
     #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub nominal_px: f64,
     /// Runs in which the target was measured.
     pub n: usize,
     /// Mean offset along the nominal direction.
     #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub mean_um: f64,
     /// The same in pixels of the measurement grid (camera px x k), Table 1.
     #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub measured_grid_px: f64,
     /// nominal camera px / measured grid px, Table 2.
     #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub pixel_ratio: f64,
     /// Standard deviation over runs (n - 1), Table 3.
     #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub std_um: f64,
     /// Mean minus nominal.
     #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub bias_um: f64,
     /// Offsets per run (µm along the nominal direction), Figure 4.
     pub per_run_um: Vec<f64>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct CaseStats {
     pub name: String,
     pub frames: usize,
@@ -55,10 +64,12 @@ pub struct CaseStats {
     pub targets: Vec<TargetStats>,
     /// sqrt(mean(std²)) over targets, Table 3's RMS row.
     #[serde(deserialize_with = "nan_if_null")]
+    #[cfg_attr(feature = "schemars", schemars(with = "Option<f64>"))]
     pub rms_std_um: f64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 pub struct StudyStats {
     pub scale_um_per_px: f64,
     pub cases: Vec<CaseStats>,
