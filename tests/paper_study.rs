@@ -165,7 +165,11 @@ fn paper_study_subset() {
         supersample: 4,
         ..CameraModel::default()
     };
-    let studies = run_study(5, &cam, &[(Estimator::Paper, true), (Estimator::Fit, false)]);
+    let studies = run_study(
+        5,
+        &cam,
+        &[(Estimator::Paper, true), (Estimator::Fit, false)],
+    );
     let (st, fit) = (&studies[0], &studies[1]);
     println!("{}", rigd::report::study_tables(st));
     println!("{}", rigd::report::study_tables(fit));
