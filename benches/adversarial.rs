@@ -221,7 +221,7 @@ fn main() {
     }
     if run("whole_frame") {
         match other {
-            true => println!("whole frame k=32: not run against RIGD_BIN (issue 14: 7.5 GB peak)"),
+            true => println!("whole frame k=32: not run against RIGD_BIN (7.5 GB peak)"),
             false => whole_frame(&bin),
         }
     }

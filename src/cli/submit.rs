@@ -160,6 +160,9 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
     // A resumed session's job: the plan's frames before its first are the original's.
     let before = r["resumed_from"]["first_index"].as_u64().unwrap_or(0) as u32;
     let ahead = r["queue_position"].as_u64().unwrap_or_default();
+    // Ctrl-C is taken over before "queued" is printed: one that follows the line never
+    // meets the default disposition, which would end rigctl in silence.
+    let ctrl_c = (!detach).then(|| crate::cli::interrupt::watch(socket.path(), id));
     match before {
         0 => eprintln!("job {id} queued ({total} frames, {ahead} ahead)"),
         _ => eprintln!(
@@ -182,7 +185,6 @@ pub fn submit_and_follow(socket: &SocketArg, req: Request, detach: bool) -> anyh
         );
     }
     let pace = crate::cli::client::Pace::default().taken_before(before);
-    let ctrl_c = crate::cli::interrupt::watch(socket.path(), id);
     let end = crate::cli::client::follow_from(&mut c, id, total, false, pace, before)?;
     drop(ctrl_c);
     report_end(id, &end)?;

@@ -6,6 +6,7 @@ use crate::support::daemon::RigdProcess;
 use std::ffi::OsStr;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -142,8 +143,21 @@ pub fn no_browser() -> Option<String> {
 /// chromedriver on a free port and a headless Chromium session through it.
 pub struct Browser {
     pub client: fantoccini::Client,
-    _driver: Killed,
+    _driver: Group,
     _profile: tempfile::TempDir,
+}
+
+/// A child started as the leader of its own process group; the whole group killed when
+/// dropped. chromedriver's Chromium (a browser and its renderers) is in that group: killing
+/// chromedriver alone leaves the browser running, a page still polling its gateway.
+pub struct Group(Child);
+
+impl Drop for Group {
+    fn drop(&mut self) {
+        let pgid = nix::unistd::Pid::from_raw(self.0.id() as i32);
+        let _ = nix::sys::signal::killpg(pgid, nix::sys::signal::Signal::SIGKILL);
+        let _ = self.0.wait();
+    }
 }
 
 impl Browser {
@@ -157,9 +171,10 @@ impl Browser {
             .arg(format!("--port={port}"))
             .stdout(Stdio::null())
             .stderr(Stdio::null())
+            .process_group(0)
             .spawn()
             .unwrap();
-        let driver = Killed(driver);
+        let driver = Group(driver);
         let t = Instant::now();
         while TcpStream::connect(("127.0.0.1", port)).is_err() {
             assert!(
