@@ -46,16 +46,13 @@ fn count(cam: &CameraModel, frames: u64, seed: u64, light: f64) -> [Counts; 2] {
         let view = r.views(i, &[[0.0, 0.0]])[0];
         let det = detect(&img, &DetectConfig::default());
         let found: Vec<[f64; 2]> = det.targets.iter().map(|t| t.outer_centre_px).collect();
-        let mut reported: Vec<[f64; 2]> = det.skipped.iter().map(|s| s.centre_px).collect();
+        let reported: Vec<[f64; 2]> = det.skipped.iter().map(|s| s.centre_px).collect();
         let size = (cam.width, cam.height);
         let unseen = unseen_targets(&found, &reported, &board, cam.scale_um_per_px, size);
         let with_board: Vec<[f64; 2]> = (reported.iter().copied())
             .chain(unseen.iter().map(|s| s.centre_px))
             .collect();
-        for (counts, skipped) in c
-            .iter_mut()
-            .zip([std::mem::take(&mut reported), with_board])
-        {
+        for (counts, skipped) in c.iter_mut().zip([reported, with_board]) {
             tally(counts, cam, &board, view, &found, &skipped);
         }
     }

@@ -36,11 +36,13 @@ pub fn closed(doc: &Value) -> Value {
     doc
 }
 
+/// A validator of definition `name` of `doc`.
 pub fn validator(doc: &Value, name: &str) -> jsonschema::Validator {
     let s = definition(doc, name).unwrap_or_else(|| panic!("no `{name}` in the schema"));
     jsonschema::draft202012::new(&s).unwrap_or_else(|e| panic!("schema `{name}`: {e}"))
 }
 
+/// What `v` finds wrong with `instance`, each with where.
 pub fn errors(v: &jsonschema::Validator, instance: &Value) -> Vec<String> {
     v.iter_errors(instance)
         .map(|e| format!("{e} at {}", e.instance_path()))
