@@ -12,12 +12,12 @@
 //! - `pause`: a job's pause switch (a client's pause, a controller's feed hold);
 //! - `outcome`: how a job ended, typed; `study`: a job's runs reduced to the paper's tables;
 //! - `calibration_job`: the calibration job's scan (`job.calibrate`) and its checks;
-//! - `fake`: scripted devices for testing the engine without hardware or time.
+//! - `tests` (test builds only): the engine on scripted devices (`tests::fake`), without
+//!   hardware or time.
 
 pub mod budget;
 pub mod calibration_job;
 pub mod engine;
-pub mod fake;
 pub mod interferometer;
 pub mod job;
 pub mod motor_steps;
@@ -30,6 +30,8 @@ pub mod rig;
 pub mod shapes;
 pub mod sink;
 pub mod study;
+#[cfg(test)]
+mod tests;
 
 pub use engine::{Devices, Engine, EngineSettings, StopFlag};
 pub use job::{

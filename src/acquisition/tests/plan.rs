@@ -2,15 +2,17 @@
 //! timed repeats: the piezo moved only when its target changes, both stages settled before
 //! each grab, both stopped on a cancel, a wait between repeats that a cancel ends.
 
-use rigd::acquisition::fake::{
+use super::fake::{
     frame, grab, move_abs, plain_move, status, stop, wait_settled, IdealStage, ScriptedCamera,
     ScriptedStage,
 };
-use rigd::acquisition::outcome::{Phase, StopCause};
-use rigd::acquisition::plan::{Plan, RunPlan};
-use rigd::acquisition::sink::{Collect, SinkError, StepSink};
-use rigd::acquisition::{CaseScan, Devices, Engine, EngineSettings, Outcome, StepRecord, StopFlag};
-use rigd::hw::MotionState;
+use crate::acquisition::outcome::{Phase, StopCause};
+use crate::acquisition::plan::{Plan, RunPlan};
+use crate::acquisition::sink::{Collect, SinkError, StepSink};
+use crate::acquisition::{
+    CaseScan, Devices, Engine, EngineSettings, Outcome, StepRecord, StopFlag,
+};
+use crate::hw::MotionState;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};

@@ -2,20 +2,21 @@
 //! emulator, socket or wall-clock wait. The scripts check the exact calls the engine makes
 //! (a stop after every fault, no grab after a stop) and `done()` that none was skipped.
 
-use rigd::acquisition::fake::{
-    frame, grab, move_abs, plain_move, resume, status, status_fails, stop, stop_fails,
-    wait_settled, wait_settled_fails, IdealStage, ScriptedCamera, ScriptedLog, ScriptedStage,
+use super::fake::{
+    frame, grab, move_abs, move_abs_fails, plain_move, resume, status, status_fails, stop,
+    stop_fails, wait_settled, wait_settled_fails, IdealStage, ScriptedCamera, ScriptedLog,
+    ScriptedStage,
 };
-use rigd::acquisition::interferometer::ReadLog;
-use rigd::acquisition::outcome::{EndKind, Phase, StopCause};
-use rigd::acquisition::plan::{Plan, RunPlan};
-use rigd::acquisition::sink::{Collect, SinkError, StepSink, Threaded};
-use rigd::acquisition::{
+use crate::acquisition::interferometer::ReadLog;
+use crate::acquisition::outcome::{EndKind, Phase, StopCause};
+use crate::acquisition::plan::{Plan, RunPlan};
+use crate::acquisition::sink::{Collect, SinkError, StepSink, Threaded};
+use crate::acquisition::{
     CaseScan, Devices, Engine, EngineSettings, JobError, JobRegistration, Outcome, StepRecord,
     StopFlag,
 };
-use rigd::acquisition::{HoldPolicy, PauseCause, PauseEvent};
-use rigd::hw::{HwError, MotionState};
+use crate::acquisition::{HoldPolicy, PauseCause, PauseEvent};
+use crate::hw::{HwError, MotionState};
 use std::sync::Arc;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
@@ -73,9 +74,7 @@ fn run(
     out
 }
 
-fn stopped_idle_at(
-    p: f64,
-) -> Vec<rigd::acquisition::fake::Expect<rigd::acquisition::fake::StageCall>> {
+fn stopped_idle_at(p: f64) -> Vec<super::fake::Expect<super::fake::StageCall>> {
     vec![stop(), status(MotionState::Idle, p)]
 }
 
@@ -385,6 +384,41 @@ fn a_status_that_fails_mid_poll_fails_the_step() {
         panic!("{out:?}")
     };
     assert!(matches!(source, HwError::PortGone { .. }));
+}
+
+/// A controller that refuses the move (a soft limit it holds, say) fails the step; the stage
+/// is stopped and asked where it is, and no frame is grabbed.
+#[test]
+fn a_refused_move_fails_the_step_and_stops_the_stage() {
+    let p = plan(&[100.0, 200.0]);
+    let refused = HwError::Other {
+        device: "axis".into(),
+        message: "error 15: travel exceeded".into(),
+    };
+    let mut script = plain_move(100.0);
+    script.extend([
+        move_abs_fails(200.0, refused),
+        stop(),
+        status(MotionState::Idle, 100.0),
+    ]);
+    let mut stage = ScriptedStage::new("axis", script);
+    let mut camera = ScriptedCamera::frames(1);
+    let flag = StopFlag::default();
+    let mut sink = Collect::default();
+    let out = run(&p, settings(0), &flag, &mut stage, &mut camera, &mut sink);
+    assert!(
+        out.reason().unwrap().contains("error 15: travel exceeded"),
+        "{out:?}"
+    );
+    assert_eq!(
+        sink.records.len(),
+        1,
+        "the first frame kept, no second grab"
+    );
+    let stopped = out.detail().unwrap().stopped.unwrap();
+    assert_eq!(stopped.position_um, Some(100.0));
+    stage.done();
+    camera.done();
 }
 
 /// Fails with a full disk at its `n`-th record.

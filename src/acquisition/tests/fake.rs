@@ -236,13 +236,6 @@ impl ScriptedLog {
             samples: Vec::new(),
         }
     }
-    pub fn done(&self) {
-        assert!(
-            self.readings.is_empty(),
-            "log: {} expected reading(s) were not taken",
-            self.readings.len()
-        );
-    }
 }
 
 impl PositionLog for ScriptedLog {
