@@ -169,10 +169,14 @@ fn the_emulator_answers_the_script_as_the_firmware_does() {
     let Some(fw) = Firmware::start("the_emulator_answers_the_script_as_the_firmware_does") else {
         return;
     };
-    let firmware = play(&fw.port);
-    drop(fw);
+    // Both play at once: the script runs in real time, and neither peer sees the other.
     let emu = emulator();
-    let emulated = play(&emu.path().to_string_lossy());
+    let emu_port = emu.path().to_string_lossy().into_owned();
+    let (firmware, emulated) = std::thread::scope(|s| {
+        let emulated = s.spawn(|| play(&emu_port));
+        (play(&fw.port), emulated.join().unwrap())
+    });
+    drop(fw);
     for (i, ((_, sent, _), (f, e))) in SCRIPT
         .iter()
         .zip(firmware.iter().zip(&emulated))

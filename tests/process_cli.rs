@@ -17,6 +17,14 @@ fn rigctl(args: &[&str]) -> Output {
         .expect("rigctl runs")
 }
 
+/// `rigctl ARGS`, any subcommand.
+fn rigctl_any(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_rigctl"))
+        .args(args)
+        .output()
+        .expect("rigctl runs")
+}
+
 fn ok_json(out: &Output) -> Value {
     assert!(
         out.status.success(),
@@ -287,5 +295,77 @@ fn options_out_of_the_pipelines_limits_are_refused_before_the_folder_is_read() {
     assert!(
         !e.contains("nonexistent"),
         "the folder is not looked at: {e}"
+    );
+}
+
+/// `rigctl calibrate` and `process --calibration` refuse bad input with what and where: too few steps, no interferometer column, a
+/// calibration of another frame size.
+#[test]
+fn calibrate_and_process_refuse_bad_input_by_name() {
+    let d = tempfile::tempdir().unwrap();
+    let few = d.path().join("few");
+    write_folder(
+        &few,
+        &small_board(),
+        &small_camera(),
+        [310.0, 150.0],
+        500.0,
+        3,
+        7,
+    );
+    let cal = d.path().join("cal.json");
+    let (f, c) = (few.to_str().unwrap(), cal.to_str().unwrap());
+    let out = rigctl_any(&["calibrate", f, "--scale-um-per-px", "774", "--out", c]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && !cal.exists());
+    assert!(
+        err.contains(f) && err.contains("3 steps: a calibration needs at least 5 frames"),
+        "{err}"
+    );
+    let out = rigctl_any(&[
+        "calibrate",
+        f,
+        "--scale-um-per-px",
+        "774",
+        "--out",
+        c,
+        "--registration",
+        "interferometer",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("steps.csv") && err.contains("no interferometer_um column"),
+        "{err}"
+    );
+    // A calibration of 1280x720 frames (the unit tests' synthetic scan, written by hand)
+    // applied to 300x200 frames.
+    let rec = serde_json::json!({
+        "version": 1, "id": "cal-test", "date": "2026-12-02T19:00:00Z", "method": "commanded",
+        "rig": null,
+        "fingerprint": {"frame_size": [1280, 720], "scale_um_per_px": 774.0, "board": null},
+        "scan": {"frames": 30, "step_um": 500.0, "travel_um": 14500.0, "piezo_travel_um": null},
+        "reference_rel_u": 1e-4, "targets": [],
+        "field": {"layout": "free", "model": {"centre_px": [639.5, 359.5],
+            "norm_radius_px": 734.3, "a_px_per_um": [[0.001292, 0.0], [0.0, 0.001292]],
+            "g_per_um": [0.0, 0.0], "k1": 0.0, "k2": 0.0},
+            "covariance": vec![[0.0; 8]; 8], "parameters": [], "stage_dir_rad": 3.0,
+            "print_scale": null, "residual_rms_px": 0.01, "residual_rms_um": 7.7,
+            "residual_max_um": 20.0}
+    });
+    std::fs::write(&cal, rec.to_string()).unwrap();
+    let out = rigctl_any(&["process", f, "--calibration", c]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success()
+            && err
+                .contains("calibration cal-test was fitted on 1280x720 frames; these are 300x200"),
+        "{err}"
+    );
+    std::fs::write(&cal, "{\"version\": 7}").unwrap();
+    let err = String::from_utf8_lossy(&rigctl_any(&["process", f, "--calibration", c]).stderr)
+        .into_owned();
+    assert!(
+        err.contains(c) && err.contains("version 7: this rigd reads version 1"),
+        "{err}"
     );
 }
