@@ -10,6 +10,7 @@ pub mod firmware;
 pub mod instances;
 pub mod schema;
 pub mod skip;
+pub mod web;
 
 use image::RgbImage;
 use rigd::sim::render::{SceneRenderer, View};
