@@ -147,6 +147,7 @@ fn case_figures(r: &serde_json::Value, key: &str) -> Vec<f64> {
 
 /// Each case's figure within 25 % of README's range for it (`(low, high)`, µm).
 fn within_readme(what: &str, got: &[f64], readme: [(f64, f64); 3]) {
+    println!("{what}: {got:.2?} µm");
     for (c, (&g, (lo, hi))) in got.iter().zip(readme).enumerate() {
         assert!(
             g >= 0.75 * lo && g <= 1.25 * hi,
