@@ -6,7 +6,7 @@
 //! thread, was tried: the log's clock offset is estimated from how fresh each burst of the
 //! file is when it is read, and a reader that is busy elsewhere sees bursts late, so the
 //! estimate loosens by tens of milliseconds and readings land in the previous move
-//! (tests/daemon_xl80.rs, an RTX log flushed ten times a second).
+//! (tests/suite/daemon_xl80.rs, an RTX log flushed ten times a second).
 
 use crate::acquisition::job::JobRegistration;
 use crate::acquisition::record::StepRecord;

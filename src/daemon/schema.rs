@@ -4,7 +4,7 @@
 //!
 //! What serde does not say is added here: a request line's `v` and `id` (taken off by
 //! `decode_request` before the request is decoded) and the protocol version the replies and
-//! events carry. `tests/protocol_schema.rs` holds the committed file to what this generates
+//! events carry. `tests/suite/protocol_schema.rs` holds the committed file to what this generates
 //! and validates a real daemon's traffic against it.
 
 use crate::daemon::protocol::{Request, ServerLine, MAX_ID, PROTOCOL_VERSION};

@@ -1,7 +1,7 @@
 //! GRBL 1.1 axis driver (G-code over serial), in µm; GRBL speaks mm.
 //!
 //! The protocol rules it follows (GRBL's interface docs, and GRBL 1.1h's own firmware in
-//! `tests/grbl_firmware.rs`):
+//! `tests/suite/grbl_firmware.rs`):
 //! - Opening the port resets most boards: wait for the `Grbl 1.1…` banner. A board that
 //!   does not reset on open may be mid-move, so it is asked for a status report, never reset.
 //!   `$$` then gives the motor step (`$100`), top speed (`$110`) and acceleration (`$120`):

@@ -140,7 +140,7 @@ impl Tap {
 }
 
 /// Drive a daemon through every request kind and every event a job can end with but
-/// `failed` (which needs a faulty rig: tests/daemon_faults.rs).
+/// `failed` (which needs a faulty rig: tests/suite/daemon_faults.rs).
 fn traffic(tap: &mut Tap) {
     let hello = tap.ok(json!({"kind": "hello"}));
     assert_eq!(hello["capabilities"]["requests"], json!(REQUEST_KINDS));
@@ -254,7 +254,7 @@ fn a_daemons_traffic_validates_against_the_schema() {
     }
     // What the traffic held: every reply body, every event kind but `failed` and
     // `calibrated` (the small board's two targets are too few for a field model: a
-    // calibration job on the webcam rig, tests/daemon_calibration.rs, sends it).
+    // calibration job on the webcam rig, tests/suite/daemon_calibration.rs, sends it).
     let seen: BTreeSet<&str> = tap.got.iter().filter_map(|l| l["event"].as_str()).collect();
     let want: BTreeSet<&str> = EVENT_KINDS
         .iter()

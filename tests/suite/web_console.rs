@@ -282,3 +282,102 @@ fn a_fault_shows_with_its_reason_and_unlock_clears_it() {
         },
     );
 }
+
+/// Pick `plan` in the form as a person does: the select changed, its change event fired.
+async fn choose_plan(b: &Browser, plan: &str) {
+    b.set("f-plan", plan).await;
+    b.js("document.getElementById('f-plan').dispatchEvent(new Event('change')), true")
+        .await;
+}
+
+/// Whether the form row of class `class` shows.
+fn row_shows(class: &str) -> String {
+    format!("!document.querySelector('#job-form .{class}').hidden")
+}
+
+#[test]
+fn grid_and_list_plans_from_the_form_run_and_their_errors_show_beside_their_fields() {
+    let test = "grid_and_list_plans_from_the_form_run_and_their_errors_show_beside_their_fields";
+    let ideal = Console::start(&["--camera", "ideal"]);
+    with_browser(test, ideal, |b, c| async move {
+        b.client.goto(&c.url()).await.unwrap();
+        b.until("rig.state && rig.state.state === 'ready'", 30)
+            .await;
+        // A grid: its two lines show, the line's fields hide.
+        choose_plan(&b, "grid").await;
+        assert_eq!(b.js(&row_shows("plan-grid")).await, true);
+        assert_eq!(b.js(&row_shows("plan-scan")).await, false);
+        // A step the daemon refuses on the piezo: its message beside the outer line.
+        b.set("f-outer-step_um", "1e9").await;
+        b.click("#f-submit").await;
+        let err = "document.querySelector('.err[data-field=\"plan.grid.outer\"]').textContent";
+        let said = b.until(err, 10).await;
+        assert!(said.as_str().unwrap().contains("plan.grid.outer"), "{said}");
+        b.screenshot("12-grid-error").await;
+        // The form's own grid, 4 x 3, runs to its end.
+        b.set("f-outer-step_um", "100").await;
+        b.set("f-settle_ms", "0").await;
+        b.click("#f-submit").await;
+        let ok = "document.getElementById('f-ok').textContent";
+        let queued = b
+            .until(&format!("{ok}.includes('queued') && {ok}"), 10)
+            .await;
+        assert!(queued.as_str().unwrap().contains("(12 frames)"), "{queued}");
+        let finished = "document.querySelector('#sessions tr[data-session]') && document.querySelector('#sessions tr[data-session]').textContent.includes('finished')";
+        b.until(finished, 60).await;
+        b.screenshot("13-grid-finished").await;
+        // A list: a line that is no position is named by the page, before anything is sent.
+        choose_plan(&b, "list").await;
+        assert_eq!(b.js(&row_shows("plan-list")).await, true);
+        b.set("f-list", "1000\n1200, x").await;
+        b.click("#f-submit").await;
+        let err = "document.querySelector('.err[data-field=\"plan.list\"]').textContent";
+        let said = b.until(err, 10).await;
+        assert!(said.as_str().unwrap().contains("plan.list[1]"), "{said}");
+        // A position beyond the axis's soft limits: the daemon's refusal, beside the list.
+        b.set("f-list", "1000\n1e12").await;
+        b.click("#f-submit").await;
+        let said = b.until(err, 10).await;
+        assert!(said.as_str().unwrap().contains("plan.list"), "{said}");
+        b.screenshot("14-list-error").await;
+        b.set("f-list", "1000\n1400\n1800, 300").await;
+        b.click("#f-submit").await;
+        let queued = b
+            .until(&format!("{ok}.includes('queued') && {ok}"), 10)
+            .await;
+        assert!(queued.as_str().unwrap().contains("(3 frames)"), "{queued}");
+    });
+}
+
+#[test]
+fn the_calibration_panel_shows_the_record_a_job_from_its_button_makes() {
+    let test = "the_calibration_panel_shows_the_record_a_job_from_its_button_makes";
+    let ideal = Console::start(&["--camera", "ideal"]);
+    with_browser(test, ideal, |b, c| async move {
+        b.client.goto(&c.url()).await.unwrap();
+        b.until("rig.state && rig.state.state === 'ready'", 30)
+            .await;
+        let record = "document.getElementById('cal-record').textContent";
+        let none = b.until(&format!("{record} !== '–' && {record}"), 10).await;
+        assert_eq!(none, "no current calibration");
+        b.click("#cal-run").await;
+        let msg = b
+            .until("document.getElementById('cal-msg').textContent", 10)
+            .await;
+        assert!(msg.as_str().unwrap().contains("calibration job"), "{msg}");
+        // The scan's 40 frames and the fit, then the record the page reads back.
+        let made = b
+            .until(
+                &format!("{record}.includes('field residual') && {record}"),
+                120,
+            )
+            .await;
+        let made = made.as_str().unwrap();
+        assert!(made.starts_with("cal-"), "{made}");
+        assert!(
+            made.contains("(0.0 days old)") && made.contains("40 frames 500 µm apart"),
+            "{made}"
+        );
+        b.screenshot("15-calibrated").await;
+    });
+}
