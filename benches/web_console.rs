@@ -13,15 +13,12 @@
 
 #[path = "../tests/support/mod.rs"]
 mod support;
-#[path = "../tests/support/web.rs"]
-#[allow(dead_code)]
-mod web;
 
 use rigd::cli::client::Client;
 use rigd::daemon::protocol::Request;
 use std::io::{Read, Write};
 use std::time::{Duration, Instant};
-use web::{Browser, Console};
+use support::web::{Browser, Console};
 
 fn quantile(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
@@ -178,7 +175,7 @@ fn stalled_readers(c: &Console) {
 }
 
 fn main() {
-    if let Some(why) = web::no_browser() {
+    if let Some(why) = support::web::no_browser() {
         println!("web_console bench: {why}");
         return;
     }

@@ -3,15 +3,12 @@
 //! `rigctl process` folder, `rigctl calibrate` on it, the local scale it finds against the
 //! sim's optics, and the offsets of a measurement run before and after `--calibration`.
 
-mod support;
-
 use rigd::sim::frames::FrameRenderer;
 use rigd::sim::render::View;
 use rigd::sim::{Board, CameraModel};
 use serde_json::Value;
 use std::path::Path;
 use std::process::{Command, Output};
-use support::*;
 
 const PAPER: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/config/boards/paper.toml");
 

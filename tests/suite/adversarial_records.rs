@@ -193,6 +193,8 @@ fn folder(dir: &Path) -> PathBuf {
 
 /// `rigctl ARGS`, its status, stderr and its peak RSS (kB): the rusage `wait4` gives for
 /// this child alone (the test process runs other tests, and their children, beside it).
+// `wait4` reaps the child, which clippy cannot see.
+#[allow(clippy::zombie_processes)]
 fn rigctl_rss(args: &[&std::ffi::OsStr]) -> (bool, String, u64) {
     use std::io::Read;
     use std::os::unix::process::ExitStatusExt;
