@@ -463,6 +463,7 @@ async function showSession(name) {
   $('session-view').hidden = false;
   $('session-name').textContent = name;
   $('dl-csv').href = withToken(`/files/${encodeURIComponent(name)}/results.csv`);
+  $('dl-tiff').href = withToken(`/files/${encodeURIComponent(name)}/export.ome.tif`);
   document.querySelectorAll('#sessions tr').forEach((tr) => tr.classList.toggle('sel', tr.dataset.session === name));
   const [t, c] = await Promise.all([
     getJson(`/api/sessions/${encodeURIComponent(name)}/targets`),

@@ -208,6 +208,24 @@ fn a_job_from_the_form_runs_and_its_results_and_plots_appear() {
         );
         assert_eq!(s, 200);
         assert!(csv.starts_with("run,case,repeat,target"), "{csv}");
+        // The frames as OME-TIFF, fetched as the page's link does: a little-endian TIFF
+        // with its OME-XML, every frame in it (8 planes of 3 channels, 1280x720).
+        b.js("(window.dl = null, fetch(document.getElementById('dl-tiff').href).then(r => r.arrayBuffer().then(b => { const u = new Uint8Array(b); window.dl = {status: r.status, type: r.headers.get('content-type'), bytes: u.length, head: String.fromCharCode(u[0], u[1]), ome: new TextDecoder('latin1').decode(u.subarray(0, 65536)).includes('OME')}; })), true)")
+            .await;
+        let dl = b.until("window.dl", 60).await;
+        assert_eq!(dl["status"], 200, "{dl}");
+        assert_eq!(dl["type"], "image/tiff", "{dl}");
+        assert_eq!(dl["head"], "II", "{dl}");
+        assert_eq!(dl["ome"], true, "{dl}");
+        assert!(dl["bytes"].as_u64().unwrap() >= 8 * 3 * 1280 * 720, "{dl}");
+        // A session that is not there: named, not a server error.
+        let (s, body) = get(
+            &c,
+            &format!("/files/nope/export.ome.tif?token={}", c.token),
+            "",
+        );
+        assert_eq!(s, 404, "{body}");
+        assert!(body.contains("nope"), "{body}");
     });
 }
 

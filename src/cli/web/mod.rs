@@ -3,12 +3,13 @@
 //! token printed once as a URL (docs/console.md).
 //!
 //! One module per job: [`auth`] the token and host checks, [`link`] the daemon's socket,
-//! [`routes`] the HTTP API, [`bridge`] the page's WebSocket (events and the live view),
+//! [`routes`] the HTTP API, [`export`] the frames as an OME-TIFF download, [`bridge`] the page's WebSocket (events and the live view),
 //! [`plots`] and [`offsets`] the charts as SVG, [`assets`] the embedded page.
 
 pub mod assets;
 pub mod auth;
 pub mod bridge;
+pub mod export;
 pub mod link;
 pub mod offsets;
 pub mod plots;

@@ -3,7 +3,7 @@
 //! calibration, and the page's WebSocket.
 
 use super::link::Daemon;
-use super::{assets, auth, bridge, plots};
+use super::{assets, auth, bridge, export, plots};
 use axum::extract::{Path as UrlPath, State, WebSocketUpgrade};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -53,6 +53,7 @@ pub fn router(app: App, token: auth::Token) -> Router {
         .route("/api/calibration", get(calibration))
         .route("/plots/{name}/{chart}", get(plots::chart))
         .route("/files/{name}/results.csv", get(results_csv))
+        .route("/files/{name}/export.ome.tif", get(export::ome_tiff))
         .with_state(app)
         .layer(axum::middleware::from_fn_with_state(token, auth::check))
         .layer(tower_http::set_header::SetResponseHeaderLayer::overriding(
