@@ -174,7 +174,10 @@ $('zoom').onchange = (e) => { rig.zoom = e.target.value; sendView(); };
 // ---- the rig: state, positions, controls ----
 async function refreshRig() {
   try {
-    const [s, p] = await Promise.all([api({ kind: 'status' }), api({ kind: 'position' })]);
+    // The position first, then the status: asked together, the status could catch the
+    // page's own position read and show the rig busy until the next refresh.
+    const p = await api({ kind: 'position' });
+    const s = await api({ kind: 'status' });
     if (s.ok) { rig.status = s.result; rig.state = s.result.rig_state; }
     else if (s.error) throw new Error(s.error.message);
     if (p.ok) showPosition(p.result);
@@ -235,7 +238,10 @@ function refusal(ctl) {
   }
   if (rig.moving) return 'a manual move is under way';
   if (st.state === 'fault') return `the rig is in fault (${st.reason || st.device})`;
-  if (st.state === 'busy') return st.job_id ? `job ${st.job_id} is running (pause or cancel it)` : `the rig is busy${st.request ? ` (${st.request})` : ''}`;
+  // A read of the positions (another client's) is over in a moment, and the daemon runs a
+  // rig request sent meanwhile after it: nothing to refuse.
+  const reading = st.state === 'busy' && !st.job_id && st.request === 'position';
+  if (st.state === 'busy' && !reading) return st.job_id ? `job ${st.job_id} is running (pause or cancel it)` : `the rig is busy${st.request ? ` (${st.request})` : ''}`;
   return null;
 }
 

@@ -246,8 +246,10 @@ fn pause_resume_and_cancel_work_from_the_page() {
         b.click("#queue .job-pause").await;
         b.until("document.querySelector('#queue .job-state') && document.querySelector('#queue .job-state').textContent === 'paused'", 20)
             .await;
-        // Paused: the frame count stands still.
+        // Paused: the frame count stands still. (The step under way when the pause came
+        // may still report its frame just after the page shows `paused`.)
         let frames = "parseInt(document.querySelector('#queue .job-frames').textContent)";
+        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
         let at = b.js(frames).await;
         tokio::time::sleep(std::time::Duration::from_millis(800)).await;
         assert_eq!(b.js(frames).await, at);
