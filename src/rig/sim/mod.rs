@@ -241,6 +241,7 @@ fn emulated_axis(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError
     );
     go.feed_um_s = s.axis.max_speed_um_s;
     go.status_poll_hz = crate::hw::grbl::EMULATOR_POLL_HZ;
+    go.reply_timeout_ms = EMULATOR_REPLY_TIMEOUT_MS;
     let axis = GrblStage::connect("axis", go)?;
     Ok(EmulatedStage {
         faults: grbl.faults().clone(),
@@ -262,17 +263,22 @@ fn emulated_axis(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError
     })
 }
 
+/// How long the drivers wait for an emulated controller's reply. A real controller answers
+/// in milliseconds from its own processor (the drivers' default, 1 s, is for it); the
+/// emulators are threads of this process, and on a loaded machine the renderer and the
+/// pipeline can keep them off a core for longer.
+const EMULATOR_REPLY_TIMEOUT_MS: u64 = 5_000;
+
 /// The piezo: the PI GCS emulator on a pty and rigd's GCS driver connected to it.
 fn emulated_piezo(rig: &SimRig, s: &SimSettings) -> Result<EmulatedStage, HwError> {
     let gcs = GcsSim::spawn(Arc::clone(&rig.piezo), GcsSimOptions::default(), None)
         .map_err(|e| sim_error("sim-gcs", e))?;
-    let piezo = GcsStage::connect(
-        "piezo",
-        GcsOptions::new(
-            gcs.path().to_string_lossy(),
-            limits("piezo", s.piezo_limits_um)?,
-        ),
-    )?;
+    let mut po = GcsOptions::new(
+        gcs.path().to_string_lossy(),
+        limits("piezo", s.piezo_limits_um)?,
+    );
+    po.reply_timeout_ms = EMULATOR_REPLY_TIMEOUT_MS;
+    let piezo = GcsStage::connect("piezo", po)?;
     Ok(EmulatedStage {
         faults: gcs.faults().clone(),
         stage: Box::new(piezo),
